@@ -1,0 +1,142 @@
+"""X-ray source driver interface, its simulated twin, and the beam interlock.
+
+Safety rule (enforced here, not in the ROS node): the beam is on only while a scan is
+armed, both arms report in position (recently: a stale report counts as "not in
+position"), and no e-stop is latched. Losing any condition switches the beam off at once.
+Units: kilovolt peak (kVp), watts, seconds.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Protocol
+
+
+class SourceError(RuntimeError):
+    """The source refused a command or reported a fault."""
+
+
+class XraySource(Protocol):
+    """What the controller needs from a source driver (real or simulated)."""
+
+    def configure(self, kvp: float, power_w: float) -> None: ...
+    def set_beam(self, on: bool, now_s: float) -> None: ...
+    @property
+    def beam_on(self) -> bool: ...
+
+
+@dataclass
+class SimulatedXraySource:
+    """A micro-focus source model: 60-120 kVp, up to 150 W; counts beam-on time."""
+
+    kvp: float = 90.0
+    power_w: float = 150.0
+    kvp_range: tuple[float, float] = (60.0, 120.0)
+    max_power_w: float = 150.0
+    _beam_on: bool = False
+    beam_on_seconds: float = 0.0
+    _on_since: float | None = None
+
+    def configure(self, kvp: float, power_w: float) -> None:
+        if not (self.kvp_range[0] <= kvp <= self.kvp_range[1]):
+            raise SourceError(f"kVp {kvp} outside {self.kvp_range}")
+        if not (0.0 < power_w <= self.max_power_w):
+            raise SourceError(f"power {power_w} W outside (0, {self.max_power_w}]")
+        if self._beam_on:
+            raise SourceError("cannot change kVp/power while the beam is on")
+        self.kvp, self.power_w = float(kvp), float(power_w)
+
+    def set_beam(self, on: bool, now_s: float) -> None:
+        if on and not self._beam_on:
+            self._on_since = now_s
+        if not on and self._beam_on and self._on_since is not None:
+            self.beam_on_seconds += now_s - self._on_since
+        self._beam_on = bool(on)
+
+    @property
+    def beam_on(self) -> bool:
+        return self._beam_on
+
+
+@dataclass(frozen=True)
+class InterlockInputs:
+    """The facts the interlock decides on; arm reports carry the time they were received."""
+
+    scan_armed: bool = False
+    source_arm_in_position: bool = False
+    detector_arm_in_position: bool = False
+    source_arm_stamp_s: float = float("-inf")
+    detector_arm_stamp_s: float = float("-inf")
+    estop_latched: bool = False
+
+
+def beam_permitted(inputs: InterlockInputs, now_s: float, max_report_age_s: float) -> tuple[bool, str]:
+    """Whether the beam may be on now, and the first reason it may not."""
+    if inputs.estop_latched:
+        return False, "e-stop latched"
+    if not inputs.scan_armed:
+        return False, "scan not armed"
+    for name, ok, stamp in (("source arm", inputs.source_arm_in_position, inputs.source_arm_stamp_s),
+                            ("detector arm", inputs.detector_arm_in_position, inputs.detector_arm_stamp_s)):
+        if not ok:
+            return False, f"{name} not in position"
+        if now_s - stamp > max_report_age_s:
+            return False, f"{name} report stale ({now_s - stamp:.2f} s old)"
+    return True, "ok"
+
+
+class InterlockedSource:
+    """A source behind the interlock. Every input change re-evaluates and may cut the beam.
+
+    ``request_beam(True)`` is the only way to switch the beam on; it succeeds only when
+    :func:`beam_permitted` says so. ``tick(now_s)`` must be called periodically so that
+    stale arm reports switch the beam off.
+    """
+
+    def __init__(self, source: XraySource, max_report_age_s: float = 1.0):
+        self.source = source
+        self.max_report_age_s = float(max_report_age_s)
+        self.inputs = InterlockInputs()
+        self.last_reason = "scan not armed"
+
+    def _enforce(self, now_s: float) -> None:
+        ok, reason = beam_permitted(self.inputs, now_s, self.max_report_age_s)
+        self.last_reason = reason
+        if not ok and self.source.beam_on:
+            self.source.set_beam(False, now_s)
+
+    def update(self, now_s: float, **changes) -> None:
+        self.inputs = replace(self.inputs, **changes)
+        self._enforce(now_s)
+
+    def report_arm(self, which: str, in_position: bool, now_s: float) -> None:
+        if which == "source":
+            self.update(now_s, source_arm_in_position=bool(in_position), source_arm_stamp_s=now_s)
+        elif which == "detector":
+            self.update(now_s, detector_arm_in_position=bool(in_position), detector_arm_stamp_s=now_s)
+        else:
+            raise ValueError(f"unknown arm {which!r}")
+
+    def estop(self, now_s: float) -> None:
+        self.update(now_s, estop_latched=True, scan_armed=False)
+
+    def reset_estop(self, now_s: float) -> None:
+        self.update(now_s, estop_latched=False)
+
+    def tick(self, now_s: float) -> None:
+        self._enforce(now_s)
+
+    def request_beam(self, on: bool, now_s: float) -> tuple[bool, str]:
+        if not on:
+            self.source.set_beam(False, now_s)
+            return True, "beam off"
+        ok, reason = beam_permitted(self.inputs, now_s, self.max_report_age_s)
+        self.last_reason = reason
+        if not ok:
+            return False, f"beam refused: {reason}"
+        self.source.set_beam(True, now_s)
+        return True, "beam on"
+
+    @property
+    def beam_on(self) -> bool:
+        return self.source.beam_on

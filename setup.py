@@ -1,0 +1,33 @@
+"""ament_python build of robot_ct_ros: `colcon build` installs the nodes to lib/robot_ct_ros."""
+
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = "robot_ct_ros"
+
+# ROS executables (`ros2 run robot_ct_ros <name>`), each a thin rclpy shell in robot_ct_ros/nodes.
+NODES = {
+    "source_control": "robot_ct_ros.nodes.source_control:main",
+}
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    packages=find_packages(exclude=["test", "test.*", "bench", "bench.*"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}/config", glob("config/*.yaml")),
+    ],
+    install_requires=["setuptools"],
+    zip_safe=False,
+    maintainer="robot_ct_ros developers",
+    maintainer_email="dev@robot-ct-ros.local",
+    description="Robotic micro-CT with data-driven 9-DOF geometry correction (NCC-LLE), ROS 2 Jazzy",
+    license="Apache-2.0",
+    entry_points={
+        "console_scripts": [f"{name} = {target}" for name, target in NODES.items()]
+        + ["robot-ct = robot_ct_ros.cli:main"],
+    },
+)

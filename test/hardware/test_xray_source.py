@@ -1,0 +1,57 @@
+"""The beam interlock: each condition alone keeps the beam off."""
+
+import pytest
+
+from robot_ct_ros.hardware.xray_source import (InterlockedSource, SimulatedXraySource, SourceError,
+                                               beam_permitted, InterlockInputs)
+
+ALL_OK = dict(scan_armed=True, source_arm_in_position=True, detector_arm_in_position=True,
+              source_arm_stamp_s=10.0, detector_arm_stamp_s=10.0, estop_latched=False)
+
+
+def test_all_conditions_met_permits_beam():
+    assert beam_permitted(InterlockInputs(**ALL_OK), now_s=10.5, max_report_age_s=1.0)[0]
+
+
+@pytest.mark.parametrize("change, reason", [
+    (dict(scan_armed=False), "not armed"),
+    (dict(source_arm_in_position=False), "source arm not in position"),
+    (dict(detector_arm_in_position=False), "detector arm not in position"),
+    (dict(estop_latched=True), "e-stop"),
+    (dict(source_arm_stamp_s=8.0), "source arm report stale"),
+    (dict(detector_arm_stamp_s=8.0), "detector arm report stale"),
+])
+def test_each_condition_alone_refuses_and_cuts_beam(change, reason):
+    ok, why = beam_permitted(InterlockInputs(**{**ALL_OK, **change}), now_s=10.5, max_report_age_s=1.0)
+    assert not ok and reason in why
+
+    src = InterlockedSource(SimulatedXraySource(), max_report_age_s=1.0)
+    src.update(10.0, **ALL_OK)
+    assert src.request_beam(True, 10.1)[0] and src.beam_on
+    src.update(10.5, **change)
+    assert not src.beam_on
+    assert not src.request_beam(True, 10.6)[0]
+
+
+def test_stale_reports_cut_beam_on_tick():
+    src = InterlockedSource(SimulatedXraySource(), max_report_age_s=0.5)
+    src.update(0.0, scan_armed=True)
+    src.report_arm("source", True, 0.0)
+    src.report_arm("detector", True, 0.0)
+    assert src.request_beam(True, 0.1)[0]
+    src.tick(0.4)
+    assert src.beam_on
+    src.tick(0.6)
+    assert not src.beam_on
+    assert src.source.beam_on_seconds == pytest.approx(0.5)
+
+
+def test_source_limits():
+    s = SimulatedXraySource()
+    with pytest.raises(SourceError):
+        s.configure(200.0, 100.0)
+    with pytest.raises(SourceError):
+        s.configure(90.0, 500.0)
+    s.set_beam(True, 0.0)
+    with pytest.raises(SourceError):
+        s.configure(80.0, 100.0)
