@@ -1,0 +1,143 @@
+"""LLE embedding weights and the detector homography."""
+
+import numpy as np
+import pytest
+from scipy.optimize import minimize
+
+from robot_ct_ros.ct.calibration import (WEIGHTINGS, detector_homographies, lle_weights, ncc,
+                                         warp_projections)
+from robot_ct_ros.ct.geometry import ConeGeometry
+
+
+def _random_problem(rng, n=4, K=6, P=400):
+    Y = rng.normal(size=(n, K, P)).cumsum(axis=2)  # smooth-ish, correlated "projections"
+    w_true = rng.dirichlet(np.ones(K), size=n)  # sums to 1
+    return Y, w_true
+
+
+@pytest.mark.parametrize("method", WEIGHTINGS)
+def test_weights_sum_to_one(method):
+    rng = np.random.default_rng(0)
+    Y, _ = _random_problem(rng)
+    b = Y.mean(axis=1) + rng.normal(scale=0.1, size=(Y.shape[0], Y.shape[2]))
+    w = lle_weights(b, Y, method)
+    assert w.shape == Y.shape[:2]
+    np.testing.assert_allclose(w.sum(axis=1), 1.0, atol=1e-12)
+
+
+def test_ncc_exact_equals_brute_force_maximiser():
+    rng = np.random.default_rng(1)
+    K, P = 5, 300
+    for trial in range(3):
+        # as in LLE: b lies near the neighbours, which are noisy versions of one another
+        base = rng.normal(size=P).cumsum()
+        Y = base + rng.normal(size=(K, P)) * 3.0
+        b = 0.7 * base + rng.normal(size=P) * 3.0 + 4.0
+        w = lle_weights(b[None], Y[None], "ncc-exact", reg=0.0)[0]
+        Yc = Y - Y.mean(axis=1, keepdims=True)
+        assert np.linalg.solve(Yc @ Yc.T, Yc @ (b - b.mean())).sum() > 0  # a finite maximiser exists
+
+        def neg_ncc(free):
+            ww = np.append(free, 1.0 - free.sum())
+            return -ncc(ww @ Y, b)[0]
+
+        best = None
+        for start in range(4):
+            x0 = rng.dirichlet(np.ones(K))[:-1]
+            res = minimize(neg_ncc, x0, method="BFGS", options={"gtol": 1e-12, "maxiter": 10000})
+            best = res if best is None or res.fun < best.fun else best
+        w_brute = np.append(best.x, 1.0 - best.x.sum())
+        assert ncc(w @ Y, b)[0] >= -best.fun - 1e-10
+        np.testing.assert_allclose(w, w_brute, atol=1e-4)
+
+
+def test_exact_embedding_recovered_and_ncc_ignores_gain_and_offset():
+    rng = np.random.default_rng(2)
+    Y, w_true = _random_problem(rng, n=3, K=4, P=500)
+    b = np.einsum("nk,nkp->np", w_true, Y)
+    for method in ("l2", "ncc-exact"):
+        np.testing.assert_allclose(lle_weights(b, Y, method, reg=0.0), w_true, atol=1e-8)
+    b_gain_offset = 2.5 * b + 7.0  # what truncation and calibration drifts do to a projection
+    np.testing.assert_allclose(lle_weights(b_gain_offset, Y, "ncc-exact", reg=0.0), w_true, atol=1e-8)
+    assert np.abs(lle_weights(b_gain_offset, Y, "l2", reg=0.0) - w_true).max() > 1e-2
+
+
+def test_masked_and_nan_pixels_are_ignored():
+    rng = np.random.default_rng(3)
+    Y, w_true = _random_problem(rng, n=2, K=4, P=300)
+    b = np.einsum("nk,nkp->np", w_true, Y)
+    b_bad = b.copy()
+    b_bad[:, :20] = np.nan          # dead pixels
+    b_bad[:, 20:40] = 1e6           # hot pixels, masked out
+    mask = np.ones(b.shape[1], bool)
+    mask[20:40] = False
+    for method in WEIGHTINGS:
+        w = lle_weights(b_bad, Y, method, mask=mask, reg=0.0)
+        assert np.all(np.isfinite(w))
+        if method != "ncc":  # the published closed form is not exact for correlated neighbours
+            np.testing.assert_allclose(w, w_true, atol=1e-8)
+
+
+def test_rejects_bad_shapes_and_methods():
+    with pytest.raises(ValueError):
+        lle_weights(np.zeros((2, 10)), np.zeros((2, 3, 11)))
+    with pytest.raises(ValueError):
+        lle_weights(np.zeros((1, 10)), np.zeros((1, 3, 10)), method="l1")
+
+
+def _view(source, det_center, u, v, n_rows, n_cols, pitch):
+    return ConeGeometry(source_mm=[source], detector_mm=[det_center], u=[u], v=[v], n_rows=n_rows,
+                        n_cols=n_cols, row_pitch_mm=pitch, col_pitch_mm=pitch)
+
+
+def _ray_image(geom: ConeGeometry) -> np.ndarray:
+    """A smooth 'projection' that depends only on each pixel's ray: a function of where the ray
+    crosses the plane x = 0 (the object's mid-plane). Any two detectors that see the same ray
+    must show the same value there."""
+    s = geom.source_mm[0]
+    X = geom.pixel_centers_mm(0)
+    t = -s[0] / (X[..., 0] - s[0])
+    y = s[1] + t * (X[..., 1] - s[1])
+    z = s[2] + t * (X[..., 2] - s[2])
+    return (np.sin(0.4 * y) * np.cos(0.3 * z) + 0.02 * y * z).astype(np.float32)
+
+
+def test_homography_warp_equals_direct_image_of_moved_detector():
+    source = np.array([120.0, 0.0, 0.0])
+    virtual = _view(source, [-200.0, 0.0, 0.0], [0, 1, 0], [0, 0, 1], 240, 320, 0.1)
+    # the moved detector: shifted, tilted and skewed, with another pixel grid
+    params = np.array([[0, 0, 0, 0.8, -0.5, 1.5, np.deg2rad(2.0), np.deg2rad(-1.5), np.deg2rad(3.0)]])
+    nominal = _view(source, [-200.0, 0.0, 0.0], [0, 1, 0], [0, 0, 1], 150, 200, 0.11)
+    moved = nominal.perturbed(params)
+    H = detector_homographies(virtual, moved)
+    warped, valid = warp_projections(_ray_image(virtual)[None], H, [0], moved.n_rows, moved.n_cols)
+    direct = _ray_image(moved)
+    assert valid.all()
+    err = np.abs(warped[0] - direct)
+    assert err.max() < 2e-3 * np.abs(direct).max()
+    # and an unrelated detector pose does not match: the test can fail
+    other = nominal.perturbed(params * 0.0 + np.array([0, 0, 0, 2.0, 0, 0, 0, 0, 0]))
+    assert np.abs(warped[0] - _ray_image(other)).max() > 1e-2
+
+
+def test_homography_requires_same_source_and_reports_off_detector_pixels():
+    source = np.array([120.0, 0.0, 0.0])
+    virtual = _view(source, [-200.0, 0.0, 0.0], [0, 1, 0], [0, 0, 1], 20, 20, 0.1)
+    big = _view(source, [-200.0, 0.0, 0.0], [0, 1, 0], [0, 0, 1], 40, 40, 0.1)
+    _, valid = warp_projections(np.ones((1, 20, 20), np.float32), detector_homographies(virtual, big), [0], 40, 40)
+    assert valid.any() and not valid.all()
+    with pytest.raises(ValueError):
+        detector_homographies(virtual, big.replace(source_mm=[[121.0, 0.0, 0.0]]))
+
+
+def test_ncc_exact_falls_back_to_best_neighbour_when_no_finite_maximiser():
+    rng = np.random.default_rng(5)
+    for _ in range(50):  # find random data whose NCC maximiser lies on the wrong side of sum(w) = 1
+        Y = rng.normal(size=(1, 4, 100))
+        b = rng.normal(size=(1, 100))
+        Yc = Y[0] - Y[0].mean(axis=1, keepdims=True)
+        if np.linalg.solve(Yc @ Yc.T, Yc @ (b[0] - b[0].mean())).sum() < 0:
+            break
+    w = lle_weights(b, Y, "ncc-exact", reg=0.0)[0]
+    assert np.count_nonzero(w) == 1 and w.sum() == 1.0
+    assert np.argmax(w) == np.argmax(ncc(Y[0], np.repeat(b, 4, axis=0)))
