@@ -8,6 +8,7 @@ PACKAGE = "robot_ct_ros"
 
 # ROS executables (`ros2 run robot_ct_ros <name>`), each a thin rclpy shell in robot_ct_ros/nodes.
 NODES = {
+    "arm_driver": "robot_ct_ros.nodes.arm_driver:main",
     "source_control": "robot_ct_ros.nodes.source_control:main",
 }
 

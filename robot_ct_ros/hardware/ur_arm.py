@@ -1,0 +1,269 @@
+"""Robot arm driver interface and the Universal Robots driver (ur-rtde behind a process wall).
+
+Units and conventions (as UR uses them, and SI at ROS interfaces): a TCP pose is the 6-vector
+``[x, y, z, rx, ry, rz]`` -- position in metres and orientation as a rotation vector (axis times
+angle, radians) of the tool frame in the robot base frame; joint positions in radians.
+
+Why a child process: ur-rtde's constructors block forever on a peer that accepts the TCP
+connection and never answers, they hold the GIL while doing so (the Python bindings release it
+only in the motion and getter calls), and its background threads call ``std::terminate`` when a
+reconnect fails. So the ur-rtde objects live in a child process
+(:mod:`robot_ct_ros.hardware.ur_worker`, started with the ``spawn`` context) and every call from
+the parent goes over a pipe with a timeout. On a timeout or a dead child the parent kills the
+child and raises :class:`ArmConnectionError`; no call ever blocks its caller longer than its
+timeout (plus the time to kill the child).
+"""
+
+from __future__ import annotations
+
+import itertools
+import multiprocessing
+import threading
+from typing import Protocol, Sequence, runtime_checkable
+
+import numpy as np
+
+
+class ArmError(RuntimeError):
+    """The arm refused or failed a command."""
+
+
+class ArmConnectionError(ArmError):
+    """The controller cannot be reached, stopped answering, or the connection was lost."""
+
+
+class ArmMotionError(ArmError):
+    """A move was refused or did not complete (the connection itself may still be fine)."""
+
+
+@runtime_checkable
+class Arm(Protocol):
+    """What the arm_driver node needs from an arm (real or simulated)."""
+
+    def connect(self) -> None: ...
+    def disconnect(self) -> None: ...
+    def move_linear(self, pose: Sequence[float], speed: float = 0.25, accel: float = 1.2,
+                    timeout_s: float | None = None) -> None: ...
+    def get_tcp_pose(self) -> np.ndarray: ...
+    def get_joint_positions(self) -> np.ndarray: ...
+    @property
+    def is_connected(self) -> bool: ...
+
+
+def as_pose(pose: Sequence[float]) -> np.ndarray:
+    p = np.asarray(pose, dtype=float).reshape(-1)
+    if p.shape != (6,) or not np.all(np.isfinite(p)):
+        raise ValueError(f"a TCP pose is 6 finite numbers [x, y, z, rx, ry, rz], got {pose!r}")
+    return p
+
+
+def pose_distance(a: Sequence[float], b: Sequence[float]) -> tuple[float, float]:
+    """Translation distance (m) and rotation angle (rad) between two TCP poses."""
+    from scipy.spatial.transform import Rotation
+
+    a, b = as_pose(a), as_pose(b)
+    dt = float(np.linalg.norm(a[:3] - b[:3]))
+    rel = Rotation.from_rotvec(b[3:]) * Rotation.from_rotvec(a[3:]).inv()
+    return dt, float(rel.magnitude())
+
+
+class URArm:
+    """A Universal Robots arm through ur-rtde (RTDEReceiveInterface + RTDEControlInterface).
+
+    ``host`` is the controller address. ur-rtde uses the controller's fixed ports (RTDE 30004,
+    dashboard 29999, script 30003), so there is nothing to configure but the address.
+    ``connect_timeout_s`` bounds connect(), ``call_timeout_s`` bounds state reads,
+    ``move_timeout_s`` bounds a move unless move_linear() is given its own timeout.
+    """
+
+    def __init__(self, host: str, connect_timeout_s: float = 10.0, call_timeout_s: float = 2.0,
+                 move_timeout_s: float = 60.0, frequency_hz: float = -1.0, verbose: bool = False):
+        if not host:
+            raise ValueError("URArm needs the controller address")
+        self.host = host
+        self.connect_timeout_s = float(connect_timeout_s)
+        self.call_timeout_s = float(call_timeout_s)
+        self.move_timeout_s = float(move_timeout_s)
+        self.frequency_hz = float(frequency_hz)
+        self.verbose = bool(verbose)
+        self.controller_info: dict = {}
+        self._proc = None
+        self._conn = None
+        self._send_lock = threading.Lock()
+        self._pending: dict[int, list] = {}
+        self._pending_lock = threading.Lock()
+        self._ids = itertools.count(1)
+        self._reader: threading.Thread | None = None
+        self._dead_reason: str | None = "not connected"
+
+    # -- process plumbing -------------------------------------------------------------------
+    def _start_child(self) -> None:
+        from robot_ct_ros.hardware import ur_worker
+
+        ctx = multiprocessing.get_context("spawn")
+        parent_conn, child_conn = ctx.Pipe(duplex=True)
+        proc = ctx.Process(target=ur_worker.worker_main, args=(child_conn, self.host),
+                           name=f"ur_worker[{self.host}]", daemon=True)
+        proc.start()
+        child_conn.close()
+        self._proc, self._conn = proc, parent_conn
+        self._dead_reason = None
+        self._reader = threading.Thread(target=self._read_loop, name=f"ur_reader[{self.host}]", daemon=True)
+        self._reader.start()
+
+    def _read_loop(self) -> None:
+        conn, proc = self._conn, self._proc
+        while True:
+            try:
+                if not conn.poll(0.1):
+                    if not proc.is_alive():
+                        raise EOFError
+                    continue
+                msg_id, status, payload = conn.recv()
+            except (EOFError, OSError):
+                proc.join(0.5)
+                if self._conn is conn:  # not a reader left over from an earlier connection
+                    self._fail_all(f"connection to controller at {self.host} lost "
+                                   f"(driver process exited with code {proc.exitcode})")
+                return
+            with self._pending_lock:
+                slot = self._pending.pop(msg_id, None)
+            if slot is not None:
+                slot[1], slot[2] = status, payload
+                slot[0].set()
+
+    def _fail_all(self, reason: str) -> None:
+        if self._dead_reason is None:
+            self._dead_reason = reason
+        with self._pending_lock:
+            pending, self._pending = self._pending, {}
+        for slot in pending.values():
+            slot[1], slot[2] = "dead", self._dead_reason
+            slot[0].set()
+
+    def _kill_child(self, reason: str) -> None:
+        proc = self._proc
+        self._fail_all(reason)
+        if proc is not None and proc.is_alive():
+            proc.kill()
+            proc.join(2.0)
+
+    def _request(self, op: str, *args, timeout_s: float):
+        if self._proc is None or self._dead_reason is not None:
+            raise ArmConnectionError(self._dead_reason or f"arm at {self.host} not connected")
+        msg_id = next(self._ids)
+        slot = [threading.Event(), None, None]
+        with self._pending_lock:
+            self._pending[msg_id] = slot
+        try:
+            with self._send_lock:
+                self._conn.send((msg_id, op, args))
+        except (OSError, ValueError) as exc:
+            self._kill_child(f"connection to controller at {self.host} lost ({exc})")
+        if not slot[0].wait(timeout_s):
+            self._kill_child(f"controller at {self.host} did not answer within {timeout_s:.1f} s ({op})")
+        status, payload = slot[1], slot[2]
+        if status == "ok":
+            return payload
+        if status == "dead":
+            raise ArmConnectionError(payload)
+        kind, message = payload
+        if kind == "connection":
+            self._kill_child(f"connection to controller at {self.host} lost: {message}")
+            raise ArmConnectionError(self._dead_reason)
+        if kind == "motion":
+            raise ArmMotionError(message)
+        raise ArmError(message)
+
+    # -- Arm interface ---------------------------------------------------------------------
+    def connect(self) -> None:
+        if self.is_connected:
+            return
+        self._shutdown_child()
+        self._start_child()
+        try:
+            self.controller_info = self._request(
+                "connect", {"frequency": self.frequency_hz, "verbose": self.verbose},
+                timeout_s=self.connect_timeout_s) or {}
+        except ArmError as exc:
+            self._shutdown_child()
+            message = str(exc)
+            if "did not answer" not in message:
+                message = f"cannot connect to controller at {self.host}: {message}"
+            raise ArmConnectionError(message) from exc
+
+    def disconnect(self) -> None:
+        if self._proc is None:
+            return
+        if self._dead_reason is None:
+            try:
+                self._request("disconnect", timeout_s=max(self.call_timeout_s, 3.0))
+            except ArmError:
+                pass
+        self._shutdown_child()
+
+    def _shutdown_child(self) -> None:
+        proc, conn = self._proc, self._conn
+        if proc is None:
+            return
+        proc.join(1.0)
+        if proc.is_alive():
+            proc.kill()
+            proc.join(2.0)
+        self._fail_all(f"arm at {self.host} disconnected")
+        if self._reader is not None:
+            self._reader.join(1.0)
+        try:
+            conn.close()
+        except OSError:
+            pass
+        self._proc = self._conn = self._reader = None
+        self._dead_reason = f"arm at {self.host} not connected"
+
+    @property
+    def is_connected(self) -> bool:
+        return self._proc is not None and self._dead_reason is None and self._proc.is_alive()
+
+    def move_linear(self, pose: Sequence[float], speed: float = 0.25, accel: float = 1.2,
+                    timeout_s: float | None = None) -> None:
+        """Linear move of the TCP (moveL), blocking until done, refused, or timed out."""
+        pose = as_pose(pose)
+        self._request("moveL", pose.tolist(), float(speed), float(accel),
+                      timeout_s=self.move_timeout_s if timeout_s is None else float(timeout_s))
+
+    def move_joints(self, q: Sequence[float], speed: float = 1.05, accel: float = 1.4,
+                    timeout_s: float | None = None) -> None:
+        """Joint-space move (moveJ), blocking."""
+        q = as_pose(q)
+        self._request("moveJ", q.tolist(), float(speed), float(accel),
+                      timeout_s=self.move_timeout_s if timeout_s is None else float(timeout_s))
+
+    def read_state(self) -> dict:
+        """tcp_pose, joint_positions, robot_mode, safety_mode, runtime_state, timestamp, connected."""
+        state = self._request("state", timeout_s=self.call_timeout_s)
+        if not state.get("connected", False):
+            self._kill_child(f"connection to controller at {self.host} lost (RTDE disconnected)")
+            raise ArmConnectionError(self._dead_reason)
+        return state
+
+    def get_tcp_pose(self) -> np.ndarray:
+        return np.asarray(self.read_state()["tcp_pose"], dtype=float)
+
+    def get_joint_positions(self) -> np.ndarray:
+        return np.asarray(self.read_state()["joint_positions"], dtype=float)
+
+    def __enter__(self):
+        self.connect()
+        return self
+
+    def __exit__(self, *exc):
+        self.disconnect()
+
+    def __del__(self):
+        try:
+            proc = self._proc
+            if proc is not None and proc.is_alive():
+                proc.kill()
+        except Exception:
+            pass
+

@@ -1,0 +1,167 @@
+"""Child-process side of :class:`robot_ct_ros.hardware.ur_arm.URArm`: owns the ur-rtde objects.
+
+Started by the parent with the multiprocessing ``spawn`` context; talks over one duplex pipe.
+Requests are ``(id, op, args)``; replies ``(id, status, payload)`` with status ``"ok"`` (payload:
+the result) or ``"error"`` (payload: ``(kind, message)``, kind one of ``"connection"``,
+``"motion"``, ``"other"``). Moves run on their own thread (the ur-rtde bindings release the GIL
+there), so state reads keep being answered during a move. The parent enforces every timeout and
+kills this process when the controller stops answering; nothing here needs to be interruptible.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import sys
+import threading
+
+STATE_VARIABLES = ["timestamp", "actual_q", "actual_TCP_pose", "robot_mode", "safety_mode", "runtime_state"]
+
+
+class _Worker:
+    def __init__(self, conn, host: str):
+        self.conn = conn
+        self.host = host
+        self.send_lock = threading.Lock()
+        self.receive = None
+        self.control = None
+        self.move_lock = threading.Lock()
+
+    def reply(self, msg_id, status, payload=None) -> None:
+        with self.send_lock:
+            try:
+                self.conn.send((msg_id, status, payload))
+            except (OSError, ValueError, BrokenPipeError):
+                pass
+
+    def connect(self, options: dict) -> dict:
+        import rtde_control
+        import rtde_receive
+
+        freq = float(options.get("frequency", -1.0))
+        # Receive first: its constructor is the one that blocks on a silent peer (the parent
+        # times out and kills us); the control interface then uploads its script.
+        self.receive = rtde_receive.RTDEReceiveInterface(self.host, freq, STATE_VARIABLES)
+        flags = rtde_control.RTDEControlInterface.FLAG_UPLOAD_SCRIPT
+        if options.get("verbose"):
+            flags |= rtde_control.RTDEControlInterface.FLAG_VERBOSE
+        self.control = rtde_control.RTDEControlInterface(self.host, freq, flags)
+        return {"program_running": bool(self.control.isProgramRunning()),
+                "robot_mode": int(self.receive.getRobotMode())}
+
+    def state(self) -> dict:
+        r = self.receive
+        connected = bool(r.isConnected()) and bool(self.control.isConnected())
+        return {"connected": connected,
+                "tcp_pose": list(r.getActualTCPPose()),
+                "joint_positions": list(r.getActualQ()),
+                "timestamp": float(r.getTimestamp()),
+                "robot_mode": int(r.getRobotMode()),
+                "safety_mode": int(r.getSafetyMode()),
+                "runtime_state": int(r.getRuntimeState())}
+
+    def _why_refused(self, what: str) -> tuple[str, str]:
+        if not self._connected():
+            return "connection", f"{what} failed: RTDE connection lost"
+        try:
+            running = bool(self.control.isProgramRunning())
+            mode, safety = int(self.receive.getRobotMode()), int(self.receive.getSafetyMode())
+        except Exception as exc:  # noqa: BLE001
+            return "connection", f"{what} failed: {exc}"
+        return "motion", (f"{what} refused by the controller (control script running: {running}, "
+                          f"robot_mode {mode}, safety_mode {safety})")
+
+    def _connected(self) -> bool:
+        try:
+            return bool(self.receive.isConnected()) and bool(self.control.isConnected())
+        except Exception:  # noqa: BLE001
+            return False
+
+    def move(self, msg_id, op: str, args) -> None:
+        """Run a blocking ur-rtde move on an inner thread; give up at once if the link drops.
+
+        ur-rtde's own wait for the script's "done" signal only ends on its 300 s execution
+        timeout when the controller vanishes, so the link is watched here; the parent then
+        kills this process (the stuck library thread with it).
+        """
+        target, speed, accel = args
+        result: dict = {}
+
+        def run():
+            try:
+                fn = self.control.moveL if op == "moveL" else self.control.moveJ
+                result["ok"] = bool(fn(list(target), speed, accel, False))
+            except Exception as exc:  # noqa: BLE001
+                result["error"] = f"{op} raised: {exc}"
+
+        with self.move_lock:
+            inner = threading.Thread(target=run, daemon=True)
+            inner.start()
+            while inner.is_alive():
+                inner.join(0.05)
+                if inner.is_alive() and not self._connected():
+                    self.reply(msg_id, "error", ("connection", f"{op} interrupted: RTDE connection lost"))
+                    return
+        if "error" in result:
+            self.reply(msg_id, "error", ("motion", result["error"]))
+        elif result.get("ok"):
+            self.reply(msg_id, "ok", None)
+        else:
+            self.reply(msg_id, "error", self._why_refused(op))
+
+    def disconnect(self) -> None:
+        for obj in (self.control, self.receive):
+            if obj is None:
+                continue
+            try:
+                if obj is self.control and obj.isConnected():
+                    obj.stopScript()
+                obj.disconnect()
+            except Exception:  # noqa: BLE001
+                pass
+
+    def serve(self) -> None:
+        while True:
+            try:
+                msg_id, op, args = self.conn.recv()
+            except (EOFError, OSError):
+                return
+            try:
+                if op == "connect":
+                    self.reply(msg_id, "ok", self.connect(*args))
+                elif op in ("moveL", "moveJ"):
+                    threading.Thread(target=self.move, args=(msg_id, op, args), daemon=True).start()
+                elif op == "state":
+                    self.reply(msg_id, "ok", self.state())
+                elif op == "disconnect":
+                    self.disconnect()
+                    self.reply(msg_id, "ok", None)
+                    return
+                else:
+                    self.reply(msg_id, "error", ("other", f"unknown request {op!r}"))
+            except RuntimeError as exc:
+                kind = "connection" if op in ("connect", "state") else "other"
+                self.reply(msg_id, "error", (kind, str(exc)))
+            except Exception as exc:  # noqa: BLE001
+                self.reply(msg_id, "error", ("other", f"{type(exc).__name__}: {exc}"))
+
+
+def worker_main(conn, host: str) -> None:
+    """Entry point of the child process.
+
+    SIGINT is ignored (Ctrl-C reaches the whole process group; the parent decides when this
+    process ends: a "disconnect" request, a closed pipe, or a kill). The process leaves with
+    os._exit so that no library destructor can block the exit on a stuck connection.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    worker = _Worker(conn, host)
+    try:
+        worker.serve()
+    finally:
+        try:
+            conn.close()
+        except OSError:
+            pass
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(0)

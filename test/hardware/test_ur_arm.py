@@ -1,0 +1,174 @@
+"""URArm: the real ur-rtde library (in the driver's child process) against the loopback emulator.
+
+The emulator runs in this process; ur-rtde runs in URArm's child process (or a subprocess), which
+is also what keeps the library's GIL-holding constructors from starving the emulator's threads.
+Every blocking step is bounded: URArm's own timeouts, plus a watchdog thread per risky call.
+"""
+
+import importlib.util
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from robot_ct_ros.hardware.ur_arm import Arm, ArmConnectionError, URArm
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def load_emulator():
+    name = "ur_controller_emulator"
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, Path(__file__).with_name(f"{name}.py"))
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module
+        spec.loader.exec_module(module)
+    return sys.modules[name]
+
+
+def bounded(fn, timeout_s: float):
+    """Run fn() on a thread; fail the test (instead of hanging CI) if it has not returned in time."""
+    result = {}
+
+    def run():
+        try:
+            result["value"] = fn()
+        except BaseException as exc:  # noqa: BLE001 - handed to the test
+            result["error"] = exc
+
+    t = threading.Thread(target=run, daemon=True)
+    t.start()
+    t.join(timeout_s)
+    assert not t.is_alive(), f"call still blocked after {timeout_s} s"
+    if "error" in result:
+        raise result["error"]
+    return result.get("value")
+
+
+@pytest.fixture
+def emulator():
+    emu = load_emulator().URControllerEmulator().start()
+    try:
+        yield emu
+    finally:
+        emu.stop()
+
+
+def _wait_pose(arm, target, timeout_s=5.0):
+    emu = load_emulator()
+    emu.wait_until(lambda: np.allclose(arm.get_tcp_pose(), target, atol=1e-9), timeout_s)
+    return arm.get_tcp_pose()
+
+
+def test_connect_read_state_and_move(emulator):
+    arm = URArm(emulator.host, connect_timeout_s=15.0, move_timeout_s=15.0)
+    assert isinstance(arm, Arm)
+    bounded(arm.connect, 30.0)
+    try:
+        assert arm.is_connected
+        assert emulator.script_running  # RTDEControlInterface uploaded its control script
+        np.testing.assert_allclose(arm.get_tcp_pose(), emulator.tcp_pose, atol=1e-12)
+        np.testing.assert_allclose(arm.get_joint_positions(), emulator.q, atol=1e-12)
+        state = arm.read_state()
+        assert state["robot_mode"] == 7 and state["runtime_state"] == 2
+
+        target = arm.get_tcp_pose() + np.array([0.02, -0.01, -0.03, 0.0, 0.0, 0.0])
+        bounded(lambda: arm.move_linear(target, 0.25, 1.2), 30.0)
+        np.testing.assert_allclose(_wait_pose(arm, target), target, atol=1e-9)
+        assert emulator.commands[-1] == 3 and emulator.moves_completed == 1  # moveL through the script
+
+        q = arm.get_joint_positions() + np.array([0.05, 0, 0, 0, 0, 0])
+        bounded(lambda: arm.move_joints(q, 1.0, 1.4), 30.0)
+        emulator.wait_for(lambda: np.allclose(arm.get_joint_positions(), q, atol=1e-9))
+        np.testing.assert_allclose(arm.get_joint_positions(), q, atol=1e-9)
+    finally:
+        bounded(arm.disconnect, 15.0)
+    assert not arm.is_connected
+    assert emulator.wait_for(lambda: not emulator.script_running)  # stopScript on disconnect
+
+
+def test_controller_lost_mid_scan_raises_and_does_not_hang():
+    emu = load_emulator().URControllerEmulator(drop_after_moves=2).start()
+    arm = URArm(emu.host, connect_timeout_s=15.0, move_timeout_s=20.0)
+    try:
+        bounded(arm.connect, 30.0)
+        pose = arm.get_tcp_pose()
+        for k in range(2):
+            pose = pose + np.array([0.0, 0.01, 0.0, 0.0, 0.0, 0.0])
+            bounded(lambda: arm.move_linear(pose), 30.0)
+        pose = pose + np.array([0.0, 0.01, 0.0, 0.0, 0.0, 0.0])
+        with pytest.raises(ArmConnectionError, match=f"controller at {emu.host}"):
+            bounded(lambda: arm.move_linear(pose), 30.0)
+        assert emu.dropped.is_set()
+        assert not arm.is_connected
+        with pytest.raises(ArmConnectionError):
+            arm.get_tcp_pose()
+    finally:
+        bounded(arm.disconnect, 15.0)
+        emu.stop()
+
+
+def test_silent_controller_times_out_with_a_clear_error():
+    emu = load_emulator().URControllerEmulator(silent=True).start()
+    arm = URArm(emu.host, connect_timeout_s=2.0)
+    try:
+        with pytest.raises(ArmConnectionError, match=rf"controller at {emu.host} did not answer within 2\.0 s"):
+            bounded(arm.connect, 20.0)
+        assert not arm.is_connected and arm._proc is None  # the stuck child was killed
+    finally:
+        emu.stop()
+
+
+def test_nothing_listening_is_a_connection_error():
+    host = load_emulator().free_loopback_host()
+    arm = URArm(host, connect_timeout_s=10.0)
+    with pytest.raises(ArmConnectionError, match=host):
+        bounded(arm.connect, 30.0)
+
+
+CLIENT = r"""
+import sys, rtde_receive, dashboard_client
+host = sys.argv[1]
+d = dashboard_client.DashboardClient(host)
+d.connect()
+print("mode", d.robotmode())
+print("safety", d.safetystatus())
+print("remote", d.isInRemoteControl())
+print("version", d.polyscopeVersion())
+d.loadURP("scan.urp"); d.play()
+print("state", d.programState())
+d.stop()
+print("state", d.programState())
+d.disconnect()
+try:
+    rtde_receive.RTDEReceiveInterface(host, -1.0, ["actual_q", "no_such_variable"])
+    print("not_found_reported False")
+except RuntimeError as exc:
+    print("not_found_reported", "no_such_variable" in str(exc))
+"""
+
+
+def test_dashboard_and_recipe_errors_through_the_real_library(emulator):
+    proc = subprocess.run([sys.executable, "-c", CLIENT, emulator.host], capture_output=True, text=True,
+                          timeout=60, cwd=REPO)
+    out = proc.stdout
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "mode Robotmode: RUNNING" in out and "safety Safetystatus: NORMAL" in out
+    assert "remote True" in out and "version 5.11.1.108318" in out
+    assert "state PLAYING scan.urp" in out and "state STOPPED scan.urp" in out
+    assert "not_found_reported True" in out
+    assert "power on" not in emulator.dashboard_log and "load scan.urp" in emulator.dashboard_log
+
+
+def test_robot_powered_off_refuses_the_control_script():
+    emu = load_emulator().URControllerEmulator(powered=False).start()
+    arm = URArm(emu.host, connect_timeout_s=20.0)
+    try:
+        with pytest.raises(ArmConnectionError, match="cannot connect.*control script"):
+            bounded(arm.connect, 40.0)
+        assert not arm.is_connected and not emu.script_running
+    finally:
+        emu.stop()

@@ -1,0 +1,164 @@
+"""arm_driver in-process: lifecycle, goals, in_position, diagnostics, faults; simulated and over ur-rtde."""
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import numpy as np
+from rclpy.parameter import Parameter
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from geometry_msgs.msg import PoseStamped
+from lifecycle_msgs.msg import Transition
+from lifecycle_msgs.srv import ChangeState, GetState
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Bool
+
+from robot_ct_ros.nodes.arm_driver import ArmDriverNode, pose_msg_to_ur, ur_to_pose_msg
+
+
+def load_emulator():
+    name = "ur_controller_emulator"
+    if name not in sys.modules:
+        path = Path(__file__).resolve().parents[1] / "hardware" / f"{name}.py"
+        spec = importlib.util.spec_from_file_location(name, path)
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module
+        spec.loader.exec_module(module)
+    return sys.modules[name]
+
+
+class Probe:
+    """Subscribes to everything the driver publishes for one role and can send goals."""
+
+    def __init__(self, ros, role="source"):
+        self.node = ros.node(f"probe_{role}")
+        ns = f"{role}_arm"
+        self.in_position, self.poses, self.true_poses, self.joints, self.diag = [], [], [], [], []
+        self.subs = [
+            self.node.create_subscription(Bool, f"{ns}/in_position", lambda m: self.in_position.append(m.data), 10),
+            self.node.create_subscription(PoseStamped, f"{ns}/tool_pose", self.poses.append, 10),
+            self.node.create_subscription(PoseStamped, f"{ns}/true_tool_pose", self.true_poses.append, 10),
+            self.node.create_subscription(JointState, f"{ns}/joint_states", self.joints.append, 10),
+            self.node.create_subscription(DiagnosticArray, "/diagnostics", self.diag.append, 10),
+        ]
+        self.goal_pub = self.node.create_publisher(PoseStamped, f"{ns}/goal_pose", 10)
+
+    def send_goal(self, ros, pose, frame="world"):
+        assert ros.wait_for_subscribers(self.goal_pub)
+        self.in_position.clear()
+        msg = ur_to_pose_msg(pose, frame, self.node.get_clock().now().to_msg())
+        self.goal_pub.publish(msg)
+
+    def last_level(self, role="source"):
+        levels = [s.level for a in self.diag for s in a.status if s.name.endswith(f"{role} arm")]
+        return levels[-1] if levels else None
+
+
+def _driver(ros, **params):
+    overrides = [Parameter(k, value=v) for k, v in params.items()]
+    return ros.add(ArmDriverNode(context=ros.context, parameter_overrides=overrides))
+
+
+def _at(msg: PoseStamped, pose, tol=1e-6) -> bool:
+    return np.allclose(pose_msg_to_ur(msg), pose, atol=tol)
+
+
+def test_lifecycle_services_goal_and_in_position(ros):
+    node = _driver(ros, role="source", autostart=False)
+    probe = Probe(ros)
+    change = probe.node.create_client(ChangeState, "/arm_driver/change_state")
+    get = probe.node.create_client(GetState, "/arm_driver/get_state")
+    assert ros.call(get, GetState.Request()).current_state.label == "unconfigured"
+    ok = ros.call(change, ChangeState.Request(transition=Transition(id=Transition.TRANSITION_CONFIGURE)))
+    assert ok.success and node.arm is not None and node.lifecycle_state == "inactive"
+    assert ros.call(change, ChangeState.Request(transition=Transition(id=Transition.TRANSITION_ACTIVATE))).success
+    assert ros.call(get, GetState.Request()).current_state.label == "active"
+
+    assert ros.spin_until(lambda: probe.poses and probe.joints and probe.in_position)
+    assert probe.in_position[-1] is False  # nothing commanded yet
+    assert probe.poses[-1].header.frame_id == "world"
+    assert probe.joints[-1].name[0] == "source_arm_shoulder_pan_joint"
+    goal = pose_msg_to_ur(probe.poses[-1]) + np.array([0.02, 0.01, -0.03, 0, 0, 0])
+    probe.send_goal(ros, goal)
+    assert ros.spin_until(lambda: probe.in_position and probe.in_position[-1] and _at(probe.poses[-1], goal))
+    assert probe.in_position[0] is False  # false while moving
+    assert ros.spin_until(lambda: probe.true_poses and _at(probe.true_poses[-1], goal))  # no errors configured
+    assert ros.spin_until(lambda: probe.last_level() == DiagnosticStatus.OK, timeout_s=5)
+
+    probe.send_goal(ros, goal, frame="some_other_frame")  # wrong frame: ignored, stays in position
+    ros.spin_for(0.3)
+    assert node.in_position()
+
+    assert ros.call(change, ChangeState.Request(transition=Transition(id=Transition.TRANSITION_DEACTIVATE))).success
+    assert ros.spin_until(lambda: probe.in_position and probe.in_position[-1] is False)
+    assert ros.call(change, ChangeState.Request(transition=Transition(id=Transition.TRANSITION_CLEANUP))).success
+    assert node.arm is None and node.lifecycle_state == "unconfigured"
+
+
+def test_autostart_with_simulated_errors(ros):
+    node = _driver(ros, role="detector", sim_sigma_mm=0.5, sim_sigma_deg=0.05, sim_seed=3)
+    probe = Probe(ros, "detector")
+    assert ros.spin_until(lambda: node.lifecycle_state == "active" and probe.poses)
+    goal = pose_msg_to_ur(probe.poses[-1]) + np.array([-0.02, 0.0, 0.01, 0, 0, 0])
+    probe.send_goal(ros, goal)
+    assert ros.spin_until(lambda: probe.in_position and probe.in_position[-1] and _at(probe.poses[-1], goal))
+    # the measured pose is the commanded one; the true pose carries the coordination error
+    def true_error_mm():
+        return np.linalg.norm(pose_msg_to_ur(probe.true_poses[-1])[:3] - goal[:3]) * 1e3 if probe.true_poses else -1
+    assert ros.spin_until(lambda: 0.01 < true_error_mm() < 5.0)
+    np.testing.assert_allclose(node.arm.true_tcp_pose(), pose_msg_to_ur(probe.true_poses[-1]), atol=1e-9)
+
+
+def test_connection_loss_goes_safe(ros):
+    node = _driver(ros, role="source", sim_fail_after_moves=1)
+    probe = Probe(ros)
+    assert ros.spin_until(lambda: node.lifecycle_state == "active" and probe.poses)
+    start = pose_msg_to_ur(probe.poses[-1])
+    probe.send_goal(ros, start + np.array([0.01, 0, 0, 0, 0, 0]))
+    assert ros.spin_until(lambda: probe.in_position and probe.in_position[-1])
+    probe.send_goal(ros, start + np.array([0.02, 0, 0, 0, 0, 0]))
+    assert ros.spin_until(lambda: node.lifecycle_state == "unconfigured")
+    assert ros.spin_until(lambda: probe.in_position and probe.in_position[-1] is False)
+    assert "connection lost" in node.last_error
+    assert ros.spin_until(lambda: probe.last_level() == DiagnosticStatus.ERROR)
+    # configure again reconnects (a fresh simulated arm)
+    assert node.trigger_configure().name == "SUCCESS" and node.trigger_activate().name == "SUCCESS"
+    assert node.arm.is_connected and node.last_error == ""
+
+
+def test_configure_fails_when_nothing_answers(ros):
+    host = load_emulator().free_loopback_host()
+    node = _driver(ros, role="source", robot_ip=host, autostart=False, connect_timeout_s=10.0)
+    probe = Probe(ros)
+    assert node.trigger_configure().name == "FAILURE"
+    assert node.lifecycle_state == "unconfigured" and node.arm is None
+    assert host in node.last_error
+    assert ros.spin_until(lambda: probe.last_level() == DiagnosticStatus.ERROR)
+
+
+def test_end_to_end_over_ur_rtde_with_controller_loss(ros):
+    emu = load_emulator().URControllerEmulator(drop_after_moves=1).start()
+    try:
+        node = _driver(ros, role="detector", robot_ip=emu.host, autostart=False, connect_timeout_s=15.0,
+                       move_timeout_s=20.0, publish_rate_hz=20.0)
+        probe = Probe(ros, "detector")
+        assert node.trigger_configure().name == "SUCCESS", node.last_error
+        assert node.trigger_activate().name == "SUCCESS"
+        assert emu.script_running
+        assert ros.spin_until(lambda: probe.poses and probe.joints)
+        np.testing.assert_allclose(pose_msg_to_ur(probe.poses[-1]), emu.tcp_pose, atol=1e-9)
+        goal = pose_msg_to_ur(probe.poses[-1]) + np.array([0.0, 0.02, -0.02, 0, 0, 0])
+        probe.send_goal(ros, goal)
+        assert ros.spin_until(lambda: probe.in_position and probe.in_position[-1] and _at(probe.poses[-1], goal),
+                              timeout_s=30)
+        np.testing.assert_allclose(emu.tcp_pose, goal, atol=1e-9)
+        assert ros.spin_until(lambda: np.allclose(probe.joints[-1].position, emu.q, atol=1e-9))
+
+        probe.send_goal(ros, goal + np.array([0.01, 0, 0, 0, 0, 0]))  # the controller vanishes here
+        assert ros.spin_until(lambda: node.lifecycle_state == "unconfigured", timeout_s=40)
+        assert emu.dropped.is_set()
+        assert probe.in_position and probe.in_position[-1] is False
+        assert emu.host in node.last_error
+        assert ros.spin_until(lambda: probe.last_level("detector") == DiagnosticStatus.ERROR)
+    finally:
+        emu.stop()
