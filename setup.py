@@ -9,6 +9,8 @@ PACKAGE = "robot_ct_ros"
 # ROS executables (`ros2 run robot_ct_ros <name>`), each a thin rclpy shell in robot_ct_ros/nodes.
 NODES = {
     "arm_driver": "robot_ct_ros.nodes.arm_driver:main",
+    "recorder": "robot_ct_ros.nodes.recorder:main",
+    "replay": "robot_ct_ros.nodes.replay:main",
     "source_control": "robot_ct_ros.nodes.source_control:main",
 }
 

@@ -1,22 +1,372 @@
-"""robot-ct: the jobs that need no ROS plumbing (simulate, reconstruct, report, benchmark)."""
+"""robot-ct: the jobs that need no ROS plumbing (simulate, inspect, reconstruct, calibrate a scan bag).
+
+  robot-ct simulate --phantom carotid --views 360 --out scan_bag
+  robot-ct info scan_bag
+  robot-ct reconstruct scan_bag --out out/recon
+  robot-ct calibrate scan_bag --method ncc-lle-exact --iterations 2 --out out/calib
+  robot-ct demo --out out/demo
+"""
 
 from __future__ import annotations
 
 import argparse
+import inspect
+import json
 import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+PHANTOMS = ("mouse", "battery", "carotid")
+
+
+# ------------------------------------------------------------------------------ helpers
+def _say(message: str) -> None:
+    print(f"[robot-ct] {message}", flush=True)
+
+
+def _json_default(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, Path):
+        return str(o)
+    return repr(o)
+
+
+def write_volume(volume: np.ndarray, grid, out: Path, stem: str = "volume") -> list:
+    """``volume.npy`` and ``volume.tif`` (float32 z-stack, ImageJ spacing in mm) plus the grid JSON."""
+    import tifffile
+
+    out.mkdir(parents=True, exist_ok=True)
+    vol = np.ascontiguousarray(volume, dtype=np.float32)
+    np.save(out / f"{stem}.npy", vol)
+    vx, vy, vz = grid.voxel_size_mm
+    tifffile.imwrite(out / f"{stem}.tif", vol, imagej=True, resolution=(1.0 / vx, 1.0 / vy),
+                     metadata={"spacing": vz, "unit": "mm", "axes": "ZYX"})
+    (out / f"{stem}_grid.json").write_text(json.dumps(grid.to_dict(), indent=2))
+    return [str(out / f"{stem}.npy"), str(out / f"{stem}.tif"), str(out / f"{stem}_grid.json")]
+
+
+def _grid_for(scan, voxel_mm=None, shape=None):
+    return scan.default_grid(voxel_size_mm=voxel_mm, shape_zyx=None if shape is None else tuple(shape)[::-1])
+
+
+def _geometry_error(scan, geom) -> dict | None:
+    """RMS of the 9 parameters between ``geom`` and the bag's true geometry (simulated bags only)."""
+    if scan.geom_true is None:
+        return None
+    d = geom.params_relative_to(scan.geom_true)
+    return {"rms_translation_mm": float(np.sqrt((d[:, :6] ** 2).mean())),
+            "rms_rotation_deg": float(np.rad2deg(np.sqrt((d[:, 6:] ** 2).mean()))),
+            "note": "raw difference to /ct/geometry_true, global (gauge) motion not removed"}
+
+
+def _base_report(scan, grid) -> dict:
+    return {"bag": str(scan.path), "format": scan.info.get("format"), "n_views": scan.n_views,
+            "detector": [scan.geom.n_rows, scan.geom.n_cols], "projection_units": scan.units,
+            "recovered": scan.recovered, "bag_warnings": list(scan.warnings), "grid": grid.to_dict()}
+
+
+def reconstruct_bag(bag, out, *, geometry: str = "auto", voxel_mm=None, shape=None, say=_say) -> dict:
+    """FDK of a scan bag with its geometry (``auto``: corrected if present, else nominal).
+
+    Writes ``volume.npy``, ``volume.tif``, ``volume_grid.json`` and ``report.json`` in ``out``.
+    """
+    from robot_ct_ros.bag import read_scan
+    from robot_ct_ros.ct.reconstruction import fdk
+
+    t0 = time.perf_counter()
+    out = Path(out)
+    scan = read_scan(bag)
+    for w in scan.warnings:
+        say(f"warning: {w}")
+    if geometry == "corrected" and scan.geom_corrected is None:
+        raise SystemExit(f"{bag} has no /ct/geometry_corrected")
+    use_corrected = geometry == "corrected" or (geometry == "auto" and scan.geom_corrected is not None)
+    geom = scan.geom_corrected if use_corrected else scan.geom
+    li, mask = scan.to_line_integrals()
+    grid = _grid_for(scan, voxel_mm, shape)
+    say(f"{scan.n_views} views, detector {geom.n_rows}x{geom.n_cols}; FDK on {grid.shape_zyx[::-1]} voxels of "
+        f"{grid.voxel_size_mm[0] * 1000:.1f} um ({'corrected' if use_corrected else 'nominal'} geometry)")
+    vol = fdk(li, geom, grid, valid_mask=mask)
+    files = write_volume(vol, grid, out)
+    report = _base_report(scan, grid)
+    report.update({"job": "reconstruct", "geometry": "corrected" if use_corrected else "nominal",
+                   "geometry_error": _geometry_error(scan, geom), "files": files,
+                   "wall_s": time.perf_counter() - t0})
+    (out / "report.json").write_text(json.dumps(report, indent=2, default=_json_default))
+    say(f"wrote {out}/volume.npy, volume.tif, report.json ({report['wall_s']:.1f} s)")
+    return report
+
+
+def calibration_methods() -> tuple:
+    """The methods ``robot-ct calibrate`` accepts: the calibration module's, and ``fdk`` (no correction)."""
+    try:
+        from robot_ct_ros.ct import calibration
+        return tuple(getattr(calibration, "LLE_METHODS", {})) + ("fdk",)
+    except ImportError:
+        return ("fdk",)
+
+
+def calibrate_bag(bag, out, *, method: str = "ncc-lle-exact", iterations: int = 2, voxel_mm=None, shape=None,
+                  say=_say) -> dict:
+    """Calibrate the per-view geometry of a scan bag offline and reconstruct it.
+
+    Runs :func:`robot_ct_ros.ct.calibration.calibrate` (method, iterations) when it is
+    available, else FDK with the nominal geometry (reported). Writes into ``out``: the
+    corrected bag (``<bag name>_corrected``: every message of the input plus
+    /ct/geometry_corrected), ``volume.npy``/``.tif``/``_grid.json`` and ``report.json``.
+    """
+    from robot_ct_ros.bag import read_scan, write_corrected_bag
+    from robot_ct_ros.ct.reconstruction import fdk
+
+    t0 = time.perf_counter()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    scan = read_scan(bag)
+    for w in scan.warnings:
+        say(f"warning: {w}")
+    li, mask = scan.to_line_integrals()
+    grid = _grid_for(scan, voxel_mm, shape)
+    say(f"{scan.n_views} views, detector {scan.geom.n_rows}x{scan.geom.n_cols}, grid {grid.shape_zyx[::-1]} of "
+        f"{grid.voxel_size_mm[0] * 1000:.1f} um; method {method}, {iterations} iteration(s)")
+    report = _base_report(scan, grid)
+    report.update({"job": "calibrate", "method": method, "iterations": iterations})
+    geom, volume, history, notes = scan.geom, None, [], []
+    if method != "fdk":
+        try:
+            from robot_ct_ros.ct import calibration
+
+            kwargs = {"method": method, "n_iter": iterations, "valid_mask": mask, "progress": say}
+            params = inspect.signature(calibration.calibrate).parameters
+            kwargs = {k: v for k, v in kwargs.items() if k in params}
+            result = calibration.calibrate(li, scan.geom, grid, **kwargs)
+            geom, volume = result.geom, result.volume
+            history = [getattr(h, "__dict__", h) for h in getattr(result, "history", ())]
+        except (ImportError, AttributeError) as exc:
+            notes.append(f"calibration not available ({type(exc).__name__}: {exc}); FDK with the nominal geometry")
+            say(f"warning: {notes[-1]}")
+            report["method_used"] = "fdk"
+    if volume is None:
+        volume = fdk(li, geom, grid, valid_mask=mask)
+    report.setdefault("method_used", method)
+    name = Path(bag).name.removesuffix(".mcap")
+    corrected_bag = out / f"{name}_corrected"
+    if corrected_bag.exists():
+        import shutil
+        shutil.rmtree(corrected_bag)
+    write_corrected_bag(bag, corrected_bag, geom, scan.stamps_ns,
+                        notes=f"calibrated with {report['method_used']}, {iterations} iteration(s)")
+    files = write_volume(volume, grid, out)
+    d = geom.params_relative_to(scan.geom)
+    report.update({
+        "history": history, "notes": notes, "corrected_bag": str(corrected_bag), "files": files,
+        "correction_rms_translation_mm": float(np.sqrt((d[:, :6] ** 2).mean())),
+        "correction_rms_rotation_deg": float(np.rad2deg(np.sqrt((d[:, 6:] ** 2).mean()))),
+        "geometry_error_nominal": _geometry_error(scan, scan.geom),
+        "geometry_error_corrected": _geometry_error(scan, geom),
+        "wall_s": time.perf_counter() - t0})
+    (out / "report.json").write_text(json.dumps(report, indent=2, default=_json_default))
+    say(f"wrote {corrected_bag}, {out}/volume.npy, volume.tif, report.json ({report['wall_s']:.1f} s)")
+    return report
+
+
+def simulate_bag(out, *, phantom: str = "carotid", views: int = 360, rows: int = 272, cols: int = 636,
+                 binning: int = 2, sigma_mm: float = 0.1, sigma_deg: float = 0.1, seed: int = 0,
+                 photons: float | None = None, fov_mm: float | None = None, sim_voxel_mm: float | None = None,
+                 chunk_views: int = 8,
+                 progress: bool = True, say=_say) -> Path:
+    """Simulate a seed-system robotic ROI scan of a phantom and record it as a scan bag at ``out``.
+
+    The nominal geometry (/ct/geometry) is :func:`robotic_roi_scan`; the frames are
+    simulated along it perturbed by independent per-view robot errors (``sigma_mm`` on the
+    6 translations, ``sigma_deg`` on the 3 rotations), which the bag keeps on
+    /ct/geometry_true. Frames are photon counts (``photons`` per binned pixel per frame
+    unattenuated; default: 4,000 behind 13 cm of water) with flat field and dead pixels.
+    """
+    from tqdm import tqdm
+
+    from robot_ct_ros.bag import ScanBagWriter, default_stamps, scan_info_for
+    from robot_ct_ros.ct import simulation as sim
+    from robot_ct_ros.ct.geometry import VolumeGrid
+    from robot_ct_ros.ct.projector import forward_project
+    from robot_ct_ros.ct.trajectory import SeedSystem, fov_radius_mm, robotic_roi_scan
+
+    system = SeedSystem()
+    pitch = system.raw_pixel_mm * binning
+    if fov_mm is None:
+        fov_mm = 0.999 * 2 * fov_radius_mm(0.5 * cols * pitch, system.sod_mm, system.sdd_mm)
+    nominal = robotic_roi_scan(system, n_views=views, binning=binning, n_rows=rows, n_cols=cols,
+                               fov_diameter_mm=fov_mm)
+    errors = sim.robot_coordination(sigma_mm, sigma_deg, seed=seed).sample(views)
+    true = nominal.perturbed(errors)
+    factories = {"mouse": sim.mouse_phantom, "battery": sim.battery_phantom, "carotid": sim.carotid_plaque_phantom}
+    ph = factories[phantom](seed=seed)
+    det = (sim.DetectorModel.from_transmitted(4000.0, 130.0, binning=binning, seed=seed) if photons is None
+           else sim.DetectorModel(photons_per_pixel=photons, binning=binning, seed=seed))
+    voxel = pitch / system.magnification
+    axial = rows * pitch / system.magnification
+    roi = VolumeGrid.centered((max(1, round(axial / voxel)), max(1, round(fov_mm / voxel)),
+                               max(1, round(fov_mm / voxel))), voxel)
+    say(f"{phantom} phantom, {views} views, detector {rows}x{cols} at {pitch * 1000:.0f} um (binning {binning}), "
+        f"FOV {fov_mm:.2f} mm, robot errors {sigma_mm} mm / {sigma_deg} deg, seed {seed}")
+    gproj = sim.raw_geometry(true, binning)
+    if sim_voxel_mm is None:  # half the reconstruction voxel, coarser when the ROI would need > 200^3 voxels
+        sim_voxel_mm = max(0.5 * voxel, float(np.prod(roi.extent_mm)) ** (1 / 3) / 200)
+    say(f"phantom voxelised at {sim_voxel_mm * 1000:.1f} um in the ROI, {max(0.4, 4 * sim_voxel_mm):.2f} mm outside")
+    parts = sim.scan_volumes(ph, gproj, sim_voxel_mm, roi_grid=roi, outer_voxel_size_mm=max(0.4, 4 * sim_voxel_mm))
+    rng = np.random.default_rng(seed)
+    raw_shape = (rows * binning, cols * binning)
+    flat, valid = sim.simulate_flat(raw_shape, det, rng)
+    info = scan_info_for(nominal, binning=binning, projection_units="counts", roi_center_mm=roi.center_mm,
+                         roi_size_mm=roi.extent_mm, voxel_size_mm=roi.voxel_size_mm, phantom=phantom,
+                         notes={"simulated": True, "seed": seed, "photons_per_pixel": det.photons_per_pixel,
+                                "robot_error_sigma_mm": sigma_mm, "robot_error_sigma_deg": sigma_deg,
+                                "generator": "robot-ct simulate"})
+    stamps = default_stamps(views)
+    t0 = int(stamps[0]) - 1_000_000
+    out = Path(out)
+    if out.exists():
+        raise ValueError(f"{out} exists already; a bag is never overwritten")
+    with ScanBagWriter(out, info, start_ns=t0) as w:
+        w.write_flat(flat, t0)
+        w.write_dead_pixels(~valid, t0)
+        bar = tqdm(total=views, desc="simulate", unit="view", disable=not progress, file=sys.stdout)
+        for v0 in range(0, views, chunk_views):
+            sel = np.arange(v0, min(views, v0 + chunk_views))
+            g = gproj.subset(sel)
+            li = None
+            for vol, grid in parts:
+                p = forward_project(vol, grid, g)
+                li = p if li is None else li + p
+            counts = sim.simulate_counts(li, det, rng, flat=flat)[0]
+            for k, i in enumerate(sel):
+                w.write_frame(counts[k], nominal, int(stamps[i]), int(i), true=true)
+            bar.update(len(sel))
+        bar.close()
+    say(f"wrote {out} ({views} frames)")
+    return out
+
+
+# ------------------------------------------------------------------------------ commands
+def _cmd_simulate(args) -> int:
+    simulate_bag(args.out, phantom=args.phantom, views=args.views, rows=args.rows, cols=args.cols,
+                 binning=args.binning, sigma_mm=args.sigma_mm, sigma_deg=args.sigma_deg, seed=args.seed,
+                 photons=args.photons, fov_mm=args.fov_mm, sim_voxel_mm=args.sim_voxel_mm, progress=not args.quiet)
+    return 0
+
+
+def _cmd_info(args) -> int:
+    from robot_ct_ros.bag import summarize
+
+    s = summarize(args.bag)
+    if args.json:
+        print(json.dumps(s, indent=2, default=_json_default))
+        return 0 if "scan_error" not in s else 1
+    print(f"bag        {s['path']} (read with {s['reader']}{', RECOVERED' if s['recovered'] else ''})")
+    if "duration_s" in s:
+        print(f"duration   {s['duration_s']:.2f} s")
+    for t, d in s["topics"].items():
+        print(f"topic      {t:<28} {d['type']:<36} {d['messages']:>6} msgs")
+    if "scan_error" in s:
+        print(f"NOT A USABLE SCAN: {s['scan_error']}")
+        return 1
+    info = s["scan_info"]
+    print(f"format     {info['format']}, projection units {info['projection_units']}, binning {info['binning']}")
+    print(f"views      {s['paired_views']} paired frames")
+    print(f"detector   {s['detector']}")
+    print(f"geometry   SDD {s['source_to_detector_mm']:.1f} mm, magnification {s['magnification']:.3f}, "
+          f"centre {np.round(s['scan_center_mm'], 3).tolist()} mm")
+    print(f"pixels     {100 * s['valid_pixel_fraction']:.2f} % valid")
+    print(f"extras     corrected geometry: {'yes' if s['has_geometry_corrected'] else 'no'}, "
+          f"true geometry: {'yes' if s['has_geometry_true'] else 'no'}")
+    if info.get("phantom"):
+        print(f"phantom    {info['phantom']}")
+    for w in s["warnings"]:
+        print(f"warning    {w}")
+    return 0
+
+
+def _shape(text: str):
+    parts = [int(x) for x in text.lower().replace("x", ",").split(",") if x]
+    if len(parts) != 3:
+        raise argparse.ArgumentTypeError("shape is NX,NY,NZ (or NXxNYxNZ)")
+    return tuple(parts)
+
+
+def _cmd_reconstruct(args) -> int:
+    reconstruct_bag(args.bag, args.out, geometry=args.geometry, voxel_mm=args.voxel_mm, shape=args.shape)
+    return 0
+
+
+def _cmd_calibrate(args) -> int:
+    calibrate_bag(args.bag, args.out, method=args.method, iterations=args.iterations, voxel_mm=args.voxel_mm,
+                  shape=args.shape)
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="robot-ct", description=__doc__)
+    parser = argparse.ArgumentParser(prog="robot-ct", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
     demo = sub.add_parser("demo", help="simulate a robotic interior scan on simulated hardware and reconstruct it")
     demo.add_argument("--out", default="out/demo", help="output folder")
+
+    p = sub.add_parser("simulate", help="simulate a robotic ROI scan of a phantom into a scan bag")
+    p.add_argument("--phantom", choices=PHANTOMS, default="carotid")
+    p.add_argument("--views", type=int, default=360, help="number of views (default 360)")
+    p.add_argument("--rows", type=int, default=272, help="detector rows after binning (default 272)")
+    p.add_argument("--cols", type=int, default=636, help="detector columns after binning (default 636)")
+    p.add_argument("--binning", type=int, default=2, help="readout binning of the 55 um pixels (default 2)")
+    p.add_argument("--sigma-mm", type=float, default=0.1, help="robot error per view, translations (mm)")
+    p.add_argument("--sigma-deg", type=float, default=0.1, help="robot error per view, detector rotations (deg)")
+    p.add_argument("--photons", type=float, default=None,
+                   help="unattenuated counts per binned pixel per frame (default: 4,000 behind 13 cm of water)")
+    p.add_argument("--fov-mm", type=float, default=None, help="field-of-view diameter (default: the centred detector's)")
+    p.add_argument("--sim-voxel-mm", type=float, default=None,
+                   help="voxel of the phantom in the ROI (default: half the reconstruction voxel, at most 200^3 voxels)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--out", required=True, help="output bag directory (must not exist)")
+
+    p = sub.add_parser("info", help="summarise a bag (topics, scan, pairing, damage)")
+    p.add_argument("bag")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+
+    for name, helptext in (("reconstruct", "FDK of a scan bag with its geometry"),
+                           ("calibrate", "correct the per-view geometry of a scan bag offline and reconstruct")):
+        p = sub.add_parser(name, help=helptext)
+        p.add_argument("bag")
+        p.add_argument("--out", required=True, help="output folder")
+        p.add_argument("--voxel-mm", type=float, default=None, help="voxel size (default: scan_info or pitch/M)")
+        p.add_argument("--shape", type=_shape, default=None, help="grid NX,NY,NZ (default: scan_info ROI or FOV)")
+        if name == "reconstruct":
+            p.add_argument("--geometry", choices=("auto", "nominal", "corrected"), default="auto",
+                           help="auto: /ct/geometry_corrected when present")
+        else:
+            p.add_argument("--method", default="ncc-lle-exact",
+                           help=f"one of {', '.join(calibration_methods())} (fdk: no correction)")
+            p.add_argument("--iterations", type=int, default=2, help="outer iterations (default 2)")
+
     args = parser.parse_args(argv)
     if args.command == "demo":
         from robot_ct_ros.demo import run_demo
 
         return run_demo(args)
-    return 2
+    from robot_ct_ros.bag import ScanBagError
+
+    try:
+        return {"simulate": _cmd_simulate, "info": _cmd_info, "reconstruct": _cmd_reconstruct,
+                "calibrate": _cmd_calibrate}[args.command](args)
+    except ScanBagError as exc:
+        print(f"robot-ct {args.command}: {exc}", file=sys.stderr)
+        return 2
+    except ValueError as exc:
+        print(f"robot-ct {args.command}: {exc}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

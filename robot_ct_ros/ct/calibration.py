@@ -17,10 +17,14 @@ the reconstructed ROI); all arrays are flattened per view: measured (n, P), neig
 
 from __future__ import annotations
 
+import time
+from dataclasses import dataclass
+
 import numpy as np
 from numba import njit, prange
 
-from robot_ct_ros.ct.geometry import ConeGeometry
+from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
+from robot_ct_ros.ct.metrics import ncc, remove_gauge, roi_points
 
 WEIGHTINGS = ("l2", "ncc", "ncc-exact")
 
@@ -87,19 +91,6 @@ def lle_weights(measured, neighbours, method: str = "ncc-exact", mask=None, reg:
         w[bad] = 0.0
         w[np.flatnonzero(bad), best] = 1.0
     return w
-
-
-def ncc(a, b, mask=None) -> np.ndarray:
-    """Normalized cross-correlation of (n, P) arrays, per row, over the mask."""
-    a = np.atleast_2d(np.asarray(a, dtype=np.float64))
-    b = np.atleast_2d(np.asarray(b, dtype=np.float64))
-    m = np.ones(a.shape, bool) if mask is None else np.broadcast_to(np.asarray(mask, bool), a.shape)
-    m = m & np.isfinite(a) & np.isfinite(b)
-    cnt = np.maximum(m.sum(axis=1), 1)
-    ac = np.where(m, a - (np.where(m, a, 0).sum(axis=1) / cnt)[:, None], 0)
-    bc = np.where(m, b - (np.where(m, b, 0).sum(axis=1) / cnt)[:, None], 0)
-    den = np.sqrt((ac * ac).sum(axis=1) * (bc * bc).sum(axis=1))
-    return (ac * bc).sum(axis=1) / np.maximum(den, 1e-300)
 
 
 # ----------------------------------------------------------------------------- homography
@@ -178,3 +169,371 @@ def warp_projections(virtual_images: np.ndarray, homographies: np.ndarray, image
     valid = np.empty(out.shape, dtype=np.bool_)
     _warp_kernel(imgs, H, idx, out, valid)
     return out, valid
+
+
+# ----------------------------------------------------------------------------- sample scoring
+@njit(parallel=True, fastmath=True, cache=True)
+def _warp_score_kernel(images, H, image_index, target_index, measured, mask, out):
+    """For each sample s: warp virtual image image_index[s] with H[s] onto the detector and
+    accumulate, over pixels valid in ``mask[target_index[s]]`` and on the virtual detector,
+    the sums n, Σp, Σp², Σpb, Σb, Σb² (out[s, 0:6]) without storing the warped image."""
+    m = H.shape[0]
+    _, vr, vc = images.shape
+    _, n_rows, n_cols = measured.shape
+    for s in prange(m):
+        img = image_index[s]
+        t = target_index[s]
+        h = H[s]
+        n = 0.0
+        sp = 0.0
+        spp = 0.0
+        spb = 0.0
+        sb = 0.0
+        sbb = 0.0
+        for r in range(n_rows):
+            for c in range(n_cols):
+                if not mask[t, r, c]:
+                    continue
+                z = h[2, 0] * c + h[2, 1] * r + h[2, 2]
+                if z == 0.0:
+                    continue
+                x = (h[0, 0] * c + h[0, 1] * r + h[0, 2]) / z
+                y = (h[1, 0] * c + h[1, 1] * r + h[1, 2]) / z
+                if x < 0.0 or y < 0.0 or x > vc - 1.0 or y > vr - 1.0:
+                    continue
+                i0 = min(int(x), vc - 2)
+                j0 = min(int(y), vr - 2)
+                fx = x - i0
+                fy = y - j0
+                p = ((images[img, j0, i0] * (1 - fx) + images[img, j0, i0 + 1] * fx) * (1 - fy)
+                     + (images[img, j0 + 1, i0] * (1 - fx) + images[img, j0 + 1, i0 + 1] * fx) * fy)
+                b = measured[t, r, c]
+                n += 1.0
+                sp += p
+                spp += p * p
+                spb += p * b
+                sb += b
+                sbb += b * b
+        out[s, 0] = n
+        out[s, 1] = sp
+        out[s, 2] = spp
+        out[s, 3] = spb
+        out[s, 4] = sb
+        out[s, 5] = sbb
+
+
+def sample_distances(sums: np.ndarray, metric: str) -> np.ndarray:
+    """Distance of each sample to the measured view from the sums of ``_warp_score_kernel``.
+
+    ``"l2"``: mean squared difference; ``"ncc"``: 1 - normalized cross-correlation (blind to
+    gain and offset). Samples with fewer than 2 valid pixels get +inf.
+    """
+    n, sp, spp, spb, sb, sbb = (sums[..., k].astype(np.float64) for k in range(6))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        if metric == "l2":
+            d = (spp - 2 * spb + sbb) / n
+        else:
+            cov = spb - sp * sb / n
+            var_p = spp - sp * sp / n
+            var_b = sbb - sb * sb / n
+            d = 1.0 - cov / np.sqrt(np.maximum(var_p * var_b, 1e-300))
+    return np.where(n >= 2, d, np.inf)
+
+
+# ----------------------------------------------------------------------------- LLE estimator
+@dataclass(frozen=True)
+class LLEConfig:
+    """Settings of one LLE estimation pass (all views at once, coarse to fine).
+
+    Each level samples ``n_samples`` geometries per view in a box of ``half_width`` (9
+    values: mm x6, rad x3, geometry.py parameter order) around the current estimate; the
+    box shrinks by ``shrink`` per level. Source shifts are drawn from a small set of
+    positions (``source_positions``: ``"star"`` = centre and ±half width along each axis,
+    7 ray-casts per view; ``"grid"`` = 3 x 3 x 3); detector shifts and rotations are drawn
+    uniformly and rendered by homography from the ray-cast of their source position.
+    ``safeguard`` keeps the best sample when the embedding scores worse than it.
+    """
+
+    weighting: str = "ncc-exact"
+    n_samples: int = 192
+    n_neighbours: int = 16
+    source_positions: str = "star"
+    half_width: tuple = (0.6, 0.6, 0.6, 0.6, 0.6, 0.6, 0.0105, 0.0105, 0.0105)
+    levels: int = 3
+    shrink: float = 0.5
+    reg: float = 1e-3
+    roi_support_fraction: float = 0.3
+    safeguard: bool = True
+    virtual_oversample: int = 1
+    chunk_views: int = 8
+    seed: int = 0
+
+    def __post_init__(self):
+        if self.weighting not in WEIGHTINGS:
+            raise ValueError(f"weighting must be one of {WEIGHTINGS}")
+        if len(self.half_width) != 9:
+            raise ValueError("half_width needs 9 values (mm x6, rad x3)")
+        if self.n_neighbours < 2 or self.n_neighbours > self.n_samples:
+            raise ValueError("need 2 <= n_neighbours <= n_samples")
+
+
+def _source_offsets(kind: str, h: np.ndarray) -> np.ndarray:
+    if kind == "star":
+        offs = np.zeros((7, 3))
+        for k in range(3):
+            offs[1 + 2 * k, k] = h[k]
+            offs[2 + 2 * k, k] = -h[k]
+        return offs
+    if kind == "grid":
+        g = np.stack(np.meshgrid(*[np.array([0.0, -1.0, 1.0]) * h[k] for k in range(3)], indexing="ij"), -1)
+        return g.reshape(-1, 3)
+    raise ValueError(f"unknown source_positions {kind!r}")
+
+
+def _repeat_views(geom: ConeGeometry, times: int) -> ConeGeometry:
+    return geom.subset(np.repeat(np.arange(geom.n_views), times))
+
+
+def _virtual_margin_px(geom: ConeGeometry, h: np.ndarray) -> tuple[int, int]:
+    """Pixels to add on each side of the virtual detector so every sample's rays land on it."""
+    half_diag_mm = 0.5 * np.hypot(geom.n_rows * geom.row_pitch_mm, geom.n_cols * geom.col_pitch_mm)
+    mag = float(np.max(geom.sdd_mm / np.maximum(geom.sdd_mm - np.linalg.norm(h[3:6]), 1e-6)))
+    shift_mm = np.linalg.norm(h[3:6]) + np.linalg.norm(h[6:9]) * half_diag_mm * mag
+    return (int(np.ceil(shift_mm / geom.row_pitch_mm)) + 2, int(np.ceil(shift_mm / geom.col_pitch_mm)) + 2)
+
+
+def roi_support_mask(nominal: ConeGeometry, params: np.ndarray, grid: VolumeGrid, fraction: float,
+                     axial_tolerance: float = 0.02) -> np.ndarray:
+    """(n, rows, cols) pixels whose reprojection of the ROI volume is meaningful.
+
+    A pixel counts when its ray crosses the ROI for at least ``fraction`` of the longest
+    chord of that view, and leaves it through the sides, not through the top or bottom
+    face: a ray that exits axially also crosses object outside the reconstructed slab
+    (the long-object problem), which no offset or gain can absorb. Chords are ray-cast
+    through coarse ones-volumes (4x larger voxels: only lengths matter).
+    """
+    from .projector import forward_project
+
+    geom = nominal.perturbed(params)
+    coarse = VolumeGrid.centered(tuple(max(2, s // 4) for s in grid.shape_zyx),
+                                 tuple(e / max(2, s // 4) for e, s in zip(grid.extent_mm, grid.shape_xyz)),
+                                 grid.center_mm)
+    nz, ny, nx = coarse.shape_zyx
+    tall = VolumeGrid.centered((3 * nz, ny, nx), coarse.voxel_size_mm, coarse.center_mm)
+    chord = forward_project(np.ones(coarse.shape_zyx, np.float32), coarse, geom)
+    chord_tall = forward_project(np.ones(tall.shape_zyx, np.float32), tall, geom)
+    peak = chord.reshape(chord.shape[0], -1).max(axis=1)
+    return (chord > (fraction * peak)[:, None, None]) & (chord >= (1.0 - axial_tolerance) * chord_tall)
+
+
+def _as_view_mask(valid_mask, shape) -> np.ndarray:
+    if valid_mask is None:
+        return np.ones(shape, bool)
+    return np.broadcast_to(np.asarray(valid_mask, bool), shape)
+
+
+def estimate_views(measured: np.ndarray, nominal: ConeGeometry, params0: np.ndarray, volume: np.ndarray,
+                   grid: VolumeGrid, config: LLEConfig = LLEConfig(), valid_mask=None,
+                   progress=None) -> tuple[np.ndarray, dict]:
+    """One LLE pass: new 9-DOF parameters (n, 9) of every view, relative to ``nominal``.
+
+    ``measured`` (n, rows, cols) line integrals on ``nominal``'s detector grid; ``params0``
+    the current estimate; ``volume`` on ``grid`` the current reconstruction; ``valid_mask``
+    (rows, cols) or (n, rows, cols) marks usable pixels (dead pixels and chip gaps False).
+    Returns the parameters and a dict with the per-level mean distance of the best sample.
+    """
+    from .projector import forward_project
+
+    n = nominal.n_views
+    measured = np.ascontiguousarray(measured, dtype=np.float32)
+    if measured.shape != (n,) + nominal.det_shape:
+        raise ValueError(f"measured {measured.shape} does not match the geometry ({n}, {nominal.det_shape})")
+    params = np.array(params0, dtype=np.float64).reshape(n, 9)
+    vol = np.ascontiguousarray(volume, dtype=np.float32)
+    metric = "l2" if config.weighting == "l2" else "ncc"
+    mask_all = _as_view_mask(valid_mask, measured.shape) & np.isfinite(measured)
+    mask_all = mask_all & roi_support_mask(nominal, params, grid, config.roi_support_fraction)
+    rng = np.random.default_rng(config.seed)
+    h0 = np.asarray(config.half_width, dtype=np.float64)
+    info = {"best_distance": [], "chosen_distance": []}
+    for level in range(config.levels):
+        h = h0 * config.shrink ** level
+        src_offsets = _source_offsets(config.source_positions, h)
+        n_src = src_offsets.shape[0]
+        mr, mc = _virtual_margin_px(nominal, h)
+        best_d, chosen_d = [], []
+        for v0 in range(0, n, config.chunk_views):
+            idx = np.arange(v0, min(n, v0 + config.chunk_views))
+            c = idx.size
+            nom_c, g = nominal.subset(idx), params[idx]
+            # ray-cast each source position once onto an enlarged virtual detector
+            src_params = np.repeat(g, n_src, axis=0)
+            src_params[:, 0:3] += np.tile(src_offsets, (c, 1))
+            f = config.virtual_oversample
+            virtual = _repeat_views(nom_c, n_src).perturbed(src_params).with_detector(
+                (nominal.n_rows + 2 * mr) * f, (nominal.n_cols + 2 * mc) * f,
+                nominal.row_pitch_mm / f, nominal.col_pitch_mm / f)
+            images = forward_project(vol, grid, virtual)
+            # samples: a source position each, detector pose uniform in the box; sample 0 = current
+            S = config.n_samples
+            a = rng.integers(0, n_src, size=(c, S))
+            a[:, 0] = 0
+            delta = np.zeros((c, S, 9))
+            delta[:, :, 0:3] = src_offsets[a]
+            delta[:, :, 3:9] = rng.uniform(-1.0, 1.0, size=(c, S, 6)) * h[3:9]
+            delta[:, 0, 3:9] = 0.0
+            sample_params = g[:, None, :] + delta
+            samples = _repeat_views(nom_c, S).perturbed(sample_params.reshape(-1, 9))
+            image_index = (np.arange(c)[:, None] * n_src + a).reshape(-1)
+            H = detector_homographies(virtual.subset(image_index), samples)
+            target_index = np.repeat(np.arange(c), S)
+            sums = np.empty((c * S, 6), np.float64)
+            _warp_score_kernel(images, np.ascontiguousarray(H), image_index, target_index, measured[idx],
+                               np.ascontiguousarray(mask_all[idx]), sums)
+            dist = sample_distances(sums, metric).reshape(c, S)
+            K = config.n_neighbours
+            near = np.argpartition(dist, K - 1, axis=1)[:, :K]
+            flat_sel = (np.arange(c)[:, None] * S + near).reshape(-1)
+            neigh, on_virtual = warp_projections(images, H[flat_sel], image_index[flat_sel], nominal.n_rows,
+                                                 nominal.n_cols)
+            m = mask_all[idx] & on_virtual.reshape(c, K, *nominal.det_shape).all(axis=1)
+            w = lle_weights(measured[idx].reshape(c, -1), neigh.reshape(c, K, -1), config.weighting,
+                            mask=m.reshape(c, -1), reg=config.reg)
+            g_new = np.einsum("ck,ckj->cj", w, np.take_along_axis(sample_params, near[:, :, None], axis=1))
+            best = np.argmin(dist, axis=1)
+            d_best = dist[np.arange(c), best]
+            if config.safeguard:
+                p_new = forward_project(vol, grid, nom_c.perturbed(g_new))
+                d_new = _distances(p_new, measured[idx], mask_all[idx], metric)
+                worse = ~(d_new <= d_best)
+                g_new[worse] = sample_params[np.arange(c), best][worse]
+                d_new = np.where(worse, d_best, d_new)
+                chosen_d.append(d_new)
+            params[idx] = g_new
+            best_d.append(d_best)
+        info["best_distance"].append(float(np.mean(np.concatenate(best_d))))
+        if chosen_d:
+            info["chosen_distance"].append(float(np.mean(np.concatenate(chosen_d))))
+        if progress is not None:
+            progress(level, config.levels, info)
+    return params, info
+
+
+def _distances(pred: np.ndarray, measured: np.ndarray, mask: np.ndarray, metric: str) -> np.ndarray:
+    """Per-view distance (as :func:`sample_distances`) between two (n, rows, cols) stacks."""
+    mk = mask.reshape(mask.shape[0], -1)
+    p = np.where(mk, pred.reshape(mk.shape), 0.0).astype(np.float64)
+    b = np.where(mk, measured.reshape(mk.shape), 0.0).astype(np.float64)
+    sums = np.stack([mk.sum(1), p.sum(1), (p * p).sum(1), (p * b).sum(1), b.sum(1), (b * b).sum(1)], axis=1)
+    return sample_distances(sums, metric)
+
+
+# ----------------------------------------------------------------------------- alternating loop
+LLE_METHODS = {"l2-lle": "l2", "ncc-lle": "ncc", "ncc-lle-exact": "ncc-exact"}
+
+
+@dataclass(frozen=True)
+class IterationRecord:
+    """What one outer iteration did: projection consistency after it, update size, time."""
+
+    iteration: int
+    projection_rmse: float
+    projection_ncc: float
+    update_rms_mm: float
+    update_rms_deg: float
+    wall_s: float
+
+
+@dataclass(frozen=True, eq=False)
+class CalibrationResult:
+    method: str
+    params: np.ndarray            # (n, 9) relative to the nominal geometry
+    geom: ConeGeometry            # nominal.perturbed(params)
+    volume: np.ndarray            # reconstruction with the final geometry
+    history: tuple                # IterationRecord per outer iteration
+    wall_s: float
+
+
+def bin_masked(line_integrals: np.ndarray, valid_mask: np.ndarray, factor: int) -> tuple[np.ndarray, np.ndarray]:
+    """Average valid pixels in ``factor`` x ``factor`` bins; a bin with no valid pixel is invalid."""
+    from .geometry import bin_projections
+
+    m = _as_view_mask(valid_mask, line_integrals.shape).astype(np.float32)
+    total = bin_projections(np.where(m > 0, line_integrals, 0.0).astype(np.float32), factor)
+    count = bin_projections(m, factor)
+    return (total / np.maximum(count, 1.0)).astype(np.float32), count > 0
+
+
+def projection_consistency(volume, grid, geom, measured, mask) -> tuple[float, float]:
+    """Masked RMSE and mean NCC between the reprojection of ``volume`` and ``measured``."""
+    from .projector import forward_project
+
+    pred = forward_project(volume, grid, geom)
+    mk = _as_view_mask(mask, measured.shape) & np.isfinite(measured)
+    diff = np.where(mk, pred - measured, 0.0)
+    rmse = float(np.sqrt((diff.astype(np.float64) ** 2).sum() / max(mk.sum(), 1)))
+    return rmse, float(ncc(pred.reshape(len(pred), -1), measured.reshape(len(pred), -1),
+                           mk.reshape(len(pred), -1)).mean())
+
+
+def default_lle_configs(weighting: str, seed: int = 0) -> tuple[LLEConfig, LLEConfig]:
+    """Coarse (binned, wide box) and fine (full size, narrow box) LLE settings."""
+    coarse = LLEConfig(weighting=weighting, levels=3, seed=seed)
+    fine = LLEConfig(weighting=weighting, levels=2, seed=seed + 1,
+                     half_width=tuple(np.asarray(coarse.half_width) * 0.25))
+    return coarse, fine
+
+
+def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGrid, *,
+              method: str = "ncc-lle-exact", n_iter: int = 2, valid_mask=None, coarse_binning: int = 2,
+              configs: tuple[LLEConfig, LLEConfig] | None = None, gauge_points_mm=None,
+              fdk_kwargs: dict | None = None, progress=None) -> CalibrationResult:
+    """Alternate FDK reconstruction and per-view LLE geometry estimation (design.md §2).
+
+    Each outer iteration reconstructs with the current geometry and re-estimates every
+    view, first on ``coarse_binning``-binned projections and a coarser volume, then at full
+    size; the unobservable gauge (a global rigid motion of all views, i.e. of the object)
+    is then removed by aligning the estimate to the nominal geometry on ``gauge_points_mm``
+    (default: points filling ``grid``), so the correction does not wander between
+    iterations. ``progress(message)`` receives one line per step.
+    """
+    from .reconstruction import fdk
+
+    if method not in LLE_METHODS:
+        raise ValueError(f"method must be one of {tuple(LLE_METHODS)}")
+    t_start = time.perf_counter()
+    li = np.ascontiguousarray(line_integrals, dtype=np.float32)
+    if li.shape != (nominal.n_views,) + nominal.det_shape:
+        raise ValueError(f"{li.shape[0]} frames but {nominal.n_views} geometries, or detector shape mismatch")
+    mask = _as_view_mask(valid_mask, li.shape) & np.isfinite(li)
+    li = np.where(mask, li, 0.0).astype(np.float32)
+    coarse_cfg, fine_cfg = configs or default_lle_configs(LLE_METHODS[method])
+    fdk_kwargs = dict(fdk_kwargs or {})
+    say = progress or (lambda message: None)
+    points = roi_points(grid) if gauge_points_mm is None else np.asarray(gauge_points_mm, float)
+    if coarse_binning > 1:
+        li_c, mask_c = bin_masked(li, mask, coarse_binning)
+        nom_c, grid_c = nominal.binned(coarse_binning), grid.binned(coarse_binning)
+    params = np.zeros((nominal.n_views, 9))
+    history = []
+    for it in range(n_iter):
+        t0 = time.perf_counter()
+        start = params.copy()
+        if coarse_binning > 1:
+            vol_c = fdk(li_c, nom_c.perturbed(params), grid_c, valid_mask=mask_c, **fdk_kwargs)
+            params, _ = estimate_views(li_c, nom_c, params, vol_c, grid_c, coarse_cfg, mask_c)
+            say(f"iteration {it + 1}/{n_iter}: coarse estimate done ({time.perf_counter() - t0:.1f} s)")
+        vol = fdk(li, nominal.perturbed(params), grid, valid_mask=mask, **fdk_kwargs)
+        params, _ = estimate_views(li, nominal, params, vol, grid, fine_cfg, mask)
+        params = remove_gauge(nominal.perturbed(params), nominal, points).params_relative_to(nominal)
+        rmse, corr = projection_consistency(vol, grid, nominal.perturbed(params), li, mask)
+        step = params - start
+        rec = IterationRecord(it + 1, rmse, corr, float(np.sqrt((step[:, :6] ** 2).mean())),
+                              float(np.rad2deg(np.sqrt((step[:, 6:] ** 2).mean()))), time.perf_counter() - t0)
+        history.append(rec)
+        say(f"iteration {rec.iteration}/{n_iter}: projection RMSE {rec.projection_rmse:.4g}, NCC "
+            f"{rec.projection_ncc:.5f}, update {rec.update_rms_mm:.3f} mm / {rec.update_rms_deg:.3f} deg, "
+            f"{rec.wall_s:.1f} s")
+    geom = nominal.perturbed(params)
+    volume = fdk(li, geom, grid, valid_mask=mask, **fdk_kwargs)
+    return CalibrationResult(method, params, geom, volume, tuple(history), time.perf_counter() - t_start)

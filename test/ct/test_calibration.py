@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize
 
-from robot_ct_ros.ct.calibration import (WEIGHTINGS, detector_homographies, lle_weights, ncc,
-                                         warp_projections)
+from robot_ct_ros.ct.calibration import WEIGHTINGS, detector_homographies, lle_weights, warp_projections
+from robot_ct_ros.ct.metrics import ncc
 from robot_ct_ros.ct.geometry import ConeGeometry
 
 

@@ -1,0 +1,569 @@
+"""Reading scan bags, including damaged ones, into core arrays (mm) and geometry.
+
+Two layers:
+
+* :func:`read_raw_messages`: every (topic, type, log time, CDR bytes) of a bag. A healthy
+  bag (metadata.yaml + indexed MCAP) is read with rosbags. When rosbags cannot read it (no
+  metadata.yaml after a crash, MCAP without summary, a cut or overwritten tail, garbage in
+  the middle) the ``.mcap`` file is scanned record by record with the ``mcap`` library's
+  record parsers: every complete chunk and message is kept, a damaged region is skipped
+  by re-synchronising on the next well-formed chunk, and what was lost is reported.
+* :func:`read_scan`: the scan (frames, per-view geometry, flat field, pixel masks) with
+  frames and geometries paired by equal header stamps; anything unpaired, undecodable or
+  of the wrong size is counted in ``ScanData.warnings`` and never used.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import struct
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
+
+from . import format as fmt
+from .format import ScanBagError
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
+@dataclass(frozen=True)
+class RawMessage:
+    topic: str
+    msgtype: str
+    log_time_ns: int
+    data: bytes
+
+
+@dataclass(frozen=True)
+class RawBag:
+    """Messages of a bag in log-time order; ``recovered`` when the MCAP had to be scanned."""
+
+    path: Path
+    messages: list
+    warnings: list
+    recovered: bool
+    reader: str  # "rosbags" or "mcap-scan" (record by record, see the module docstring)
+
+    def topics(self) -> dict:
+        out: dict[str, list] = {}
+        for m in self.messages:
+            out.setdefault(m.topic, [m.msgtype, 0])[1] += 1
+        return {k: tuple(v) for k, v in out.items()}
+
+
+# ------------------------------------------------------------------------------ raw layer
+def _mcap_files(path: Path) -> list:
+    if path.is_file():
+        return [path]
+    if path.is_dir():
+        return sorted(path.glob("*.mcap"))
+    raise ScanBagError(f"{path}: no such bag (neither a bag directory nor an .mcap file)")
+
+
+def _read_with_rosbags(path: Path) -> list:
+    from rosbags.rosbag2 import Reader
+
+    out = []
+    with Reader(path) as reader:
+        for conn, t, data in reader.messages():
+            out.append(RawMessage(conn.topic, conn.msgtype, int(t), bytes(data)))
+    return out
+
+
+def _decompress(compression: str, data: bytes, size: int) -> bytes:
+    if compression == "":
+        return bytes(data)
+    if compression == "zstd":
+        try:
+            import zstandard
+            return zstandard.decompress(data, size)
+        except ImportError:
+            try:
+                from compression import zstd  # Python >= 3.14
+            except ImportError:
+                from backports import zstd
+            return zstd.decompress(data)
+    if compression == "lz4":
+        import lz4.frame
+        return lz4.frame.decompress(data)
+    raise ValueError(f"unsupported chunk compression {compression!r}")
+
+
+_CHUNK_FIXED = 8 + 8 + 8 + 4 + 4  # start, end, uncompressed size, crc, compression string length
+
+
+def _chunk_header_ok(buf, pos: int, n: int) -> bool:
+    """Is there a self-consistent MCAP Chunk record header at ``pos``?"""
+    if pos + 9 + _CHUNK_FIXED > n or buf[pos] != 0x06:
+        return False
+    (length,) = struct.unpack_from("<Q", buf, pos + 1)
+    if length < _CHUNK_FIXED + 8 or pos + 9 + length > n:
+        return False
+    start, end, usize, _crc, clen = struct.unpack_from("<QQQII", buf, pos + 9)
+    if clen not in (0, 3, 4) or start > end:
+        return False
+    comp = bytes(buf[pos + 9 + _CHUNK_FIXED: pos + 9 + _CHUNK_FIXED + clen])
+    if comp not in (b"", b"lz4", b"zstd"):
+        return False
+    (rlen,) = struct.unpack_from("<Q", buf, pos + 9 + _CHUNK_FIXED + clen)
+    if _CHUNK_FIXED + clen + 8 + rlen != length:
+        return False
+    return comp != b"" or rlen == usize
+
+
+def _resync(buf, pos: int, n: int) -> int | None:
+    """The next position >= pos holding a well-formed chunk record (None: none left)."""
+    while True:
+        pos = buf.find(b"\x06", pos)
+        if pos < 0:
+            return None
+        if _chunk_header_ok(buf, pos, n):
+            return pos
+        pos += 1
+
+
+def _recover_mcap(path: Path) -> tuple[list, list]:
+    """Scan an MCAP file record by record; returns (messages, warnings). See the module docstring."""
+    from mcap.data_stream import ReadDataStream
+    from mcap.records import Channel, Chunk, Message, Schema
+
+    buf = path.read_bytes()
+    n = len(buf)
+    warnings: list[str] = []
+    schemas: dict[int, str] = {}
+    channels: dict[int, tuple[str, str]] = {}
+    orphans: list = []  # messages whose channel record was lost (kept until the end)
+    out: list[RawMessage] = []
+    damaged = 0
+    lost_bytes = 0
+
+    def stream(content: bytes) -> ReadDataStream:
+        return ReadDataStream(io.BytesIO(content))
+
+    def handle(opcode: int, content: bytes):
+        if opcode == 0x03:
+            s = Schema.read(stream(content))
+            schemas[s.id] = s.name
+        elif opcode == 0x04:
+            c = Channel.read(stream(content))
+            channels[c.id] = (c.topic, schemas.get(c.schema_id, ""))
+        elif opcode == 0x05:
+            m = Message.read(stream(content), len(content))
+            ch = channels.get(m.channel_id)
+            if ch is None:
+                orphans.append(m)
+            else:
+                out.append(RawMessage(ch[0], ch[1], int(m.log_time), bytes(m.data)))
+
+    if buf[:8] == MCAP_MAGIC:
+        pos = 8
+    else:
+        warnings.append(f"{path.name}: no MCAP magic at the start; scanning for chunks")
+        pos = _resync(buf, 0, n)
+        damaged += 1
+    while pos is not None and pos < n:
+        if pos + 9 > n:
+            lost_bytes += n - pos
+            warnings.append(f"{path.name}: file ends inside a record header at byte {pos} (truncated)")
+            break
+        opcode = buf[pos]
+        (length,) = struct.unpack_from("<Q", buf, pos + 1)
+        end = pos + 9 + length
+        if opcode == 0x02 and end <= n:  # footer: the end
+            break
+        ok = 0x01 <= opcode <= 0x0F and end <= n
+        if ok and opcode == 0x06:
+            ok = _chunk_header_ok(buf, pos, n)
+        elif ok and end < n:  # the record after this one must look like a record too
+            ok = end + 9 <= n and 0x01 <= buf[end] <= 0x0F
+        if ok:
+            content = buf[pos + 9:end]
+            try:
+                if opcode == 0x06:
+                    chunk = Chunk.read(stream(content))
+                    data = _decompress(chunk.compression, chunk.data, chunk.uncompressed_size)
+                    q, cn = 0, len(data)
+                    while q < cn:
+                        if q + 9 > cn:
+                            raise ValueError("chunk ends inside a record header")
+                        op = data[q]
+                        (ln,) = struct.unpack_from("<Q", data, q + 1)
+                        if q + 9 + ln > cn or op not in (0x03, 0x04, 0x05):
+                            raise ValueError(f"bad record (opcode {op:#x}, length {ln}) inside a chunk")
+                        handle(op, data[q + 9:q + 9 + ln])
+                        q += 9 + ln
+                elif opcode in (0x03, 0x04, 0x05):
+                    handle(opcode, content)
+            except Exception as exc:  # noqa: BLE001 - a damaged record: keep what came before it
+                damaged += 1
+                warnings.append(f"{path.name}: damaged record at byte {pos} ({type(exc).__name__}: {exc}); "
+                                "the messages before it in that record are kept")
+            pos = end
+            continue
+        if end > n and 0x01 <= opcode <= 0x0F and _resync(buf, pos + 1, n) is None:
+            lost_bytes += n - pos
+            warnings.append(f"{path.name}: the file is truncated: the last record (byte {pos}, "
+                            f"{length} bytes announced, {n - pos - 9} present) is incomplete")
+            break
+        nxt = _resync(buf, pos + 1, n)
+        damaged += 1
+        lost_bytes += (n if nxt is None else nxt) - pos
+        warnings.append(f"{path.name}: unreadable bytes from {pos} to {n if nxt is None else nxt}; "
+                        + ("skipped to the next chunk" if nxt is not None else "nothing readable after them"))
+        pos = nxt
+    if orphans:
+        kept = 0
+        for m in orphans:
+            ch = channels.get(m.channel_id)
+            if ch is not None:
+                out.append(RawMessage(ch[0], ch[1], int(m.log_time), bytes(m.data)))
+                kept += 1
+        if len(orphans) - kept:
+            warnings.append(f"{path.name}: {len(orphans) - kept} messages lost: their channel record was damaged")
+    if damaged or lost_bytes:
+        warnings.append(f"{path.name}: recovered {len(out)} messages ({damaged} damaged regions, "
+                        f"{lost_bytes} bytes unreadable)")
+    return out, warnings
+
+
+def read_raw_messages(path) -> RawBag:
+    """Every message of the bag at ``path`` (bag directory or ``.mcap`` file), in log-time order.
+
+    Raises :class:`ScanBagError` only when nothing can be read; otherwise damage is reported
+    in ``warnings``.
+    """
+    path = Path(path)
+    warnings: list[str] = []
+    if path.is_dir() and (path / "metadata.yaml").is_file():
+        try:
+            msgs = _read_with_rosbags(path)
+            msgs.sort(key=lambda m: m.log_time_ns)
+            return RawBag(path, msgs, warnings, False, "rosbags")
+        except Exception as exc:  # noqa: BLE001 - any failure: fall back to scanning the MCAP
+            warnings.append(f"rosbags could not read {path.name} ({type(exc).__name__}: {exc}); "
+                            "recovering from the MCAP file")
+    elif path.is_dir():
+        warnings.append(f"{path.name} has no metadata.yaml (recording interrupted?); recovering from the MCAP file")
+    files = _mcap_files(path)
+    if not files:
+        raise ScanBagError(f"{path}: no .mcap file found (the bag directory holds "
+                           f"{sorted(p.name for p in path.iterdir()) if path.is_dir() else []})")
+    msgs: list[RawMessage] = []
+    for f in files:
+        try:
+            got, warn = _recover_mcap(f)
+        except OSError as exc:
+            raise ScanBagError(f"{f}: cannot read: {exc}") from None
+        msgs.extend(got)
+        warnings.extend(warn)
+    if not msgs:
+        raise ScanBagError(f"{path}: no readable message in {', '.join(f.name for f in files)}"
+                           + (f" ({'; '.join(warnings)})" if warnings else ""))
+    msgs.sort(key=lambda m: m.log_time_ns)
+    # recovered: something was wrong (a plain intact .mcap file read directly is not "recovered")
+    return RawBag(path, msgs, warnings, bool(warnings), "mcap-scan")
+
+
+# ------------------------------------------------------------------------------ scan layer
+@dataclass(frozen=True, eq=False)
+class ScanData:
+    """A scan read from a bag (core units: mm, float32 images; arrays per geometry.py).
+
+    ``counts`` (n, rows, cols) float32: the paired frames in stamp order, as stored (photon
+    counts, or line integrals when ``info["projection_units"] == "line_integral"``);
+    non-finite values are replaced by 0 and marked invalid. ``stamps_ns`` (n,) int64 the
+    frames' header stamps. ``geom`` the per-view geometry (/ct/geometry, mm).
+    ``flat`` (rows, cols) float32 mean counts per frame without object (None for line
+    integrals without flat). ``pixel_mask`` (rows, cols) bool: not dead and flat > 0.
+    ``valid_mask`` (n, rows, cols) bool: ``pixel_mask`` and a finite, non-negative value in
+    that frame. ``geom_corrected`` / ``geom_true`` when the bag holds them for every frame.
+    ``warnings``: everything that was dropped or repaired, one line each.
+    """
+
+    path: Path
+    counts: np.ndarray
+    stamps_ns: np.ndarray
+    geom: ConeGeometry
+    flat: np.ndarray | None
+    pixel_mask: np.ndarray
+    valid_mask: np.ndarray
+    info: dict
+    warnings: list = field(default_factory=list)
+    geom_corrected: ConeGeometry | None = None
+    geom_true: ConeGeometry | None = None
+    recovered: bool = False
+
+    @property
+    def n_views(self) -> int:
+        return int(self.counts.shape[0])
+
+    @property
+    def units(self) -> str:
+        return self.info["projection_units"]
+
+    def to_line_integrals(self, min_counts: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+        """(line_integrals float32 (n, rows, cols), mask bool (n, rows, cols)).
+
+        Counts go through :func:`robot_ct_ros.ct.simulation.counts_to_line_integrals`
+        (log(flat / counts), invalid pixels 0); line-integral bags are returned as stored.
+        """
+        if self.units == "line_integral":
+            return np.where(self.valid_mask, self.counts, 0.0).astype(np.float32), self.valid_mask.copy()
+        from robot_ct_ros.ct.simulation import counts_to_line_integrals
+
+        return counts_to_line_integrals(self.counts, self.flat, self.valid_mask, min_counts)
+
+    def scan_center_mm(self) -> np.ndarray:
+        """ROI centre: scan_info's ``roi_center_m``, else the point nearest to all principal rays."""
+        c = fmt.info_mm(self.info, "roi_center_m")
+        if c is not None:
+            return c
+        g = self.geom
+        A = np.zeros((3, 3))
+        b = np.zeros(3)
+        for s, w in zip(g.source_mm, g.w):
+            P = np.eye(3) - np.outer(w, w)
+            A += P
+            b += P @ s
+        try:
+            return np.linalg.solve(A, b)
+        except np.linalg.LinAlgError:
+            return g.source_mm.mean(axis=0)
+
+    def default_grid(self, voxel_size_mm=None, shape_zyx=None) -> VolumeGrid:
+        """The reconstruction grid: scan_info's ROI (``roi_center_m``, ``roi_size_m``,
+        ``voxel_size_m``) where given, else the field of view of the scan centred on
+        :meth:`scan_center_mm` with voxels of pitch / magnification."""
+        g = self.geom
+        c = self.scan_center_mm()
+        mag = float(np.median(g.magnification(c)))
+        if voxel_size_mm is None:
+            voxel_size_mm = fmt.info_mm(self.info, "voxel_size_m")
+        vs = (np.full(3, min(g.row_pitch_mm, g.col_pitch_mm) / mag) if voxel_size_mm is None
+              else np.broadcast_to(np.asarray(voxel_size_mm, float), (3,)).copy())
+        if shape_zyx is not None:
+            return VolumeGrid.centered(tuple(int(s) for s in shape_zyx), vs, c)
+        size = fmt.info_mm(self.info, "roi_size_m")
+        if size is None:
+            # transaxial: up to the farther detector edge from the principal point; axial: rows
+            s_on_plane = g.source_mm + np.einsum("ij,ij->i", g.detector_mm - g.source_mm, g.w)[:, None] * g.w
+            off_u = np.einsum("ij,ij->i", g.detector_mm - s_on_plane, g.u)
+            half_u = 0.5 * g.n_cols * g.col_pitch_mm
+            reach = float(np.median(np.abs(off_u) + half_u))
+            sod = float(np.median(g.sod_mm(c)))
+            sdd = float(np.median(g.sdd_mm))
+            radius = sod * reach / math.hypot(sdd, reach)
+            axial = g.n_rows * g.row_pitch_mm / mag
+            axis = np.abs(np.median(g.v, axis=0))
+            size = np.full(3, 2 * radius)
+            k = int(np.argmax(axis))
+            if axis[k] > 0.9:
+                size[k] = axial
+        n = np.maximum(1, np.round(np.asarray(size) / vs).astype(int))
+        return VolumeGrid.centered(tuple(n[::-1]), vs, c)
+
+
+def _decode(raw: RawBag, topic: str, msgtype: str, warnings: list) -> list:
+    """(log_time, message) of ``topic``; undecodable messages and unexpected types are reported."""
+    out, bad, wrong = [], 0, set()
+    for m in raw.messages:
+        if m.topic != topic:
+            continue
+        if m.msgtype != msgtype:
+            wrong.add(m.msgtype)
+            continue
+        try:
+            out.append((m.log_time_ns, fmt.deserialize(m.data, msgtype)))
+        except Exception:  # noqa: BLE001 - damaged CDR
+            bad += 1
+    if wrong:
+        raise ScanBagError(f"{topic} has type {', '.join(sorted(wrong))}; the scan bag contract says {msgtype}")
+    if bad:
+        warnings.append(f"{bad} message(s) on {topic} could not be decoded (damaged) and were dropped")
+    return out
+
+
+def _by_stamp(items, what: str, warnings: list) -> dict:
+    out, dup = {}, 0
+    for stamp, value in items:
+        if stamp in out:
+            dup += 1
+            continue
+        out[stamp] = value
+    if dup:
+        warnings.append(f"{dup} {what} with a stamp already seen were dropped (the first one is used)")
+    return out
+
+
+def _geometries(raw: RawBag, topic: str, warnings: list) -> dict:
+    items, bad = [], 0
+    for _, msg in _decode(raw, topic, fmt.POSE_ARRAY, warnings):
+        try:
+            items.append((fmt.stamp_to_ns(msg.header.stamp), fmt.view_from_pose_array(msg)))
+        except ValueError as exc:
+            bad += 1
+            last = str(exc)
+    if bad:
+        warnings.append(f"{bad} geometries on {topic} are unusable and were dropped (e.g. {last})")
+    return _by_stamp(items, f"geometries on {topic}", warnings)
+
+
+def _single_image(raw: RawBag, topic: str, shape, encodings, warnings: list):
+    msgs = _decode(raw, topic, fmt.IMAGE, warnings)
+    if not msgs:
+        return None
+    if len(msgs) > 1:
+        warnings.append(f"{len(msgs)} messages on {topic}; the last one is used")
+    try:
+        arr = fmt.array_from_image(msgs[-1][1], encodings)
+    except ValueError as exc:
+        raise ScanBagError(f"{topic}: {exc}") from None
+    if arr.shape != tuple(shape):
+        raise ScanBagError(f"{topic} is {arr.shape[0]}x{arr.shape[1]}, scan_info says {shape[0]}x{shape[1]}")
+    return arr
+
+
+def read_scan(path) -> ScanData:
+    """Read the scan bag at ``path`` (see the module docstring and README.md ("Bag format")).
+
+    Raises :class:`ScanBagError` with the reason when the bag cannot give a scan: nothing
+    readable, no /ct/scan_info, no frame paired with a geometry, no flat field for counts.
+    """
+    raw = read_raw_messages(path)
+    warnings = list(raw.warnings)
+    infos = _decode(raw, fmt.TOPIC_SCAN_INFO, fmt.STRING, warnings)
+    if not infos:
+        topics = ", ".join(f"{t} ({n})" for t, (_, n) in sorted(raw.topics().items()))
+        raise ScanBagError(f"{path}: no /ct/scan_info message; a scan bag starts with one (found: {topics})")
+    info = fmt.scan_info_from_msg(infos[0][1])
+    if len(infos) > 1:
+        others = [m.data for _, m in infos[1:]]
+        if any(o != infos[0][1].data for o in others):
+            warnings.append(f"{len(infos)} differing /ct/scan_info messages; the first one is used")
+    shape = (info["n_rows"], info["n_cols"])
+    row_pitch_mm, col_pitch_mm = info["row_pitch_m"] * fmt.MM_PER_M, info["col_pitch_m"] * fmt.MM_PER_M
+
+    frames, bad_enc, bad_size = [], 0, 0
+    for _, msg in _decode(raw, fmt.TOPIC_PROJECTION, fmt.IMAGE, warnings):
+        try:
+            arr = fmt.array_from_image(msg, fmt.READ_ENCODINGS)
+        except ValueError as exc:
+            bad_enc += 1
+            enc_reason = str(exc)
+            continue
+        if arr.shape != shape:
+            bad_size += 1
+            size_seen = arr.shape
+            continue
+        frames.append((fmt.stamp_to_ns(msg.header.stamp), arr))
+    if bad_enc:
+        warnings.append(f"{bad_enc} frames dropped: {enc_reason}")
+    if bad_size:
+        warnings.append(f"{bad_size} frames dropped: size {size_seen[0]}x{size_seen[1]} differs from scan_info's "
+                        f"{shape[0]}x{shape[1]}")
+    frames = _by_stamp(frames, "frames", warnings)
+    geoms = _geometries(raw, fmt.TOPIC_GEOMETRY, warnings)
+
+    paired = sorted(set(frames) & set(geoms))
+    lone_frames, lone_geoms = len(frames) - len(paired), len(geoms) - len(paired)
+    if lone_frames:
+        warnings.append(f"{lone_frames} frames have no geometry with the same stamp and are not used")
+    if lone_geoms:
+        warnings.append(f"{lone_geoms} geometries have no frame with the same stamp and are not used")
+    if not paired:
+        raise ScanBagError(f"{path}: no frame on /ct/projection pairs with a geometry on /ct/geometry "
+                           f"({len(frames)} usable frames, {len(geoms)} usable geometries; "
+                           "a pair needs equal header stamps)")
+    n_views = info.get("n_views")
+    if isinstance(n_views, int) and n_views != len(paired):
+        warnings.append(f"scan_info announces {n_views} views, the bag holds {len(paired)} paired frames")
+
+    try:
+        geom = fmt.geometry_from_views([geoms[s] for s in paired], *shape, row_pitch_mm, col_pitch_mm)
+    except ValueError as exc:
+        raise ScanBagError(f"{path}: /ct/geometry: {exc}") from None
+    counts = np.stack([frames[s] for s in paired]).astype(np.float32, copy=False)
+
+    flat = _single_image(raw, fmt.TOPIC_FLAT_FIELD, shape, fmt.READ_ENCODINGS, warnings)
+    if flat is None and info["projection_units"] == "counts":
+        raise ScanBagError(f"{path}: projection_units is 'counts' but the bag has no /ct/flat_field "
+                           "(needed to turn counts into line integrals)")
+    pixel_mask = np.ones(shape, bool)
+    if flat is not None:
+        if not np.all(np.isfinite(flat)):
+            warnings.append(f"{int((~np.isfinite(flat)).sum())} flat-field pixels are not finite and are masked")
+            flat = np.where(np.isfinite(flat), flat, 0.0).astype(np.float32)
+        pixel_mask &= flat > 0
+    try:
+        dead = _single_image(raw, fmt.TOPIC_DEAD_PIXELS, shape, ("mono8", "8UC1"), warnings)
+    except ScanBagError as exc:
+        warnings.append(f"dead-pixel map ignored: {exc}")
+        dead = None
+    if dead is not None:
+        pixel_mask &= dead == 0
+
+    finite = np.isfinite(counts)
+    n_nonfinite = int((~finite).sum())
+    if n_nonfinite:
+        bad_frames = int((~finite).any(axis=(1, 2)).sum())
+        warnings.append(f"{n_nonfinite} non-finite pixel values in {bad_frames} frames are marked invalid")
+        counts = np.where(finite, counts, 0.0).astype(np.float32)
+    valid = pixel_mask[None] & finite
+    if info["projection_units"] == "counts":
+        neg = counts < 0
+        if neg.any():
+            warnings.append(f"{int(neg.sum())} negative counts are marked invalid")
+            valid &= ~neg
+
+    def extra(topic):
+        gs = _geometries(raw, topic, warnings)
+        if not gs:
+            return None
+        have = [s in gs for s in paired]
+        if not all(have):
+            warnings.append(f"{topic} covers {sum(have)} of {len(paired)} frames; ignored")
+            return None
+        try:
+            return fmt.geometry_from_views([gs[s] for s in paired], *shape, row_pitch_mm, col_pitch_mm)
+        except ValueError as exc:
+            warnings.append(f"{topic} ignored: {exc}")
+            return None
+
+    return ScanData(path=Path(path), counts=counts, stamps_ns=np.asarray(paired, np.int64), geom=geom, flat=flat,
+                    pixel_mask=pixel_mask, valid_mask=valid, info=info, warnings=warnings,
+                    geom_corrected=extra(fmt.TOPIC_GEOMETRY_CORRECTED), geom_true=extra(fmt.TOPIC_GEOMETRY_TRUE),
+                    recovered=raw.recovered)
+
+
+def summarize(path) -> dict:
+    """A short description of a bag (topics, counts, scan info, pairing, warnings) for ``robot-ct info``."""
+    raw = read_raw_messages(path)
+    out = {"path": str(path), "reader": raw.reader, "recovered": raw.recovered,
+           "topics": {t: {"type": ty, "messages": n} for t, (ty, n) in sorted(raw.topics().items())}}
+    if raw.messages:
+        out["duration_s"] = (raw.messages[-1].log_time_ns - raw.messages[0].log_time_ns) * 1e-9
+    try:
+        scan = read_scan(path)
+    except ScanBagError as exc:
+        out["scan_error"] = str(exc)
+        out["warnings"] = raw.warnings
+        return out
+    g = scan.geom
+    c = scan.scan_center_mm()
+    out.update({
+        "scan_info": scan.info, "paired_views": scan.n_views,
+        "detector": f"{g.n_rows} x {g.n_cols} pixels of {g.row_pitch_mm * 1000:.1f} x {g.col_pitch_mm * 1000:.1f} um",
+        "source_to_detector_mm": float(np.median(g.sdd_mm)),
+        "magnification": float(np.median(g.magnification(c))),
+        "scan_center_mm": [float(x) for x in c],
+        "valid_pixel_fraction": float(scan.valid_mask.mean()),
+        "has_geometry_corrected": scan.geom_corrected is not None,
+        "has_geometry_true": scan.geom_true is not None,
+        "warnings": scan.warnings,
+    })
+    return out

@@ -1,0 +1,194 @@
+"""Quality measures: gauge-aligned reprojection error, projection and volume similarity, sharpness.
+
+Conventions are those of :mod:`robot_ct_ros.ct.geometry` (world mm, ``volume[k, j, i]``).
+
+The gauge. Moving every source and detector of a scan by one rigid motion (equivalently,
+moving the object by its inverse) leaves the data unchanged, so data-driven calibration
+recovers geometry only up to that motion. Geometry errors are therefore measured after
+removing the best global rigid motion: :func:`fit_gauge` finds the motion that, applied
+to the estimated geometry, makes it project a set of ROI points where the reference
+geometry projects them.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from .geometry import ConeGeometry, VolumeGrid
+
+
+# ----------------------------------------------------------------------------- gauge
+def rigidly_moved(geom: ConeGeometry, rotvec, translation_mm, center_mm=(0.0, 0.0, 0.0)) -> ConeGeometry:
+    """``geom`` with every source and detector moved by one rigid motion about ``center_mm``."""
+    R = Rotation.from_rotvec(np.asarray(rotvec, dtype=np.float64)).as_matrix()
+    c = np.asarray(center_mm, dtype=np.float64)
+    t = np.asarray(translation_mm, dtype=np.float64)
+    return geom.replace(source_mm=(geom.source_mm - c) @ R.T + c + t,
+                        detector_mm=(geom.detector_mm - c) @ R.T + c + t,
+                        u=geom.u @ R.T, v=geom.v @ R.T)
+
+
+def fit_gauge(est: ConeGeometry, ref: ConeGeometry, points_mm) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The rigid motion (rotvec rad, translation mm, about the points' centroid) that best aligns
+    ``est`` to ``ref``: least squares on the pixel distances of the projected points.
+
+    Returns (rotvec, translation_mm, center_mm).
+    """
+    pts = np.atleast_2d(np.asarray(points_mm, dtype=np.float64))
+    center = pts.mean(axis=0)
+    target = ref.project_points(pts)
+
+    def residual(x):
+        moved = rigidly_moved(est, x[:3], x[3:], center)
+        return (moved.project_points(pts) - target).ravel()
+
+    sol = least_squares(residual, np.zeros(6), method="lm", xtol=1e-12, ftol=1e-12)
+    return sol.x[:3], sol.x[3:], center
+
+
+def remove_gauge(est: ConeGeometry, ref: ConeGeometry, points_mm) -> ConeGeometry:
+    """``est`` moved by the rigid motion of :func:`fit_gauge` (the unobservable part removed)."""
+    rotvec, t, c = fit_gauge(est, ref, points_mm)
+    return rigidly_moved(est, rotvec, t, c)
+
+
+def reprojection_error(est: ConeGeometry, true: ConeGeometry, points_mm, align_gauge: bool = True) -> dict:
+    """Pixel distances between the projections of ``points_mm`` under ``est`` and ``true``.
+
+    With ``align_gauge`` the best global rigid motion is removed first. Returns mean, p95 and
+    max over all views and points (pixels of ``true``'s detector, distances measured with
+    its column pitch as the unit along both axes) and the fitted motion.
+    """
+    pts = np.atleast_2d(np.asarray(points_mm, dtype=np.float64))
+    gauge = None
+    if align_gauge:
+        rotvec, t, c = fit_gauge(est, true, pts)
+        est = rigidly_moved(est, rotvec, t, c)
+        gauge = {"rotvec_rad": rotvec.tolist(), "translation_mm": t.tolist(), "center_mm": c.tolist()}
+    d = est.project_points(pts) - true.project_points(pts)
+    d[..., 1] *= true.row_pitch_mm / true.col_pitch_mm
+    dist = np.linalg.norm(d, axis=-1)
+    return {"mean_px": float(dist.mean()), "p95_px": float(np.percentile(dist, 95)),
+            "max_px": float(dist.max()), "per_view_mean_px": dist.mean(axis=1), "gauge": gauge}
+
+
+def roi_points(grid: VolumeGrid, per_axis: int = 5, inner_fraction: float = 0.8) -> np.ndarray:
+    """A ``per_axis``^3 lattice of points spanning the inner part of ``grid`` (mm)."""
+    lo, hi = grid.bounds_mm()
+    c, half = 0.5 * (lo + hi), 0.5 * inner_fraction * (hi - lo)
+    axes = [np.linspace(c[a] - half[a], c[a] + half[a], per_axis) for a in range(3)]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+
+
+# ----------------------------------------------------------------------------- projections
+def _masked_rows(a, b, mask):
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    n = a.shape[0] if a.ndim > 1 else 1
+    a, b = a.reshape(n, -1), b.reshape(n, -1)
+    m = np.ones(a.shape, bool) if mask is None else np.broadcast_to(np.asarray(mask, bool).reshape(
+        (-1,) + a.shape[1:] if np.asarray(mask).size == a.size else (1, -1)), a.shape)
+    return a, b, m & np.isfinite(a) & np.isfinite(b)
+
+
+def ncc(a, b, mask=None) -> np.ndarray:
+    """Normalized cross-correlation per row (view) of two stacks, over the mask (blind to gain/offset)."""
+    a, b, m = _masked_rows(a, b, mask)
+    cnt = np.maximum(m.sum(axis=1), 1)
+    ac = np.where(m, a - (np.where(m, a, 0).sum(axis=1) / cnt)[:, None], 0)
+    bc = np.where(m, b - (np.where(m, b, 0).sum(axis=1) / cnt)[:, None], 0)
+    den = np.sqrt((ac * ac).sum(axis=1) * (bc * bc).sum(axis=1))
+    return (ac * bc).sum(axis=1) / np.maximum(den, 1e-300)
+
+
+def projection_rmse(a, b, mask=None) -> float:
+    """Root mean square difference over the mask (all views together)."""
+    a, b, m = _masked_rows(a, b, mask)
+    return float(np.sqrt(np.where(m, (a - b) ** 2, 0).sum() / max(m.sum(), 1)))
+
+
+# ----------------------------------------------------------------------------- volumes
+def psnr(a, b, data_range: float | None = None) -> float:
+    a = np.asarray(a, np.float64)
+    b = np.asarray(b, np.float64)
+    rng = float(b.max() - b.min()) if data_range is None else float(data_range)
+    mse = float(np.mean((a - b) ** 2))
+    return float("inf") if mse == 0 else 10.0 * np.log10(rng * rng / mse)
+
+
+def ssim(a, b, data_range: float | None = None, sigma_vox: float = 1.5) -> float:
+    """Mean structural similarity of two volumes (or images), Gaussian window (Wang et al. 2004).
+
+    ``b`` is the reference; ``data_range`` defaults to its range.
+    """
+    a = np.asarray(a, np.float64)
+    b = np.asarray(b, np.float64)
+    if a.shape != b.shape:
+        raise ValueError(f"shapes differ: {a.shape} vs {b.shape}")
+    L = float(b.max() - b.min()) if data_range is None else float(data_range)
+    c1, c2 = (0.01 * L) ** 2, (0.03 * L) ** 2
+    f = lambda x: ndimage.gaussian_filter(x, sigma_vox, truncate=3.5)  # noqa: E731
+    mu_a, mu_b = f(a), f(b)
+    var_a = f(a * a) - mu_a ** 2
+    var_b = f(b * b) - mu_b ** 2
+    cov = f(a * b) - mu_a * mu_b
+    s = ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a ** 2 + mu_b ** 2 + c1) * (var_a + var_b + c2))
+    return float(s.mean())
+
+
+def edge_sharpness(volume, mask=None, percentile: float = 99.0) -> float:
+    """Sharpness: the ``percentile`` of the gradient magnitude (per voxel) over the image's
+    1-99 % intensity range. Geometric blur (double edges, smearing) lowers it; it is
+    comparable between reconstructions of the same object on the same grid."""
+    v = np.asarray(volume, np.float64)
+    g = np.sqrt(sum(ndimage.sobel(v, axis=a) ** 2 for a in range(v.ndim))) / 8.0
+    sel = g if mask is None else g[np.asarray(mask, bool)]
+    lo, hi = np.percentile(v if mask is None else v[np.asarray(mask, bool)], [1, 99])
+    return float(np.percentile(sel, percentile) / max(hi - lo, 1e-12))
+
+
+def sample_volume(volume, grid: VolumeGrid, points_mm, order: int = 1) -> np.ndarray:
+    """Interpolated volume values at world points (..., 3); 0 outside."""
+    pts = np.asarray(points_mm, np.float64)
+    idx = (pts - np.asarray(grid.origin_mm)) / np.asarray(grid.voxel_size_mm)  # (x, y, z) index
+    coords = np.stack([idx[..., 2], idx[..., 1], idx[..., 0]]).reshape(3, -1)
+    vals = ndimage.map_coordinates(np.asarray(volume, np.float32), coords, order=order, mode="constant")
+    return vals.reshape(pts.shape[:-1])
+
+
+def cap_thickness_mm(volume, grid: VolumeGrid, cap, step_mm: float = 0.005, n_lines: int = 9) -> float:
+    """Fibrous-cap thickness measured in a reconstruction: FWHM of the cap ridge.
+
+    ``cap`` is the phantom's :class:`~robot_ct_ros.ct.simulation.CapGeometry`. The profile is
+    sampled along ``cap.direction`` from inside the lumen to inside the lipid core, averaged
+    over ``n_lines`` lines spread along the vessel axis (within the core's half length). The
+    ridge is bounded by the half-maximum crossings towards the lumen and towards the core,
+    each against its own plateau (the two tissues differ).
+    """
+    d = np.asarray(cap.direction, np.float64)
+    axis = np.asarray(cap.axis, np.float64)
+    r = np.arange(-0.6, cap.thickness_mm + 0.5 * cap.core_depth_mm + 1e-9, step_mm)
+    start = np.asarray(cap.lumen_point_mm)
+    offs = np.linspace(-0.6, 0.6, n_lines) * cap.half_length_mm
+    pts = start[None, None, :] + r[None, :, None] * d + offs[:, None, None] * axis
+    prof = sample_volume(volume, grid, pts).mean(axis=0)
+    inner = prof[r < -0.3].mean()                      # lumen plateau
+    outer = prof[r > cap.thickness_mm + 0.25 * cap.core_depth_mm].mean()  # core plateau
+    search = (r > -0.3) & (r < cap.thickness_mm + 0.25 * cap.core_depth_mm)
+    k = np.flatnonzero(search)[np.argmax(prof[search])]
+    peak = prof[k]
+    half_in, half_out = 0.5 * (peak + inner), 0.5 * (peak + outer)
+    i = k
+    while i > 0 and prof[i] > half_in:
+        i -= 1
+    j = k
+    while j < len(r) - 1 and prof[j] > half_out:
+        j += 1
+    if i == 0 or j == len(r) - 1:
+        return float("nan")
+    left = r[i] + (half_in - prof[i]) / (prof[i + 1] - prof[i]) * step_mm
+    right = r[j - 1] + (prof[j - 1] - half_out) / (prof[j - 1] - prof[j]) * step_mm
+    return float(right - left)

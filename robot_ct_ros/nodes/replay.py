@@ -1,0 +1,149 @@
+"""replay: republishes a scan bag and/or calibrates it offline.
+
+Publishes (the bag's own messages, byte for byte, original header stamps)
+  /ct/scan_info, /ct/flat_field, /ct/dead_pixels: transient-local, at start
+  /ct/projection, /ct/geometry, ... every other topic of the bag: reliable, one frame per
+  1 / rate_hz seconds (the messages recorded between two frames go with the later one)
+  ~/report (std_msgs/String, transient-local): the JSON report when offline calibration is done
+Parameters
+  bag_path (bag directory or .mcap, damaged bags are recovered), rate_hz (frames per second;
+  <= 0: do not republish), wait_for_subscribers (start republishing once /ct/projection has this
+  many subscribers), method ("" = no offline job; "fdk" = reconstruct only; else a calibration
+  method, e.g. ncc-lle-exact), iterations, output_dir (corrected bag, volume .npy/.tif and
+  report.json, as ``robot-ct calibrate``).
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+from pathlib import Path
+
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from std_msgs.msg import String
+
+from robot_ct_ros.bag import format as fmt
+from robot_ct_ros.bag.reader import read_raw_messages
+from robot_ct_ros.nodes.common import run_node
+from robot_ct_ros.nodes.recorder import LATCHED, message_class
+
+STREAM = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+
+
+def frame_groups(messages) -> tuple[list, list]:
+    """(latched messages, groups): each group ends with one /ct/projection; trailing messages join the last."""
+    latched = [m for m in messages if m.topic in fmt.LATCHED_TOPICS]
+    groups, current = [], []
+    for m in messages:
+        if m.topic in fmt.LATCHED_TOPICS:
+            continue
+        current.append(m)
+        if m.topic == fmt.TOPIC_PROJECTION:
+            groups.append(current)
+            current = []
+    if current:
+        if groups:
+            groups[-1].extend(current)
+        else:
+            groups.append(current)
+    return latched, groups
+
+
+class ReplayNode(Node):
+    def __init__(self, **kwargs):
+        super().__init__("replay", **kwargs)
+        self.bag_path = self.declare_parameter("bag_path", "").value
+        self.rate_hz = float(self.declare_parameter("rate_hz", 10.0).value)
+        self.wait_for_subscribers = int(self.declare_parameter("wait_for_subscribers", 0).value)
+        self.method = self.declare_parameter("method", "").value
+        self.iterations = int(self.declare_parameter("iterations", 2).value)
+        self.output_dir = Path(self.declare_parameter("output_dir", "replay_out").value)
+        if not self.bag_path:
+            raise ValueError("parameter bag_path is required")
+        raw = read_raw_messages(self.bag_path)
+        for w in raw.warnings:
+            self.get_logger().warning(w)
+        self.latched, self.groups = frame_groups(raw.messages)
+        self.published_frames = 0
+        self.republish_done = self.rate_hz <= 0
+        self.report: dict | None = None
+        self.error: str | None = None
+        self._pubs: dict[str, object] = {}
+        self._report_pub = self.create_publisher(String, "~/report", LATCHED)
+        self._job: threading.Thread | None = None
+        self._next = 0
+        n_frames = sum(1 for g in self.groups for m in g if m.topic == fmt.TOPIC_PROJECTION)
+        self.get_logger().info(f"{self.bag_path}: {n_frames} frames, {len(raw.messages)} messages"
+                               + (f"; republishing at {self.rate_hz} Hz" if self.rate_hz > 0 else ""))
+        if self.rate_hz > 0:
+            for m in self.latched:
+                self._publish(m)
+            self._projection_pub = self._publisher(fmt.TOPIC_PROJECTION, fmt.IMAGE)
+            self._timer = self.create_timer(1.0 / self.rate_hz, self._tick)
+        elif self.method:
+            self._start_job()
+
+    def _publisher(self, topic: str, msgtype: str):
+        pub = self._pubs.get(topic)
+        if pub is None:
+            qos = LATCHED if topic in fmt.LATCHED_TOPICS else STREAM
+            pub = self.create_publisher(message_class(msgtype), topic, qos)
+            self._pubs[topic] = pub
+        return pub
+
+    def _publish(self, m) -> None:
+        try:
+            self._publisher(m.topic, m.msgtype).publish(m.data)
+        except (ImportError, AttributeError, ValueError) as exc:  # a type this ROS install lacks
+            self.get_logger().warning(f"cannot republish {m.topic} ({m.msgtype}): {exc}", once=True)
+
+    def _tick(self) -> None:
+        if self._next == 0 and self._projection_pub.get_subscription_count() < self.wait_for_subscribers:
+            return
+        if self._next < len(self.groups):
+            for m in self.groups[self._next]:
+                self._publish(m)
+                if m.topic == fmt.TOPIC_PROJECTION:
+                    self.published_frames += 1
+            self._next += 1
+            return
+        self._timer.cancel()
+        self.republish_done = True
+        self.get_logger().info(f"republished {self.published_frames} frames")
+        if self.method:
+            self._start_job()
+
+    # ----------------------------------------------------------------- offline calibration
+    def _start_job(self) -> None:
+        self._job = threading.Thread(target=self._run_job, name="replay-calibration", daemon=True)
+        self._job.start()
+
+    def _run_job(self) -> None:
+        from robot_ct_ros.cli import calibrate_bag
+
+        log = self.get_logger()
+        try:
+            report = calibrate_bag(self.bag_path, self.output_dir, method=self.method, iterations=self.iterations,
+                                   say=lambda s: log.info(s))
+        except Exception as exc:  # noqa: BLE001 - reported, the node keeps running
+            self.error = f"{type(exc).__name__}: {exc}"
+            log.error(f"offline calibration failed: {self.error}")
+            self._report_pub.publish(String(data=json.dumps({"error": self.error})))
+            return
+        self.report = report
+        self._report_pub.publish(String(data=json.dumps(report, default=str)))
+        log.info(f"offline calibration done: {self.output_dir}/report.json")
+
+    @property
+    def done(self) -> bool:
+        job_done = not self.method or self.report is not None or self.error is not None
+        return self.republish_done and job_done
+
+
+def main(argv=None) -> int:
+    return run_node(ReplayNode, __doc__.splitlines()[0], argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

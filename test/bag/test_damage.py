@@ -1,0 +1,186 @@
+"""Bad input: damaged MCAP files, bad frames, unpaired messages. Clear errors, nothing lost."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+
+from robot_ct_ros.bag import ScanBagError, ScanBagWriter, read_scan, scan_info_for, write_scan
+from robot_ct_ros.bag import format as fmt
+from robot_ct_ros.bag.writer import default_stamps
+
+
+@pytest.fixture
+def good_bag(tmp_path, tiny_scan):
+    geom, frames, flat, dead = tiny_scan
+    stamps = default_stamps(12)
+    bag = write_scan(tmp_path / "good", frames, geom, flat=flat, dead_pixels=dead, stamps_ns=stamps)
+    return bag, frames, stamps
+
+
+def _chunks(mcap_path):
+    """(end offset, stamps in it) of every chunk of an intact MCAP file, from its summary."""
+    from mcap.reader import make_reader
+
+    with open(mcap_path, "rb") as f:
+        summary = make_reader(f).get_summary()
+        return [(c.chunk_start_offset + c.chunk_length, c.message_start_time, c.message_end_time)
+                for c in summary.chunk_indexes]
+
+
+def _damaged_copy(bag, dst, data: bytes, keep_metadata: bool):
+    dst.mkdir()
+    (dst / f"{bag.name}.mcap").write_bytes(data)
+    if keep_metadata:
+        shutil.copy(bag / "metadata.yaml", dst / "metadata.yaml")
+    return dst
+
+
+def _assert_exact_subset(scan, frames, stamps):
+    index = {int(s): i for i, s in enumerate(stamps)}
+    for k, s in enumerate(scan.stamps_ns):
+        np.testing.assert_array_equal(scan.counts[k], frames[index[int(s)]])
+
+
+def test_truncated_at_random_offsets_keeps_every_complete_frame(tmp_path, good_bag):
+    bag, frames, stamps = good_bag
+    data = (bag / "good.mcap").read_bytes()
+    chunks = _chunks(bag / "good.mcap")
+    first_frame_end = min(end for end, t0, _ in chunks if t0 >= stamps[0])
+    rng = np.random.default_rng(42)
+    cuts = sorted(set(rng.integers(9, len(data), 10).tolist()) | {first_frame_end, len(data) - 3})
+    for k, cut in enumerate(cuts):
+        d = _damaged_copy(bag, tmp_path / f"cut{k}", data[:cut], keep_metadata=bool(k % 2))
+        complete = sum(1 for end, t0, t1 in chunks if end <= cut and t0 >= stamps[0])
+        if complete == 0:
+            with pytest.raises(ScanBagError):
+                read_scan(d)
+            continue
+        scan = read_scan(d)
+        assert scan.recovered
+        assert scan.n_views >= complete, (cut, scan.warnings)
+        _assert_exact_subset(scan, frames, stamps)
+        if scan.n_views < 12:
+            assert any("12 views" in w for w in scan.warnings)
+
+
+def test_missing_metadata_yaml_recovers_everything(tmp_path, good_bag):
+    bag, frames, stamps = good_bag
+    (bag / "metadata.yaml").unlink()
+    scan = read_scan(bag)
+    assert scan.recovered and scan.n_views == 12
+    assert any("metadata.yaml" in w for w in scan.warnings)
+    np.testing.assert_array_equal(scan.counts, frames)
+    scan2 = read_scan(bag / "good.mcap")  # the .mcap file alone
+    np.testing.assert_array_equal(scan2.counts, frames)
+    assert not scan2.recovered and scan2.warnings == []
+
+
+def test_garbage_in_the_middle_loses_only_the_damaged_chunk(tmp_path, good_bag):
+    bag, frames, stamps = good_bag
+    data = bytearray((bag / "good.mcap").read_bytes())
+    chunks = _chunks(bag / "good.mcap")
+    end_prev = chunks[4][0]  # overwrite the header of the 6th chunk (and a bit of its content)
+    data[end_prev - 8:end_prev + 200] = b"\xab" * 208
+    for keep in (True, False):
+        d = _damaged_copy(bag, tmp_path / f"g{keep}", bytes(data), keep_metadata=keep)
+        scan = read_scan(d)
+        assert scan.n_views >= 10
+        _assert_exact_subset(scan, frames, stamps)
+        assert any("unreadable" in w or "damaged" in w for w in scan.warnings)
+
+
+def test_random_garbage_never_crashes_the_reader(tmp_path, good_bag):
+    bag, frames, stamps = good_bag
+    src = (bag / "good.mcap").read_bytes()
+    rng = np.random.default_rng(7)
+    for k in range(6):
+        data = bytearray(src)
+        a = int(rng.integers(0, len(src) - 64))
+        data[a:a + 64] = rng.integers(0, 256, 64, dtype=np.uint8).tobytes()
+        d = _damaged_copy(bag, tmp_path / f"r{k}", bytes(data), keep_metadata=False)
+        try:
+            scan = read_scan(d)
+        except ScanBagError as exc:
+            assert str(exc)
+            continue
+        assert scan.n_views >= 1 and np.all(np.isfinite(scan.counts))
+
+
+def test_not_a_bag(tmp_path):
+    with pytest.raises(ScanBagError, match="no such bag"):
+        read_scan(tmp_path / "nothing")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ScanBagError, match="no .mcap"):
+        read_scan(tmp_path / "empty")
+    (tmp_path / "junk").mkdir()
+    (tmp_path / "junk" / "junk.mcap").write_bytes(b"hello world" * 100)
+    with pytest.raises(ScanBagError, match="no readable message"):
+        read_scan(tmp_path / "junk")
+
+
+def _custom_bag(path, geom, frames, flat, *, info=None, skip_geom=(), skip_frame=(), extra=None):
+    stamps = default_stamps(len(frames))
+    with ScanBagWriter(path, info if info is not None else scan_info_for(geom)) as w:
+        if flat is not None:
+            w.write_msg(fmt.TOPIC_FLAT_FIELD, fmt.image_from_array(flat, 1), int(stamps[0]) - 5)
+        for i in range(len(frames)):
+            if i not in skip_frame:
+                w.write_msg(fmt.TOPIC_PROJECTION, fmt.image_from_array(frames[i], int(stamps[i])), int(stamps[i]))
+            if i not in skip_geom:
+                w.write_geometry(geom, int(stamps[i]), view=i)
+        if extra:
+            extra(w, stamps)
+    return path
+
+
+def test_nan_pixels_are_marked_invalid(tmp_path, tiny_scan):
+    geom, frames, flat, _ = tiny_scan
+    bad = frames.copy()
+    bad[3, 1, 1] = np.nan
+    bad[5, 2, 2] = -4.0
+    scan = read_scan(_custom_bag(tmp_path / "nan", geom, bad, flat))
+    assert not scan.valid_mask[3, 1, 1] and not scan.valid_mask[5, 2, 2] and scan.valid_mask.sum() == 12 * 96 - 2
+    assert np.isfinite(scan.counts).all()
+    li, mask = scan.to_line_integrals()
+    assert np.isfinite(li).all() and li[3, 1, 1] == 0 and not mask[3, 1, 1]
+    assert any("non-finite" in w for w in scan.warnings) and any("negative" in w for w in scan.warnings)
+
+
+def test_wrong_size_frames_and_unpaired_messages_are_reported(tmp_path, tiny_scan):
+    geom, frames, flat, _ = tiny_scan
+
+    def extra(w, stamps):
+        w.write_msg(fmt.TOPIC_PROJECTION, fmt.image_from_array(np.ones((5, 5), np.float32), 99), 99)
+        w.write_msg(fmt.TOPIC_PROJECTION, fmt.image_from_array(frames[0] + 1, int(stamps[0])), int(stamps[0]))
+
+    scan = read_scan(_custom_bag(tmp_path / "b", geom, frames, flat, skip_geom={2}, skip_frame={7}, extra=extra))
+    assert scan.n_views == 10
+    np.testing.assert_array_equal(scan.counts[0], frames[0])  # the first of a duplicated stamp
+    text = " | ".join(scan.warnings)
+    assert "1 frames dropped: size 5x5" in text
+    assert "1 frames have no geometry" in text and "1 geometries have no frame" in text
+    assert "stamp already seen" in text and "12 views" in text
+
+
+def test_clear_errors_for_unusable_scans(tmp_path, tiny_scan):
+    geom, frames, flat, _ = tiny_scan
+    with pytest.raises(ScanBagError, match="no /ct/flat_field"):
+        read_scan(_custom_bag(tmp_path / "noflat", geom, frames, None))
+    with pytest.raises(ScanBagError, match="no frame on /ct/projection pairs"):
+        read_scan(_custom_bag(tmp_path / "nopair", geom, frames, flat, skip_geom=set(range(12))))
+
+    def wrong_type(w, stamps):
+        w.write_msg(fmt.TOPIC_GEOMETRY, fmt.typestore().types[fmt.STRING](data="x"), 1, fmt.STRING)
+
+    with pytest.raises(ScanBagError, match="contract says geometry_msgs/msg/PoseArray"):
+        read_scan(_custom_bag(tmp_path / "type", geom, frames, flat, extra=wrong_type))
+    with ScanBagWriter(tmp_path / "noinfo", None) as w:
+        w.write_frame(frames[0], geom, 10)
+    with pytest.raises(ScanBagError, match="no /ct/scan_info"):
+        read_scan(tmp_path / "noinfo")
+    small = fmt.make_scan_info(4, 4, 0.1, 0.1)
+    with pytest.raises(ScanBagError, match="flat_field is 8x12, scan_info says 4x4"):
+        read_scan(_custom_bag(tmp_path / "size", geom, frames[:, :4, :4], flat, info=small))

@@ -1,0 +1,74 @@
+"""Quality measures: gauge removal, reprojection error, similarity, cap thickness."""
+
+import numpy as np
+import pytest
+
+from robot_ct_ros.ct.geometry import VolumeGrid
+from robot_ct_ros.ct.metrics import (cap_thickness_mm, edge_sharpness, fit_gauge, ncc, projection_rmse, psnr,
+                                     remove_gauge, reprojection_error, rigidly_moved, roi_points, ssim)
+from robot_ct_ros.ct.simulation import carotid_plaque_phantom, voxelize
+from robot_ct_ros.ct.trajectory import circular_scan
+
+
+@pytest.fixture
+def scan():
+    return circular_scan(24, 128.0, 342.4, 60, 80, 0.11, 0.11)
+
+
+def test_gauge_removal_recovers_a_known_global_motion(scan):
+    pts = roi_points(VolumeGrid.centered((20, 20, 20), 0.2))
+    rotvec, t = np.array([0.01, -0.02, 0.015]), np.array([0.4, -0.3, 0.25])
+    moved = rigidly_moved(scan, rotvec, t, pts.mean(axis=0))
+    assert reprojection_error(moved, scan, pts, align_gauge=False)["mean_px"] > 2.0
+    err = reprojection_error(moved, scan, pts)
+    assert err["max_px"] < 1e-6
+    # the fitted motion undoes the applied one
+    back_rot, back_t, c = fit_gauge(moved, scan, pts)
+    np.testing.assert_allclose(remove_gauge(moved, scan, pts).source_mm, scan.source_mm, atol=1e-6)
+    np.testing.assert_allclose(back_rot, -rotvec, atol=1e-3)
+
+
+def test_reprojection_error_of_a_detector_shift_is_the_shift_in_pixels(scan):
+    pts = roi_points(VolumeGrid.centered((20, 20, 20), 0.2))
+    shift_px = 1.5
+    params = np.zeros((scan.n_views, 9))
+    params[:, 3] = shift_px * scan.col_pitch_mm
+    err = reprojection_error(scan.perturbed(params), scan, pts, align_gauge=False)
+    assert err["mean_px"] == pytest.approx(shift_px, rel=1e-9)
+    # random per-view errors are not a gauge: aligning cannot remove them
+    rng = np.random.default_rng(0)
+    noisy = scan.perturbed(np.concatenate([rng.normal(0, 0.3, (24, 6)), rng.normal(0, 0.005, (24, 3))], 1))
+    assert reprojection_error(noisy, scan, pts)["mean_px"] > 1.0
+
+
+def test_similarity_measures():
+    rng = np.random.default_rng(1)
+    x = ndimage_blobs(rng)
+    assert ssim(x, x) == pytest.approx(1.0)
+    noisy = x + rng.normal(0, 0.05, x.shape)
+    noisier = x + rng.normal(0, 0.2, x.shape)
+    assert 1.0 > ssim(noisy, x) > ssim(noisier, x)
+    assert psnr(noisy, x) > psnr(noisier, x)
+    assert ncc((3.0 * x + 2.0).reshape(1, -1), x.reshape(1, -1))[0] == pytest.approx(1.0)
+    assert projection_rmse(x + 0.5, x) == pytest.approx(0.5)
+    from scipy.ndimage import gaussian_filter
+    assert edge_sharpness(gaussian_filter(x, 1.5)) < edge_sharpness(x)
+
+
+def ndimage_blobs(rng):
+    z, y, x = np.mgrid[:24, :24, :24]
+    vol = np.zeros((24, 24, 24))
+    for _ in range(5):
+        c = rng.uniform(5, 19, 3)
+        vol[(z - c[0]) ** 2 + (y - c[1]) ** 2 + (x - c[2]) ** 2 < rng.uniform(4, 16)] += 1.0
+    return vol
+
+
+@pytest.mark.parametrize("thickness_mm", [0.06, 0.12])
+def test_cap_thickness_of_the_voxelised_phantom(thickness_mm):
+    ph = carotid_plaque_phantom(cap_thickness_mm=thickness_mm)
+    cap = ph.cap
+    centre = cap.lumen_point_mm + 0.5 * thickness_mm * np.asarray(cap.direction)
+    grid = VolumeGrid.centered((12, 200, 200), (0.01, 0.01, 0.1), centre)
+    vol = voxelize(ph, grid, supersample=3)
+    assert cap_thickness_mm(vol, grid, cap) == pytest.approx(thickness_mm, abs=0.01)

@@ -1,0 +1,92 @@
+"""Simulation: phantoms, photon-counting detector model, geometric error models, scans."""
+
+import numpy as np
+import pytest
+
+from robot_ct_ros.ct.geometry import VolumeGrid
+from robot_ct_ros.ct.simulation import (DetectorModel, GeometryErrorModel, Phantom, battery_phantom,
+                                        carotid_plaque_phantom, counts_to_line_integrals, detector_drift,
+                                        ellipsoid, elliptic_cylinder, mouse_phantom, robot_coordination,
+                                        simulate_counts, simulate_scan, voxelize)
+from robot_ct_ros.ct.trajectory import circular_scan
+
+
+@pytest.mark.parametrize("prim", [
+    ellipsoid((0.3, -0.2, 0.1), (2.0, 1.5, 1.0), 1.0, rotvec=(0.3, 0.2, 0.1)),
+    elliptic_cylinder((0.0, 0.0, 0.0), (2.0, 1.2), 1.5, 1.0),
+])
+def test_voxelised_primitive_keeps_its_analytic_volume(prim):
+    grid = VolumeGrid.centered((40, 56, 56), 0.1)
+    vol = voxelize(Phantom("one", (prim,)), grid, supersample=3)
+    measured = vol.sum() * np.prod(grid.voxel_size_mm)
+    assert measured == pytest.approx(prim.analytic_volume_mm3(), rel=0.01)
+
+
+def test_phantoms_voxelise_to_plausible_attenuation():
+    for ph in (mouse_phantom(), battery_phantom(), carotid_plaque_phantom()):
+        lo, hi = ph.bounds_mm()
+        grid = VolumeGrid.centered((8, 48, 48), (hi - lo)[:2].max() / 48, 0.5 * (lo + hi))
+        vol = voxelize(ph, grid)
+        assert vol.dtype == np.float32 and np.isfinite(vol).all()
+        assert 0.0 <= vol.min() and 0.015 < np.median(vol[vol > 0]) < 0.2
+
+
+def test_counts_follow_poisson_statistics_and_invert_noiselessly():
+    model = DetectorModel(photons_per_pixel=4000.0, dead_pixel_fraction=0.0, hot_pixel_fraction=0.0,
+                          flat_field_sigma=0.0, chip_gap_px=0, flat_frames=1000)
+    p = np.full((200, 16, 16), 1.2, np.float32)
+    counts, flat, valid = simulate_counts(p, model, rng=np.random.default_rng(0))
+    expected = 4000.0 * np.exp(-1.2)
+    assert counts.mean() == pytest.approx(expected, rel=0.01)
+    assert counts.var() == pytest.approx(expected, rel=0.05)
+
+    clean = DetectorModel(poisson=False, dead_pixel_fraction=0.0, hot_pixel_fraction=0.0, chip_gap_px=0,
+                          flat_field_sigma=0.0)
+    li_true = np.random.default_rng(1).uniform(0, 3, (3, 32, 32)).astype(np.float32)
+    c, f, v = simulate_counts(li_true, clean)
+    li, mask = counts_to_line_integrals(c, f, v)
+    binned = li_true.reshape(3, 16, 2, 16, 2)
+    # binned counts average exp(-p), so compare with -log(mean(exp(-p)))
+    expect = -np.log(np.exp(-binned.astype(np.float64)).mean(axis=(2, 4)))
+    np.testing.assert_allclose(li, expect, atol=1e-4)
+    assert mask.all()
+
+
+def test_defects_are_masked_and_nothing_non_finite_escapes():
+    model = DetectorModel(dead_pixel_fraction=0.02, hot_pixel_fraction=0.01, chip_size_px=24, chip_gap_px=2,
+                          min_valid_fraction=1.0)
+    p = np.random.default_rng(2).uniform(0, 8, (2, 52, 52)).astype(np.float32)
+    p[0, :4, :4] = 40.0  # photon starvation: zero counts
+    counts, flat, valid = simulate_counts(p, model, rng=np.random.default_rng(3))
+    li, mask = counts_to_line_integrals(counts, flat, valid)
+    assert np.isfinite(li).all()
+    gap = model.gap_mask((52, 52)).reshape(26, 2, 26, 2).all(axis=(1, 3))
+    assert not mask[gap].any()  # bins made only of gap pixels are invalid
+    np.testing.assert_array_equal(np.broadcast_to(mask, li.shape)[0], model.valid_mask((52, 52)))  # and bins spoilt by dead/hot pixels
+    assert model.valid_mask((52, 52)).sum() < (~gap).sum()
+    assert np.all(li[:, ~mask] == 0)
+
+
+def test_error_models_are_seeded_and_respect_their_sigma():
+    a = robot_coordination(0.3, 0.3, seed=7).sample(4000)
+    b = robot_coordination(0.3, 0.3, seed=7).sample(4000)
+    np.testing.assert_array_equal(a, b)
+    assert not np.array_equal(a, robot_coordination(0.3, 0.3, seed=8).sample(4000))
+    np.testing.assert_allclose(a[:, :6].std(axis=0), 0.3, rtol=0.06)
+    np.testing.assert_allclose(a[:, 6:].std(axis=0), np.deg2rad(0.3), rtol=0.06)
+    drift = detector_drift(mm_per_view=0.002).sample(100)
+    assert np.abs(drift[-1, 3:6]).max() > np.abs(drift[1, 3:6]).max()  # creeps
+    static = GeometryErrorModel(static_offset=(0, 0, 0, 1.0, 0, 0, 0, 0, 0)).sample(5)
+    np.testing.assert_array_equal(static[:, 3], 1.0)
+
+
+def test_simulated_scan_matches_shapes_and_sees_the_object():
+    geom = circular_scan(6, 60.0, 150.0, 16, 24, 0.8, 0.8)
+    ph = mouse_phantom(body_width_mm=10.0, length_mm=12.0)
+    scan = simulate_scan(ph, geom, DetectorModel(chip_size_px=64), voxel_size_mm=0.3,
+                         rng=np.random.default_rng(0))
+    assert scan.line_integrals.shape == (6, 16, 24)
+    assert np.isfinite(scan.line_integrals).all()
+    centre = scan.line_integrals[:, 6:10, 10:14]
+    assert centre.mean() > 0.1  # ~10 mm of tissue
+    assert np.abs(scan.line_integrals - scan.ideal_line_integrals)[:, scan.valid_mask].mean() < 0.05
