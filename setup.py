@@ -9,8 +9,11 @@ PACKAGE = "robot_ct_ros"
 # ROS executables (`ros2 run robot_ct_ros <name>`), each a thin rclpy shell in robot_ct_ros/nodes.
 NODES = {
     "arm_driver": "robot_ct_ros.nodes.arm_driver:main",
+    "geometry_publisher": "robot_ct_ros.nodes.geometry_publisher:main",
+    "pcd_grabber": "robot_ct_ros.nodes.pcd_grabber:main",
     "recorder": "robot_ct_ros.nodes.recorder:main",
     "replay": "robot_ct_ros.nodes.replay:main",
+    "scan_orchestrator": "robot_ct_ros.nodes.scan_orchestrator:main",
     "source_control": "robot_ct_ros.nodes.source_control:main",
 }
 

@@ -1,0 +1,123 @@
+"""geometry_publisher: the nominal geometry of every detector frame, from the arms' measured tool poses.
+
+Topics (contract names from robot_ct_ros.bag.format; relative names follow the node namespace):
+  subscribes  source_arm/tool_pose, detector_arm/tool_pose (geometry_msgs/PoseStamped, metres, frame
+              world_frame): the *measured* TCP poses (a history of history_s seconds is kept),
+              /ct/projection (sensor_msgs/Image): only the header is used
+  publishes   /ct/geometry (geometry_msgs/PoseArray, reliable, depth 100): for each frame, with
+              exactly the frame's header.stamp: poses[0] the source focal spot, poses[1] the detector
+              centre with orientation columns (u, v, w), metres, frame world_frame; /diagnostics (1 Hz)
+For each frame, each arm's pose nearest in time to the frame stamp is taken through the hand-eye
+mounts (robot_ct_ros.ct.hand_eye.geometry_from_tool_poses). This is the nominal geometry: the arms'
+coordination errors are invisible here (the calibration estimates them from the data). When a pose
+is missing, further than max_pose_age_s from the frame stamp, or not in world_frame, no geometry is
+published for that frame; the skip is logged and counted on /diagnostics (WARN).
+Parameters: max_pose_age_s (s), history_s (s), world_frame, and the hand_eye.* parameters
+(nodes/hand_eye_params.py).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+from rclpy.node import Node
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import PoseArray, PoseStamped
+from sensor_msgs.msg import Image
+
+from robot_ct_ros.bag import format as fmt
+from robot_ct_ros.ct.hand_eye import geometry_from_tool_poses
+from robot_ct_ros.nodes.common import run_node
+from robot_ct_ros.nodes.hand_eye_params import declare_hand_eye, pose_to_matrix_mm, stamp_to_ns
+
+STREAM = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
+ROLES = ("source", "detector")
+
+
+class GeometryPublisherNode(Node):
+    def __init__(self, node_name: str = "geometry_publisher", **kwargs):
+        super().__init__(node_name, **kwargs)
+        p = self.declare_parameter
+        self.max_pose_age_s = float(p("max_pose_age_s", 0.2).value)
+        history_s = float(p("history_s", 5.0).value)
+        self.world_frame = p("world_frame", fmt.FRAME_WORLD).value
+        self.hand_eye = declare_hand_eye(self)
+        self._history = {r: deque() for r in ROLES}
+        self._history_ns = int(history_s * 1e9)
+        for role in ROLES:
+            self.create_subscription(PoseStamped, f"{role}_arm/tool_pose", lambda m, r=role: self._on_pose(r, m), 50)
+        self.create_subscription(Image, fmt.TOPIC_PROJECTION, self._on_frame, STREAM)
+        self.geometry_pub = self.create_publisher(PoseArray, fmt.TOPIC_GEOMETRY, STREAM)
+        self.diag_pub = self.create_publisher(DiagnosticArray, fmt.TOPIC_DIAGNOSTICS, 10)
+        self.create_timer(1.0, self._publish_diagnostics)
+        self.published = 0
+        self.skipped = 0
+        self.last_problem = ""
+        self._last_frame_ok = True
+
+    def _on_pose(self, role: str, msg: PoseStamped) -> None:
+        t = stamp_to_ns(msg.header.stamp)
+        hist = self._history[role]
+        hist.append((t, msg.header.frame_id, msg.pose))
+        while hist and hist[0][0] < t - self._history_ns:
+            hist.popleft()
+
+    def _nearest(self, role: str, stamp_ns: int):
+        hist = self._history[role]
+        if not hist:
+            return None, f"no {role} arm tool pose received"
+        t, frame_id, pose = min(hist, key=lambda e: abs(e[0] - stamp_ns))
+        age = abs(t - stamp_ns) * 1e-9
+        if age > self.max_pose_age_s:
+            return None, f"{role} arm tool pose stale ({age:.3f} s from the frame, limit {self.max_pose_age_s} s)"
+        if frame_id not in ("", self.world_frame):
+            return None, f"{role} arm tool pose in frame {frame_id!r}, not {self.world_frame!r}"
+        return pose, ""
+
+    def _on_frame(self, msg: Image) -> None:
+        stamp = stamp_to_ns(msg.header.stamp)
+        poses, problems = {}, []
+        for role in ROLES:
+            poses[role], problem = self._nearest(role, stamp)
+            if problem:
+                problems.append(problem)
+        if not problems:
+            try:
+                g = geometry_from_tool_poses(pose_to_matrix_mm(poses["source"]), pose_to_matrix_mm(poses["detector"]),
+                                             self.hand_eye, max(1, msg.height), max(1, msg.width), 1.0)
+            except ValueError as exc:
+                problems.append(f"unusable tool pose: {exc}")
+        if problems:
+            self.skipped += 1
+            self.last_problem = "; ".join(problems)
+            self._last_frame_ok = False
+            self.get_logger().warn(f"no geometry for the frame stamped {stamp * 1e-9:.6f}: {self.last_problem}")
+            return
+        out = fmt.view_pose_array(g.source_mm[0], g.detector_mm[0], g.u[0], g.v[0], stamp, self.world_frame)
+        self.geometry_pub.publish(fmt.serialize(out, fmt.POSE_ARRAY))
+        self.published += 1
+        self._last_frame_ok = True
+
+    def _publish_diagnostics(self) -> None:
+        level = DiagnosticStatus.OK if self._last_frame_ok else DiagnosticStatus.WARN
+        message = "ok" if self._last_frame_ok else f"last frame without geometry: {self.last_problem}"
+        ages = {r: (f"{(self.get_clock().now().nanoseconds - self._history[r][-1][0]) * 1e-9:.3f}"
+                    if self._history[r] else "none") for r in ROLES}
+        status = DiagnosticStatus(
+            level=level, name=f"{self.get_fully_qualified_name()}: geometry", hardware_id="hand_eye",
+            message=message, values=[KeyValue(key=k, value=str(v)) for k, v in (
+                ("published", self.published), ("skipped", self.skipped), ("last_problem", self.last_problem),
+                ("source_pose_age_s", ages["source"]), ("detector_pose_age_s", ages["detector"]),
+                ("max_pose_age_s", self.max_pose_age_s))])
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = self.get_clock().now().to_msg()
+        self.diag_pub.publish(msg)
+
+
+def main(argv=None) -> int:
+    return run_node(GeometryPublisherNode, __doc__.splitlines()[0], argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

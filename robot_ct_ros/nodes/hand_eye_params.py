@@ -1,0 +1,77 @@
+"""What the acquisition nodes share: the hand-eye parameters and pose/stamp conversions (m <-> mm).
+
+Hand-eye parameters (identical in pcd_grabber, geometry_publisher and scan_orchestrator;
+config/hand_eye.yaml sets them for all nodes at once), per device ``source`` and ``detector``:
+
+  hand_eye.<device>.translation_m   [x, y, z] metres, TCP frame -> device frame origin
+  hand_eye.<device>.rotvec_rad      [rx, ry, rz] rotation vector, rad     } give one of them, as floats;
+  hand_eye.<device>.rpy_rad         [roll, pitch, yaw] rad (R = Rz Ry Rx) } neither: the default mount
+
+The device frames are defined in :mod:`robot_ct_ros.ct.hand_eye` (defaults: focal spot 0.12 m
+along tool +z with the beam along tool +z; detector centre 0.08 m along tool +z facing out).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from rclpy.parameter import Parameter
+from scipy.spatial.transform import Rotation
+
+from robot_ct_ros.ct.hand_eye import HandEye, mount_from_si
+
+
+def declare_hand_eye(node, prefix: str = "hand_eye") -> HandEye:
+    """Declare the hand-eye parameters on ``node`` and return the mounts (raises ValueError if invalid)."""
+    default = HandEye()
+    mounts = {}
+    for dev in ("source", "detector"):
+        base = getattr(default, dev)
+        t = node.declare_parameter(f"{prefix}.{dev}.translation_m", [x * 1e-3 for x in base.translation_mm]).value
+        rv = node.declare_parameter(f"{prefix}.{dev}.rotvec_rad", Parameter.Type.DOUBLE_ARRAY).value
+        rpy = node.declare_parameter(f"{prefix}.{dev}.rpy_rad", Parameter.Type.DOUBLE_ARRAY).value
+        if rv is None and rpy is None:
+            rv = list(base.rotvec)
+        mounts[dev] = mount_from_si(list(t), None if rv is None else list(rv), None if rpy is None else list(rpy),
+                                    what=f"{prefix}.{dev}")
+    return HandEye(**mounts)
+
+
+def stamp_to_ns(stamp) -> int:
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def ns_to_stamp(ns: int):
+    from builtin_interfaces.msg import Time
+
+    ns = int(ns)
+    return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+
+def pose_to_matrix_mm(pose) -> np.ndarray:
+    """geometry_msgs/Pose (metres, quaternion) -> 4 x 4 matrix in mm."""
+    p, o = pose.position, pose.orientation
+    q = np.array([o.x, o.y, o.z, o.w], dtype=float)
+    n = np.linalg.norm(q)
+    if not np.isfinite(n) or n < 1e-6:
+        raise ValueError("pose orientation quaternion is zero or not finite")
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_quat(q / n).as_matrix()
+    T[:3, 3] = np.array([p.x, p.y, p.z], dtype=float) * 1e3
+    if not np.all(np.isfinite(T)):
+        raise ValueError("pose position is not finite")
+    return T
+
+
+def matrix_mm_to_pose(T, pose=None):
+    """4 x 4 matrix in mm -> geometry_msgs/Pose (metres, quaternion with w >= 0)."""
+    from geometry_msgs.msg import Pose
+
+    pose = Pose() if pose is None else pose
+    T = np.asarray(T, dtype=float)
+    x, y, z = (float(v) * 1e-3 for v in T[:3, 3])
+    pose.position.x, pose.position.y, pose.position.z = x, y, z
+    q = Rotation.from_matrix(T[:3, :3]).as_quat()
+    if q[3] < 0:
+        q = -q
+    pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w = (float(v) for v in q)
+    return pose

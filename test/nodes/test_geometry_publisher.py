@@ -1,0 +1,122 @@
+"""geometry_publisher in-process: one geometry per frame with the frame's stamp; stale or missing poses skip."""
+
+import numpy as np
+from rclpy.parameter import Parameter
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from geometry_msgs.msg import PoseArray, PoseStamped
+from sensor_msgs.msg import Image
+
+from robot_ct_ros.bag import format as fmt
+from robot_ct_ros.ct.hand_eye import HandEye, Mount, geometry_from_tool_poses, tool_goals_from_geometry
+from robot_ct_ros.ct.trajectory import SeedSystem, robotic_roi_scan
+from robot_ct_ros.nodes.geometry_publisher import STREAM, GeometryPublisherNode
+from robot_ct_ros.nodes.hand_eye_params import matrix_mm_to_pose, ns_to_stamp, stamp_to_ns
+
+GEOM = robotic_roi_scan(SeedSystem(), roi_center_mm=(400.0, 0.0, 300.0), fov_diameter_mm=0.5, n_views=6,
+                        n_rows=8, n_cols=10)
+
+
+class Probe:
+    def __init__(self, ros):
+        self.node = ros.node("probe")
+        n = self.node
+        self.geoms, self.diag = [], []
+        self.subs = [n.create_subscription(PoseArray, fmt.TOPIC_GEOMETRY, self.geoms.append, STREAM),
+                     n.create_subscription(DiagnosticArray, "/diagnostics", self.diag.append, 10)]
+        self.pose_pubs = {r: n.create_publisher(PoseStamped, f"{r}_arm/tool_pose", 10) for r in ("source", "detector")}
+        self.frame_pub = n.create_publisher(Image, fmt.TOPIC_PROJECTION, STREAM)
+
+    def now_ns(self):
+        return self.node.get_clock().now().nanoseconds
+
+    def pose(self, ros, role, T, stamp_ns, frame="world"):
+        assert ros.wait_for_subscribers(self.pose_pubs[role])
+        msg = PoseStamped()
+        msg.header.frame_id, msg.header.stamp = frame, ns_to_stamp(stamp_ns)
+        matrix_mm_to_pose(T, msg.pose)
+        self.pose_pubs[role].publish(msg)
+
+    def frame(self, ros, stamp_ns):
+        assert ros.wait_for_subscribers(self.frame_pub)
+        msg = Image(height=8, width=10, encoding="32FC1", step=40, data=bytes(320))
+        msg.header.stamp, msg.header.frame_id = ns_to_stamp(stamp_ns), "pcd_detector"
+        self.frame_pub.publish(msg)
+
+    def level(self):
+        levels = [s.level for a in self.diag for s in a.status if s.name.endswith(": geometry")]
+        return levels[-1] if levels else None
+
+
+def _node(ros, **params):
+    return ros.add(GeometryPublisherNode(context=ros.context,
+                                         parameter_overrides=[Parameter(k, value=v) for k, v in params.items()]))
+
+
+def test_geometry_per_frame_with_the_frame_stamp(ros):
+    node = _node(ros)
+    probe = Probe(ros)
+    S, D = tool_goals_from_geometry(GEOM, HandEye())
+    t = probe.now_ns()
+    # the pose nearest in time to the frame stamp is used: view 1 just before, view 2 just after
+    probe.pose(ros, "source", S[1], t - 50_000_000)
+    probe.pose(ros, "detector", D[1], t - 50_000_000)
+    probe.pose(ros, "source", S[2], t + 10_000_000)
+    probe.pose(ros, "detector", D[2], t + 10_000_000)
+    assert ros.spin_until(lambda: all(len(h) == 2 for h in node._history.values()))
+    probe.frame(ros, t)
+    assert ros.spin_until(lambda: probe.geoms)
+    msg = probe.geoms[-1]
+    assert stamp_to_ns(msg.header.stamp) == t and msg.header.frame_id == "world"
+    s, d, u, v = fmt.view_from_pose_array(msg)
+    np.testing.assert_allclose(s, GEOM.source_mm[2], atol=1e-6)
+    np.testing.assert_allclose(d, GEOM.detector_mm[2], atol=1e-6)
+    np.testing.assert_allclose(np.stack([u, v]), np.stack([GEOM.u[2], GEOM.v[2]]), atol=1e-9)
+    assert node.published == 1 and node.skipped == 0
+    assert ros.spin_until(lambda: probe.level() == DiagnosticStatus.OK, timeout_s=3)
+
+
+def test_stale_missing_or_foreign_poses_give_no_geometry(ros):
+    node = _node(ros, max_pose_age_s=0.2)
+    probe = Probe(ros)
+    S, D = tool_goals_from_geometry(GEOM, HandEye())
+    t = probe.now_ns()
+    probe.pose(ros, "source", S[0], t)
+    assert ros.spin_until(lambda: node._history["source"])
+    probe.frame(ros, t)  # no detector pose at all
+    assert ros.spin_until(lambda: node.skipped == 1)
+    assert "no detector arm tool pose" in node.last_problem
+    probe.pose(ros, "detector", D[0], t - 1_000_000_000)  # one second old
+    assert ros.spin_until(lambda: node._history["detector"])
+    probe.frame(ros, t)
+    assert ros.spin_until(lambda: node.skipped == 2)
+    assert "stale" in node.last_problem
+    probe.pose(ros, "detector", D[0], t, frame="detector_arm_base")
+    assert ros.spin_until(lambda: len(node._history["detector"]) == 2)
+    probe.frame(ros, t)
+    assert ros.spin_until(lambda: node.skipped == 3)
+    assert "not 'world'" in node.last_problem
+    ros.spin_for(0.1)
+    assert not probe.geoms and node.published == 0
+    assert ros.spin_until(lambda: probe.level() == DiagnosticStatus.WARN, timeout_s=3)
+
+
+def test_hand_eye_parameters_are_used(ros):
+    params = {"hand_eye.source.translation_m": [0.001, 0.0, 0.15], "hand_eye.source.rotvec_rad": [3.0, 0.1, 0.0],
+              "hand_eye.detector.translation_m": [0.0, 0.002, 0.07], "hand_eye.detector.rpy_rad": [0.0, 0.05, 0.1]}
+    node = _node(ros, **params)
+    he = HandEye(Mount((1.0, 0.0, 150.0), (3.0, 0.1, 0.0)), Mount.from_rpy((0.0, 2.0, 70.0), (0.0, 0.05, 0.1)))
+    assert np.allclose(node.hand_eye.source.matrix, he.source.matrix)
+    assert np.allclose(node.hand_eye.detector.matrix, he.detector.matrix)
+    probe = Probe(ros)
+    S, D = tool_goals_from_geometry(GEOM, HandEye())  # goals for the default mounts, seen through others
+    t = probe.now_ns()
+    probe.pose(ros, "source", S[3], t)
+    probe.pose(ros, "detector", D[3], t)
+    assert ros.spin_until(lambda: all(node._history.values()))
+    probe.frame(ros, t)
+    assert ros.spin_until(lambda: probe.geoms)
+    expect = geometry_from_tool_poses(S[3], D[3], he, 8, 10, 0.11)
+    s, d, u, v = fmt.view_from_pose_array(probe.geoms[-1])
+    np.testing.assert_allclose(s, expect.source_mm[0], atol=1e-6)
+    np.testing.assert_allclose(d, expect.detector_mm[0], atol=1e-6)
+    np.testing.assert_allclose(v, expect.v[0], atol=1e-9)

@@ -1,0 +1,152 @@
+"""pcd_grabber in-process: frames on request, latched flat/dead maps, true geometry, dark frames, timeouts."""
+
+import json
+
+import numpy as np
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from geometry_msgs.msg import PoseArray, PoseStamped
+from sensor_msgs.msg import Image
+from std_msgs.msg import Bool
+from std_srvs.srv import Trigger
+
+from robot_ct_ros.bag import format as fmt
+from robot_ct_ros.ct.hand_eye import HandEye, tool_goals_from_geometry
+from robot_ct_ros.ct.trajectory import SeedSystem, robotic_roi_scan
+from robot_ct_ros.nodes.hand_eye_params import matrix_mm_to_pose, stamp_to_ns
+from robot_ct_ros.nodes.pcd_grabber import PcdGrabberNode
+
+LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
+CENTER_M = (0.4, 0.0, 0.3)
+TINY = dict(n_rows=12, n_cols=16, binning=2, raw_pixel_m=0.5e-3, sim_phantom="mouse",
+            sim_phantom_center_m=list(CENTER_M), sim_voxel_size_m=1e-3, sim_photons_per_pixel=20000.0,
+            sim_chip_size_px=10, sim_chip_gap_px=1, exposure_s=0.05, exposure_timeout_s=2.0)
+
+
+def tiny_geometry(n_views=4):
+    system = SeedSystem(raw_pixel_mm=0.5, binning=2)
+    return robotic_roi_scan(system, roi_center_mm=np.array(CENTER_M) * 1e3, fov_diameter_mm=8.0, n_views=n_views,
+                            n_rows=12, n_cols=16)
+
+
+def _grabber(ros, name="pcd_grabber", **params):
+    values = dict(TINY, **params)
+    return ros.add(PcdGrabberNode(name, context=ros.context,
+                                  parameter_overrides=[Parameter(k, value=v) for k, v in values.items()]))
+
+
+class Probe:
+    def __init__(self, ros):
+        self.node = ros.node("probe")
+        self.frames, self.true_geoms, self.flat, self.dead, self.diag = [], [], [], [], []
+        n = self.node
+        self.subs = [n.create_subscription(Image, fmt.TOPIC_PROJECTION, self.frames.append, 10),
+                     n.create_subscription(PoseArray, fmt.TOPIC_GEOMETRY_TRUE, self.true_geoms.append, 10),
+                     n.create_subscription(Image, fmt.TOPIC_FLAT_FIELD, self.flat.append, LATCHED),
+                     n.create_subscription(Image, fmt.TOPIC_DEAD_PIXELS, self.dead.append, LATCHED),
+                     n.create_subscription(DiagnosticArray, "/diagnostics", self.diag.append, 10)]
+        self.beam = n.create_publisher(Bool, "source/beam_on", LATCHED)
+        self.pose = {r: n.create_publisher(PoseStamped, f"{r}_arm/true_tool_pose", 10) for r in ("source", "detector")}
+        self.expose = n.create_client(Trigger, "pcd/expose")
+
+    def publish_poses(self, ros, S, D):
+        for role, T in (("source", S), ("detector", D)):
+            assert ros.wait_for_subscribers(self.pose[role])
+            msg = PoseStamped()
+            msg.header.frame_id = "world"
+            msg.header.stamp = self.node.get_clock().now().to_msg()
+            matrix_mm_to_pose(T, msg.pose)
+            self.pose[role].publish(msg)
+
+    def set_beam(self, ros, node, on):
+        assert ros.wait_for_subscribers(self.beam)
+        self.beam.publish(Bool(data=on))
+        assert ros.spin_until(lambda: node._beam_log and node._beam_log[-1][1] == on)
+
+    def level(self):
+        levels = [s.level for a in self.diag for s in a.status if s.name.endswith(": detector")]
+        return levels[-1] if levels else None
+
+
+def test_frame_on_request_with_true_geometry_and_latched_maps(ros):
+    node = _grabber(ros)
+    probe = Probe(ros)
+    assert ros.spin_until(lambda: probe.flat and probe.dead)  # latched, subscribed after the node started
+    flat = fmt.array_from_image(probe.flat[-1])
+    dead = fmt.array_from_image(probe.dead[-1])
+    assert flat.shape == dead.shape == (12, 16) and probe.dead[-1].encoding == "mono8"
+    assert dead.any() and np.all(flat[dead == 0] > 0)
+
+    geom = tiny_geometry()
+    S, D = tool_goals_from_geometry(geom, HandEye())
+    probe.publish_poses(ros, S[1], D[1])
+    assert ros.spin_until(lambda: len(node._true_pose) == 2)
+    probe.set_beam(ros, node, True)
+    answer = ros.call(probe.expose, Trigger.Request())
+    assert answer.success, answer.message
+    info = json.loads(answer.message)
+    assert ros.spin_until(lambda: probe.frames and probe.true_geoms)
+    frame = probe.frames[-1]
+    assert stamp_to_ns(frame.header.stamp) == info["stamp_ns"] == stamp_to_ns(probe.true_geoms[-1].header.stamp)
+    assert frame.header.frame_id == "pcd_detector" and frame.encoding == "32FC1"
+    counts = fmt.array_from_image(frame)
+    assert counts.shape == (12, 16) and 0 < counts[dead == 0].mean() < flat[dead == 0].mean()
+    s, d, u, v = fmt.view_from_pose_array(probe.true_geoms[-1])
+    np.testing.assert_allclose(s, geom.source_mm[1], atol=1e-6)
+    np.testing.assert_allclose(d, geom.detector_mm[1], atol=1e-6)
+    np.testing.assert_allclose(u, geom.u[1], atol=1e-9)
+    assert node.last_beam_fraction == 1.0
+    assert ros.spin_until(lambda: probe.level() == DiagnosticStatus.OK, timeout_s=3)
+
+    # the beam is off: the detector still delivers, a dark frame
+    probe.publish_poses(ros, S[1], D[1])  # fresh poses (older than sim_pose_max_age_s count as unknown)
+    probe.set_beam(ros, node, False)
+    answer = ros.call(probe.expose, Trigger.Request())
+    assert answer.success
+    assert ros.spin_until(lambda: len(probe.frames) == 2)
+    assert np.all(fmt.array_from_image(probe.frames[-1]) == 0.0) and node.last_beam_fraction == 0.0
+
+
+def test_requests_never_block_the_executor(ros):
+    """While one exposure runs, a second request is answered at once (busy) and other callbacks run."""
+    node = _grabber(ros, exposure_s=0.4)
+    probe = Probe(ros)
+    geom = tiny_geometry()
+    S, D = tool_goals_from_geometry(geom, HandEye())
+    probe.publish_poses(ros, S[0], D[0])
+    probe.set_beam(ros, node, True)
+    assert ros.wait_for_service(probe.expose)
+    first = probe.expose.call_async(Trigger.Request())
+    assert ros.spin_until(lambda: node._pending is not None)
+    second = probe.expose.call_async(Trigger.Request())
+    assert ros.spin_until(second.done)
+    assert not first.done()
+    assert not second.result().success and "busy" in second.result().message
+    probe.set_beam(ros, node, False)  # a subscription callback runs during the exposure
+    assert ros.spin_until(first.done)
+    assert first.result().success
+    assert 0.0 < node.last_beam_fraction < 1.0  # switched off part-way through the exposure
+
+
+def test_detector_timeout_answers_failure_in_time(ros):
+    node = _grabber(ros, name="pcd_timeout", sim_fail="timeout", exposure_timeout_s=0.5)
+    probe = Probe(ros)
+    geom = tiny_geometry()
+    S, D = tool_goals_from_geometry(geom, HandEye())
+    probe.publish_poses(ros, S[0], D[0])
+    answer = ros.call(probe.expose, Trigger.Request(), timeout_s=5.0)
+    assert not answer.success and "timeout" in answer.message
+    answer = ros.call(probe.expose, Trigger.Request(), timeout_s=5.0)  # the detector still hangs
+    assert not answer.success and "not responding" in answer.message
+    assert not probe.frames and node.failures == 2
+    assert ros.spin_until(lambda: probe.level() == DiagnosticStatus.ERROR, timeout_s=3)
+
+
+def test_no_true_poses_is_an_error_not_a_frame(ros):
+    node = _grabber(ros, name="pcd_noposes")
+    probe = Probe(ros)
+    answer = ros.call(probe.expose, Trigger.Request())
+    assert not answer.success and "poses unknown" in answer.message
+    ros.spin_for(0.2)
+    assert not probe.frames and node.frames_published == 0
