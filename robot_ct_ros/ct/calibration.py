@@ -52,11 +52,35 @@ def _solve_regularised(G, rhs, reg):
     return np.linalg.solve(Greg, rhs[..., None])[..., 0]
 
 
-def lle_weights(measured, neighbours, method: str = "ncc-exact", mask=None, reg: float = 1e-3) -> np.ndarray:
+def background_basis(mask: np.ndarray, order_u: int = 0, order_v: int = 0) -> np.ndarray:
+    """Per-view orthonormal basis (n, B, rows, cols) of smooth backgrounds over each view's mask.
+
+    The monomials col^a row^b (a <= order_u, b <= order_v; coordinates scaled to [-1, 1])
+    restricted to the valid pixels of each view and orthonormalised there (zero outside).
+    Order (0, 0) is the constant alone: projecting it out is mean-centring, i.e. plain NCC.
+    """
+    mask = np.asarray(mask, bool)
+    n, R, C = mask.shape
+    rr, cc = np.meshgrid(np.linspace(-1, 1, R), np.linspace(-1, 1, C), indexing="ij")
+    mono = np.stack([(cc ** a * rr ** b).ravel() for a in range(order_u + 1) for b in range(order_v + 1)], axis=1)
+    out = np.zeros((n, mono.shape[1], R * C))
+    for i in range(n):  # a QR per view: B is small, the loop is over views only
+        m = mask[i].ravel()
+        if m.sum() > mono.shape[1]:
+            q, _ = np.linalg.qr(mono[m])
+            out[i][:, m] = q.T
+    return out.reshape(n, mono.shape[1], R, C)
+
+
+def lle_weights(measured, neighbours, method: str = "ncc-exact", mask=None, reg: float = 1e-3,
+                basis=None) -> np.ndarray:
     """Embedding weights (n, K), each row summing to 1, of measured projections in neighbours.
 
     ``reg`` regularises the K x K Gram matrix by ``reg * trace / K`` on its diagonal (the
-    neighbours of a dense sampling grid are nearly collinear).
+    neighbours of a dense sampling grid are nearly collinear). For the NCC weightings,
+    ``basis`` (n, B, P), orthonormal over the mask (:func:`background_basis`), is projected
+    out of every image instead of the mean: the correlation then ignores any smooth
+    background in that span as well as the gain (default: the mean alone, as published).
     """
     if method not in WEIGHTINGS:
         raise ValueError(f"unknown weighting {method!r}; choose one of {WEIGHTINGS}")
@@ -69,9 +93,13 @@ def lle_weights(measured, neighbours, method: str = "ncc-exact", mask=None, reg:
         w = _solve_regularised(C, np.ones((n, K)), reg)
         return w / w.sum(axis=1, keepdims=True)
 
-    # mean-centre over the valid pixels of each view
-    bc = (b - (b.sum(axis=1) / count)[:, None]) * m
-    Yc = (Y - (Y.sum(axis=2) / count[:, None])[:, :, None]) * m[:, None, :]
+    if basis is None:  # mean-centre over the valid pixels of each view
+        bc = (b - (b.sum(axis=1) / count)[:, None]) * m
+        Yc = (Y - (Y.sum(axis=2) / count[:, None])[:, :, None]) * m[:, None, :]
+    else:  # project out the background span (orthonormal over the mask)
+        Q = np.asarray(basis, np.float64).reshape(n, -1, b.shape[1]) * m[:, None, :]
+        bc = (b - np.einsum("nbp,nb->np", Q, np.einsum("nbp,np->nb", Q, b))) * m
+        Yc = (Y - np.einsum("nbp,nkb->nkp", Q, np.einsum("nbp,nkp->nkb", Q, Y))) * m[:, None, :]
     r = np.einsum("nkp,np->nk", Yc, bc)
     if method == "ncc":
         s = np.sqrt(np.einsum("nkp,nkp->nk", Yc, Yc) / np.maximum(count - 1, 1)[:, None])
@@ -172,24 +200,23 @@ def warp_projections(virtual_images: np.ndarray, homographies: np.ndarray, image
 
 
 # ----------------------------------------------------------------------------- sample scoring
+N_SUMS = 7  # n, sum p, sum p^2, sum p b, sum b, sum b^2, sum p b_res; then one sum p q_k per basis image
+
+
 @njit(parallel=True, fastmath=True, cache=True)
-def _warp_score_kernel(images, H, image_index, target_index, measured, mask, out):
+def _warp_score_kernel(images, H, image_index, target_index, measured, residual, basis, mask, out):
     """For each sample s: warp virtual image image_index[s] with H[s] onto the detector and
     accumulate, over pixels valid in ``mask[target_index[s]]`` and on the virtual detector,
-    the sums n, Σp, Σp², Σpb, Σb, Σb² (out[s, 0:6]) without storing the warped image."""
+    the sums listed at N_SUMS followed by sum p * basis[t, k], without storing the image."""
     m = H.shape[0]
     _, vr, vc = images.shape
     _, n_rows, n_cols = measured.shape
+    n_basis = basis.shape[1]
     for s in prange(m):
         img = image_index[s]
         t = target_index[s]
         h = H[s]
-        n = 0.0
-        sp = 0.0
-        spp = 0.0
-        spb = 0.0
-        sb = 0.0
-        sbb = 0.0
+        acc = np.zeros(N_SUMS + n_basis)
         for r in range(n_rows):
             for c in range(n_cols):
                 if not mask[t, r, c]:
@@ -208,35 +235,34 @@ def _warp_score_kernel(images, H, image_index, target_index, measured, mask, out
                 p = ((images[img, j0, i0] * (1 - fx) + images[img, j0, i0 + 1] * fx) * (1 - fy)
                      + (images[img, j0 + 1, i0] * (1 - fx) + images[img, j0 + 1, i0 + 1] * fx) * fy)
                 b = measured[t, r, c]
-                n += 1.0
-                sp += p
-                spp += p * p
-                spb += p * b
-                sb += b
-                sbb += b * b
-        out[s, 0] = n
-        out[s, 1] = sp
-        out[s, 2] = spp
-        out[s, 3] = spb
-        out[s, 4] = sb
-        out[s, 5] = sbb
+                acc[0] += 1.0
+                acc[1] += p
+                acc[2] += p * p
+                acc[3] += p * b
+                acc[4] += b
+                acc[5] += b * b
+                acc[6] += p * residual[t, r, c]
+                for k in range(n_basis):
+                    acc[N_SUMS + k] += p * basis[t, k, r, c]
+        for k in range(N_SUMS + n_basis):
+            out[s, k] = acc[k]
 
 
-def sample_distances(sums: np.ndarray, metric: str) -> np.ndarray:
+def sample_distances(sums: np.ndarray, metric: str, residual_norm2=None) -> np.ndarray:
     """Distance of each sample to the measured view from the sums of ``_warp_score_kernel``.
 
-    ``"l2"``: mean squared difference; ``"ncc"``: 1 - normalized cross-correlation (blind to
-    gain and offset). Samples with fewer than 2 valid pixels get +inf.
+    ``"l2"``: mean squared difference; ``"ncc"``: 1 - normalized cross-correlation after the
+    background basis (see :func:`background_basis`) is projected out of both images; then
+    ``residual_norm2`` is the squared norm of the measured view's residual per sample.
+    Samples with fewer than 2 valid pixels get +inf.
     """
-    n, sp, spp, spb, sb, sbb = (sums[..., k].astype(np.float64) for k in range(6))
+    n, sp, spp, spb, sb, sbb, spr = (sums[..., k].astype(np.float64) for k in range(N_SUMS))
     with np.errstate(divide="ignore", invalid="ignore"):
         if metric == "l2":
             d = (spp - 2 * spb + sbb) / n
         else:
-            cov = spb - sp * sb / n
-            var_p = spp - sp * sp / n
-            var_b = sbb - sb * sb / n
-            d = 1.0 - cov / np.sqrt(np.maximum(var_p * var_b, 1e-300))
+            var_p = spp - (sums[..., N_SUMS:].astype(np.float64) ** 2).sum(axis=-1)
+            d = 1.0 - spr / np.sqrt(np.maximum(var_p * residual_norm2, 1e-300))
     return np.where(n >= 2, d, np.inf)
 
 
@@ -252,9 +278,14 @@ class LLEConfig:
     7 ray-casts per view; ``"grid"`` = 3 x 3 x 3); detector shifts and rotations are drawn
     uniformly and rendered by homography from the ray-cast of their source position.
     ``safeguard`` keeps the best sample when the embedding scores worse than it.
+    ``background`` = (order along columns, order along rows) of the smooth per-view
+    background that the NCC weightings ignore (:func:`background_basis`); (0, 0) is the
+    published NCC (offset and gain only). A higher order also absorbs the bowl that the
+    truncated object outside the ROI adds to every interior projection.
     """
 
     weighting: str = "ncc-exact"
+    background: tuple = (0, 0)
     n_samples: int = 192
     n_neighbours: int = 16
     source_positions: str = "star"
@@ -387,10 +418,14 @@ def estimate_views(measured: np.ndarray, nominal: ConeGeometry, params0: np.ndar
             image_index = (np.arange(c)[:, None] * n_src + a).reshape(-1)
             H = detector_homographies(virtual.subset(image_index), samples)
             target_index = np.repeat(np.arange(c), S)
-            sums = np.empty((c * S, 6), np.float64)
+            mask_c = np.ascontiguousarray(mask_all[idx])
+            basis = background_basis(mask_c, *config.background)
+            residual = _project_out(measured[idx], basis, mask_c)
+            sums = np.empty((c * S, N_SUMS + basis.shape[1]), np.float64)
             _warp_score_kernel(images, np.ascontiguousarray(H), image_index, target_index, measured[idx],
-                               np.ascontiguousarray(mask_all[idx]), sums)
-            dist = sample_distances(sums, metric).reshape(c, S)
+                               residual.astype(np.float32), basis.astype(np.float32), mask_c, sums)
+            res2 = np.repeat((residual.reshape(c, -1).astype(np.float64) ** 2).sum(axis=1), S)
+            dist = sample_distances(sums, metric, res2).reshape(c, S)
             K = config.n_neighbours
             near = np.argpartition(dist, K - 1, axis=1)[:, :K]
             flat_sel = (np.arange(c)[:, None] * S + near).reshape(-1)
@@ -398,13 +433,17 @@ def estimate_views(measured: np.ndarray, nominal: ConeGeometry, params0: np.ndar
                                                  nominal.n_cols)
             m = mask_all[idx] & on_virtual.reshape(c, K, *nominal.det_shape).all(axis=1)
             w = lle_weights(measured[idx].reshape(c, -1), neigh.reshape(c, K, -1), config.weighting,
-                            mask=m.reshape(c, -1), reg=config.reg)
+                            mask=m.reshape(c, -1), reg=config.reg,
+                            basis=None if metric == "l2" else background_basis(m, *config.background).reshape(
+                                c, -1, m[0].size))
             g_new = np.einsum("ck,ckj->cj", w, np.take_along_axis(sample_params, near[:, :, None], axis=1))
+            # an embedding may extrapolate; never beyond the sampled box (stability under model error)
+            g_new = np.clip(g_new, g - h, g + h)
             best = np.argmin(dist, axis=1)
             d_best = dist[np.arange(c), best]
             if config.safeguard:
                 p_new = forward_project(vol, grid, nom_c.perturbed(g_new))
-                d_new = _distances(p_new, measured[idx], mask_all[idx], metric)
+                d_new = _distances(p_new, measured[idx], mask_c, metric, config.background)
                 worse = ~(d_new <= d_best)
                 g_new[worse] = sample_params[np.arange(c), best][worse]
                 d_new = np.where(worse, d_best, d_new)
@@ -419,13 +458,26 @@ def estimate_views(measured: np.ndarray, nominal: ConeGeometry, params0: np.ndar
     return params, info
 
 
-def _distances(pred: np.ndarray, measured: np.ndarray, mask: np.ndarray, metric: str) -> np.ndarray:
+def _project_out(images: np.ndarray, basis: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Residual of (n, rows, cols) images after removing their projection on the basis (masked)."""
+    x = np.where(mask, images, 0.0).astype(np.float64)
+    coef = np.einsum("nbrc,nrc->nb", basis, x)
+    return np.where(mask, x - np.einsum("nbrc,nb->nrc", basis, coef), 0.0)
+
+
+def _distances(pred: np.ndarray, measured: np.ndarray, mask: np.ndarray, metric: str,
+               background=(0, 0)) -> np.ndarray:
     """Per-view distance (as :func:`sample_distances`) between two (n, rows, cols) stacks."""
+    basis = background_basis(mask, *background)
+    residual = _project_out(measured, basis, mask)
     mk = mask.reshape(mask.shape[0], -1)
     p = np.where(mk, pred.reshape(mk.shape), 0.0).astype(np.float64)
     b = np.where(mk, measured.reshape(mk.shape), 0.0).astype(np.float64)
-    sums = np.stack([mk.sum(1), p.sum(1), (p * p).sum(1), (p * b).sum(1), b.sum(1), (b * b).sum(1)], axis=1)
-    return sample_distances(sums, metric)
+    q = basis.reshape(basis.shape[0], basis.shape[1], -1)
+    sums = np.concatenate([np.stack([mk.sum(1), p.sum(1), (p * p).sum(1), (p * b).sum(1), b.sum(1), (b * b).sum(1),
+                                     (p * residual.reshape(mk.shape)).sum(1)], axis=1),
+                           np.einsum("nbp,np->nb", q, p)], axis=1)
+    return sample_distances(sums, metric, (residual.reshape(mk.shape) ** 2).sum(1))
 
 
 # ----------------------------------------------------------------------------- alternating loop
@@ -476,12 +528,26 @@ def projection_consistency(volume, grid, geom, measured, mask) -> tuple[float, f
                            mk.reshape(len(pred), -1)).mean())
 
 
-def default_lle_configs(weighting: str, seed: int = 0) -> tuple[LLEConfig, LLEConfig]:
+DEFAULT_BACKGROUND = (2, 2)
+"""Smooth background ignored by the NCC weightings by default: quadratic along columns and rows
+(the truncation bowl of interior scans). (0, 0) is the metric as published."""
+
+
+def default_lle_configs(weighting: str, seed: int = 0, background=DEFAULT_BACKGROUND) -> tuple[LLEConfig, LLEConfig]:
     """Coarse (binned, wide box) and fine (full size, narrow box) LLE settings."""
-    coarse = LLEConfig(weighting=weighting, levels=3, seed=seed)
-    fine = LLEConfig(weighting=weighting, levels=2, seed=seed + 1,
+    coarse = LLEConfig(weighting=weighting, levels=3, seed=seed, background=tuple(background))
+    fine = LLEConfig(weighting=weighting, levels=2, seed=seed + 1, background=tuple(background),
                      half_width=tuple(np.asarray(coarse.half_width) * 0.25))
     return coarse, fine
+
+
+def _narrowed(config: LLEConfig, iteration: int) -> LLEConfig:
+    """The search box of outer iteration ``iteration`` (0-based): halved each time, so later
+    iterations refine around the estimate instead of re-exploring the whole range."""
+    from dataclasses import replace
+
+    return replace(config, half_width=tuple(np.asarray(config.half_width) * 0.5 ** iteration),
+                   seed=config.seed + 7919 * iteration)
 
 
 def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGrid, *,
@@ -521,10 +587,10 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
         start = params.copy()
         if coarse_binning > 1:
             vol_c = fdk(li_c, nom_c.perturbed(params), grid_c, valid_mask=mask_c, **fdk_kwargs)
-            params, _ = estimate_views(li_c, nom_c, params, vol_c, grid_c, coarse_cfg, mask_c)
+            params, _ = estimate_views(li_c, nom_c, params, vol_c, grid_c, _narrowed(coarse_cfg, it), mask_c)
             say(f"iteration {it + 1}/{n_iter}: coarse estimate done ({time.perf_counter() - t0:.1f} s)")
         vol = fdk(li, nominal.perturbed(params), grid, valid_mask=mask, **fdk_kwargs)
-        params, _ = estimate_views(li, nominal, params, vol, grid, fine_cfg, mask)
+        params, _ = estimate_views(li, nominal, params, vol, grid, _narrowed(fine_cfg, it), mask)
         params = remove_gauge(nominal.perturbed(params), nominal, points).params_relative_to(nominal)
         rmse, corr = projection_consistency(vol, grid, nominal.perturbed(params), li, mask)
         step = params - start

@@ -75,6 +75,17 @@ def reprojection_error(est: ConeGeometry, true: ConeGeometry, points_mm, align_g
             "max_px": float(dist.max()), "per_view_mean_px": dist.mean(axis=1), "gauge": gauge}
 
 
+def gauge_aligned_reprojection_error(est_geom: ConeGeometry, true_geom: ConeGeometry, points_mm,
+                                     remove: bool = True) -> dict:
+    """:func:`reprojection_error` with the gauge removed (``remove=False`` keeps it).
+
+    Returns ``mean_px``, ``p95_px``, ``max_px``, ``per_view_mean_px`` and ``gauge`` (the
+    fitted rigid motion applied to ``est_geom``: rotation vector and translation about
+    ``center_mm``; ``None`` when not removed).
+    """
+    return reprojection_error(est_geom, true_geom, points_mm, align_gauge=remove)
+
+
 def roi_points(grid: VolumeGrid, per_axis: int = 5, inner_fraction: float = 0.8) -> np.ndarray:
     """A ``per_axis``^3 lattice of points spanning the inner part of ``grid`` (mm)."""
     lo, hi = grid.bounds_mm()
@@ -104,10 +115,18 @@ def ncc(a, b, mask=None) -> np.ndarray:
     return (ac * bc).sum(axis=1) / np.maximum(den, 1e-300)
 
 
-def projection_rmse(a, b, mask=None) -> float:
-    """Root mean square difference over the mask (all views together)."""
+def mean_ncc(a, b, mask=None) -> float:
+    """Mean over views of :func:`ncc`."""
+    return float(np.mean(ncc(a, b, mask)))
+
+
+def projection_rmse(a, b, mask=None, per_view: bool = False):
+    """Root mean square difference over the mask (all views together, or per view (row))."""
     a, b, m = _masked_rows(a, b, mask)
-    return float(np.sqrt(np.where(m, (a - b) ** 2, 0).sum() / max(m.sum(), 1)))
+    sq = np.where(m, (a - b) ** 2, 0)
+    if per_view:
+        return np.sqrt(sq.sum(axis=1) / np.maximum(m.sum(axis=1), 1))
+    return float(np.sqrt(sq.sum() / max(m.sum(), 1)))
 
 
 # ----------------------------------------------------------------------------- volumes
@@ -119,10 +138,14 @@ def psnr(a, b, data_range: float | None = None) -> float:
     return float("inf") if mse == 0 else 10.0 * np.log10(rng * rng / mse)
 
 
-def ssim(a, b, data_range: float | None = None, sigma_vox: float = 1.5) -> float:
-    """Mean structural similarity of two volumes (or images), Gaussian window (Wang et al. 2004).
+def ssim(a, b, data_range: float | None = None, sigma_vox: float = 1.5, window: str = "gaussian",
+         win_size: int = 7) -> float:
+    """Mean structural similarity of two volumes (or images) (Wang et al. 2004, K1 = 0.01, K2 = 0.03).
 
-    ``b`` is the reference; ``data_range`` defaults to its range.
+    ``b`` is the reference; ``data_range`` defaults to its range. Window: ``"gaussian"``
+    (sigma ``sigma_vox``, truncated at 3.5 sigma) or ``"uniform"`` (``win_size`` voxels a
+    side); local statistics by separable scipy.ndimage filters; border voxels included
+    (reflected).
     """
     a = np.asarray(a, np.float64)
     b = np.asarray(b, np.float64)
@@ -130,7 +153,12 @@ def ssim(a, b, data_range: float | None = None, sigma_vox: float = 1.5) -> float
         raise ValueError(f"shapes differ: {a.shape} vs {b.shape}")
     L = float(b.max() - b.min()) if data_range is None else float(data_range)
     c1, c2 = (0.01 * L) ** 2, (0.03 * L) ** 2
-    f = lambda x: ndimage.gaussian_filter(x, sigma_vox, truncate=3.5)  # noqa: E731
+    if window == "gaussian":
+        f = lambda x: ndimage.gaussian_filter(x, sigma_vox, truncate=3.5)  # noqa: E731
+    elif window == "uniform":
+        f = lambda x: ndimage.uniform_filter(x, win_size)  # noqa: E731
+    else:
+        raise ValueError("window must be 'gaussian' or 'uniform'")
     mu_a, mu_b = f(a), f(b)
     var_a = f(a * a) - mu_a ** 2
     var_b = f(b * b) - mu_b ** 2
@@ -159,6 +187,49 @@ def sample_volume(volume, grid: VolumeGrid, points_mm, order: int = 1) -> np.nda
     return vals.reshape(pts.shape[:-1])
 
 
+def line_profile(volume, grid: VolumeGrid, p0_mm, p1_mm, step_mm: float | None = None, order: int = 1):
+    """Values of ``volume`` along the segment p0 -> p1 (world mm), trilinear by default.
+
+    Returns (distance_mm from p0, values). Default step: a quarter of the smallest voxel.
+    """
+    p0, p1 = np.asarray(p0_mm, np.float64), np.asarray(p1_mm, np.float64)
+    length = float(np.linalg.norm(p1 - p0))
+    step = 0.25 * min(grid.voxel_size_mm) if step_mm is None else float(step_mm)
+    s = np.linspace(0.0, length, max(2, int(round(length / step)) + 1))
+    pts = p0 + (s / max(length, 1e-300))[:, None] * (p1 - p0)
+    return s, sample_volume(volume, grid, pts, order=order)
+
+
+def edge_rise_distance_mm(volume, grid: VolumeGrid, p0_mm, p1_mm, lo: float = 0.1, hi: float = 0.9,
+                          plateau_fraction: float = 0.15) -> float:
+    """10-90 % rise distance (mm) of the edge crossed by the segment p0 -> p1.
+
+    The segment must cross one boundary between two plateaus (its first and last
+    ``plateau_fraction`` of samples); the profile is normalised between their means (either
+    direction) and the distance between the outermost ``lo`` and ``hi`` crossings around the
+    steepest point is returned (linear interpolation). Smaller is sharper; it equals the
+    system's edge response width, so it is independent of contrast, gain and offset.
+    """
+    s, v = line_profile(volume, grid, p0_mm, p1_mm)
+    n = max(2, int(plateau_fraction * len(s)))
+    a, b = v[:n].mean(), v[-n:].mean()
+    if abs(b - a) < 1e-12:
+        return float("nan")
+    y = (v - a) / (b - a)  # rises from 0 to 1
+    k = int(np.argmax(np.gradient(y)))
+
+    def crossing(level, direction):
+        i = k
+        while 0 < i < len(y) - 1 and (y[i] > level if direction < 0 else y[i] < level):
+            i += direction
+        j = i - direction
+        if y[j] == y[i]:
+            return s[i]
+        return s[j] + (level - y[j]) / (y[i] - y[j]) * (s[i] - s[j])
+
+    return float(abs(crossing(hi, +1) - crossing(lo, -1)))
+
+
 def cap_thickness_mm(volume, grid: VolumeGrid, cap, step_mm: float = 0.005, n_lines: int = 9) -> float:
     """Fibrous-cap thickness measured in a reconstruction: FWHM of the cap ridge.
 
@@ -166,8 +237,12 @@ def cap_thickness_mm(volume, grid: VolumeGrid, cap, step_mm: float = 0.005, n_li
     sampled along ``cap.direction`` from inside the lumen to inside the lipid core, averaged
     over ``n_lines`` lines spread along the vessel axis (within the core's half length). The
     ridge is bounded by the half-maximum crossings towards the lumen and towards the core,
-    each against its own plateau (the two tissues differ).
+    each against its own plateau (the two tissues differ). ``cap`` may also be the phantom.
+    A cap thinner than the system resolution reads as about the resolution (FWHM of the PSF).
     """
+    cap = getattr(cap, "cap", cap)
+    if cap is None:
+        raise ValueError("this phantom has no fibrous cap")
     d = np.asarray(cap.direction, np.float64)
     axis = np.asarray(cap.axis, np.float64)
     r = np.arange(-0.6, cap.thickness_mm + 0.5 * cap.core_depth_mm + 1e-9, step_mm)

@@ -44,7 +44,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Iterable, Sequence
 
 import numpy as np
 from numba import njit, prange
@@ -863,16 +862,31 @@ def irradiated_bounds_mm(geom: ConeGeometry) -> tuple[np.ndarray, np.ndarray]:
     return pts.min(axis=0), pts.max(axis=0)
 
 
+def _box_ramp(grid: VolumeGrid, lo, hi, blend_mm) -> np.ndarray:
+    """Separable weight at the voxel centres of ``grid``: 1 deeper than ``blend_mm`` inside the
+    box [lo, hi], falling linearly to 0 at its faces, 0 outside. float32 (nz, ny, nx)."""
+    ramps = []
+    for a, ax in enumerate(grid.axes_mm()):
+        dist = np.minimum(ax - lo[a], hi[a] - ax)
+        ramps.append(np.clip(dist / blend_mm[a], 0.0, 1.0).astype(np.float32))
+    return ramps[2][:, None, None] * ramps[1][None, :, None] * ramps[0][None, None, :]
+
+
 def scan_volumes(phantom: Phantom, geom: ConeGeometry, voxel_size_mm, roi_grid: VolumeGrid | None = None,
                  outer_voxel_size_mm=None, roi_margin_mm: float = 0.5, supersample: int = 2,
-                 max_voxels: int = 400 ** 3):
+                 max_voxels: int = 400 ** 3, blend_voxels: int = 2):
     """The voxelised parts ``[(volume, grid), ...]`` whose projections sum to the scan.
 
     Without ``roi_grid``/``outer_voxel_size_mm``: one grid of ``voxel_size_mm`` over the
-    irradiated part of the phantom. With both: a coarse grid (``outer_voxel_size_mm`` rounded
-    to a multiple of ``voxel_size_mm``) over the irradiated phantom, with the box around
-    ``roi_grid`` (+ margin, snapped to coarse voxels) zeroed, plus a fine grid filling
-    exactly that box. The coarse part only feeds the truncated rays; the ROI is fine.
+    irradiated part of the phantom. With both: a coarse grid (``outer_voxel_size_mm``, rounded
+    to a multiple of ``voxel_size_mm``) over the irradiated phantom and a fine grid
+    (``voxel_size_mm``) over the box around ``roi_grid`` (+ ``roi_margin_mm``, snapped to
+    coarse voxels, + ``blend_voxels`` coarse voxels), combined by a partition of unity: the
+    fine part is weighted by ``w`` (1 inside the ROI + margin, falling linearly to 0 over the
+    blend band), the coarse part by ``1 - w``. A hard cut would leave line artefacts where
+    rays graze the box faces (the two grids' interpolation kernels do not add up to one
+    there); the blend, with its kinks on voxel centres of both grids, removes them.
+    The coarse part only feeds the truncated rays; the ROI is fine.
     """
     vs = np.broadcast_to(np.asarray(voxel_size_mm, float), (3,)).copy()
     plo, phi = phantom.bounds_mm()
@@ -886,31 +900,32 @@ def scan_volumes(phantom: Phantom, geom: ConeGeometry, voxel_size_mm, roi_grid: 
             raise ValueError(f"fine grid {tuple(n)} exceeds max_voxels; pass roi_grid and outer_voxel_size_mm")
         g = VolumeGrid.centered(tuple(n[::-1]), vs, 0.5 * (lo + hi))
         return [(voxelize(phantom, g, supersample), g)]
-    f = np.maximum(1, np.round(np.broadcast_to(np.asarray(outer_voxel_size_mm, float), (3,)) / vs)).astype(int)
-    ovs = f * vs
+    # both lattices share the node c0 and the coarse pitch is a multiple of the fine one, so
+    # every coarse voxel centre is a fine voxel centre and the ramp kinks sit on both lattices:
+    # linear interpolation (the projector's) of the two weighted parts then sums exactly.
+    fac = np.maximum(1, np.round(np.broadcast_to(np.asarray(outer_voxel_size_mm, float), (3,)) / vs)).astype(int)
+    ovs = fac * vs
+    c0 = roi_grid.center_mm
     rlo, rhi = roi_grid.bounds_mm()
-    anchor = rlo - roi_margin_mm
-    c_lo = anchor + np.floor((lo - anchor) / ovs) * ovs
-    c_hi = anchor + np.ceil((hi - anchor) / ovs) * ovs
-    nc = np.round((c_hi - c_lo) / ovs).astype(int)
-    f_lo = np.maximum(anchor, c_lo)
-    f_hi = np.minimum(anchor + np.ceil((rhi + roi_margin_mm - anchor) / ovs) * ovs, c_hi)
-    nf_c = np.round((f_hi - f_lo) / ovs).astype(int)  # fine box in coarse voxels
-    parts = []
-    cg = VolumeGrid(tuple(nc[::-1]), tuple(ovs), tuple(c_lo + 0.5 * ovs))
+    in_lo = c0 + np.floor((rlo - roi_margin_mm - c0) / ovs) * ovs
+    in_hi = c0 + np.ceil((rhi + roi_margin_mm - c0) / ovs) * ovs
+    nb = max(1, int(blend_voxels))
+    out_lo, out_hi = in_lo - nb * ovs, in_hi + nb * ovs
+    k_lo = np.floor((lo - c0) / ovs - 0.5).astype(int)
+    k_hi = np.ceil((hi - c0) / ovs + 0.5).astype(int)
+    nc = k_hi - k_lo + 1
     if np.prod(nc) > max_voxels:
         raise ValueError(f"coarse grid {tuple(nc)} exceeds max_voxels; raise outer_voxel_size_mm")
+    cg = VolumeGrid(tuple(nc[::-1]), tuple(ovs), tuple(c0 + k_lo * ovs))
+    nf = np.round((out_hi - out_lo) / vs).astype(int) + 1
+    if np.prod(nf) > max_voxels:
+        raise ValueError(f"fine ROI grid {tuple(nf)} exceeds max_voxels")
+    fg = VolumeGrid(tuple(nf[::-1]), tuple(vs), tuple(out_lo))
+    blend = nb * ovs
     coarse = voxelize(phantom, cg, supersample)
-    if np.all(nf_c > 0):
-        i0 = np.round((f_lo - c_lo) / ovs).astype(int)
-        coarse[i0[2]:i0[2] + nf_c[2], i0[1]:i0[1] + nf_c[1], i0[0]:i0[0] + nf_c[0]] = 0.0
-        nfine = nf_c * f
-        if np.prod(nfine) > max_voxels:
-            raise ValueError(f"fine ROI grid {tuple(nfine)} exceeds max_voxels")
-        fg = VolumeGrid(tuple(nfine[::-1]), tuple(vs), tuple(f_lo + 0.5 * vs))
-        parts.append((voxelize(phantom, fg, supersample), fg))
-    parts.insert(0, (coarse, cg))
-    return parts
+    coarse *= 1.0 - _box_ramp(cg, out_lo, out_hi, blend)
+    fine = voxelize(phantom, fg, supersample) * _box_ramp(fg, out_lo, out_hi, blend)
+    return [(coarse, cg), (fine, fg)]
 
 
 @dataclass(frozen=True, eq=False)

@@ -72,3 +72,63 @@ def test_cap_thickness_of_the_voxelised_phantom(thickness_mm):
     grid = VolumeGrid.centered((12, 200, 200), (0.01, 0.01, 0.1), centre)
     vol = voxelize(ph, grid, supersample=3)
     assert cap_thickness_mm(vol, grid, cap) == pytest.approx(thickness_mm, abs=0.01)
+
+
+def test_gauge_aligned_error_reports_the_motion_and_ignores_it(scan):
+    from robot_ct_ros.ct.metrics import gauge_aligned_reprojection_error
+    pts = roi_points(VolumeGrid.centered((20, 20, 20), 0.2), per_axis=4)
+    rotvec, t = np.array([-0.02, 0.01, 0.03]), np.array([-0.2, 0.5, 0.1])
+    moved = rigidly_moved(scan, rotvec, t, pts.mean(axis=0))
+    res = gauge_aligned_reprojection_error(moved, scan, pts)
+    assert res["mean_px"] < 1e-6 and res["p95_px"] < 1e-6
+    # moving back by the fitted motion restores the geometry: the fit is the inverse motion
+    g = res["gauge"]
+    back = rigidly_moved(moved, g["rotvec_rad"], g["translation_mm"], g["center_mm"])
+    assert back.allclose(scan, atol=1e-6)
+    assert gauge_aligned_reprojection_error(moved, scan, pts, remove=False)["gauge"] is None
+
+
+def test_ncc_is_blind_to_gain_and_offset_per_view_and_rmse_per_view():
+    from robot_ct_ros.ct.metrics import mean_ncc
+    rng = np.random.default_rng(5)
+    a = rng.normal(size=(4, 10, 12))
+    gain, off = rng.uniform(0.5, 3, 4), rng.normal(0, 5, 4)
+    b = a * gain[:, None, None] + off[:, None, None]
+    np.testing.assert_allclose(ncc(b, a), 1.0, atol=1e-12)
+    mask = np.ones((10, 12), bool)
+    mask[:, :3] = False
+    c = b.copy()
+    c[:, :, :3] = 1e6  # garbage outside the mask
+    np.testing.assert_allclose(ncc(c, a, mask), 1.0, atol=1e-12)
+    assert mean_ncc(a + rng.normal(0, 1, a.shape), a) < 0.9
+    r = projection_rmse(a + np.arange(4)[:, None, None], a, per_view=True)
+    np.testing.assert_allclose(r, np.arange(4), atol=1e-12)
+
+
+def test_uniform_window_ssim_and_edge_rise_distance():
+    from scipy.ndimage import gaussian_filter
+    from robot_ct_ros.ct.metrics import edge_rise_distance_mm
+    rng = np.random.default_rng(2)
+    x = ndimage_blobs(rng)
+    assert ssim(x, x, window="uniform") == pytest.approx(1.0)
+    assert ssim(x + rng.normal(0, 0.05, x.shape), x, window="uniform") > ssim(
+        x + rng.normal(0, 0.3, x.shape), x, window="uniform")
+    # a step edge at x = 0 blurred by a Gaussian of sigma: 10-90 % width = 2.563 sigma
+    grid = VolumeGrid.centered((4, 4, 200), 0.01)
+    step = np.broadcast_to((grid.axes_mm()[0] > 0).astype(np.float32), grid.shape_zyx)
+    for sigma_mm in (0.05, 0.1):
+        blurred = gaussian_filter(step, (0, 0, sigma_mm / 0.01))
+        w = edge_rise_distance_mm(3.0 * blurred + 7.0, grid, (-0.8, 0, 0), (0.8, 0, 0))
+        assert w == pytest.approx(2.563 * sigma_mm, rel=0.03)
+
+
+def test_cap_thickness_accepts_the_phantom_and_blur_widens_it():
+    from scipy.ndimage import gaussian_filter
+    ph = carotid_plaque_phantom(cap_thickness_mm=0.1)
+    cap = ph.cap
+    centre = cap.lumen_point_mm + 0.05 * np.asarray(cap.direction)
+    grid = VolumeGrid.centered((12, 200, 200), (0.01, 0.01, 0.1), centre)
+    vol = voxelize(ph, grid, supersample=3)
+    sharp = cap_thickness_mm(vol, grid, ph)
+    assert sharp == pytest.approx(0.1, abs=0.01)
+    assert cap_thickness_mm(gaussian_filter(vol, (0, 6, 6)), grid, ph) > sharp + 0.02

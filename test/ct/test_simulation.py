@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from robot_ct_ros.ct.geometry import VolumeGrid
-from robot_ct_ros.ct.simulation import (DetectorModel, GeometryErrorModel, Phantom, battery_phantom,
+from robot_ct_ros.ct.simulation import (DetectorModel, GeometryErrorModel, Phantom, battery_phantom, box, spiral,
                                         carotid_plaque_phantom, counts_to_line_integrals, detector_drift,
                                         ellipsoid, elliptic_cylinder, mouse_phantom, robot_coordination,
                                         simulate_counts, simulate_scan, voxelize)
@@ -90,3 +90,67 @@ def test_simulated_scan_matches_shapes_and_sees_the_object():
     centre = scan.line_integrals[:, 6:10, 10:14]
     assert centre.mean() > 0.1  # ~10 mm of tissue
     assert np.abs(scan.line_integrals - scan.ideal_line_integrals)[:, scan.valid_mask].mean() < 0.05
+
+
+@pytest.mark.parametrize("prim", [
+    elliptic_cylinder((0.1, 0.0, 0.0), (2.0, 1.6), 1.0, 1.0, inner_semi_axes_mm=(1.0, 0.7), half_angle_rad=2.2,
+                      rotvec=(0.2, 0.0, 0.4)),
+    box((0.2, -0.1, 0.0), (1.5, 0.9, 0.8), 1.0, rotvec=(0.3, -0.2, 0.5)),
+    spiral((0.0, 0.0, 0.0), 0.5, 0.3, 4, 0.03, 1.0, 1.0),  # foil thinner than a voxel: anti-aliased
+])
+def test_voxelised_annulus_box_and_spiral_keep_their_volume(prim):
+    grid = VolumeGrid.centered((28, 56, 56), 0.1)
+    vol = voxelize(Phantom("one", (prim,)), grid, supersample=2)
+    measured = vol.sum() * np.prod(grid.voxel_size_mm)
+    assert measured == pytest.approx(prim.analytic_volume_mm3(), rel=0.02)
+
+
+@pytest.mark.parametrize("thickness_mm", [0.05, 0.065, 0.2])
+def test_plaque_cap_is_as_thick_as_asked(thickness_mm):
+    ph = carotid_plaque_phantom(cap_thickness_mm=thickness_mm, seed=3)
+    cap = ph.cap
+    d = np.asarray(cap.direction)
+    s = np.arange(-0.3, thickness_mm + 0.3, 0.0005)
+    for z in (-0.5 * cap.half_length_mm, 0.0, 0.5 * cap.half_length_mm):
+        pts = cap.lumen_point_mm + s[:, None] * d + z * np.asarray(cap.axis)
+        vals = ph.evaluate(pts)
+        inside = s[np.isclose(vals, ph.info["cap_mu"])]
+        assert inside.max() - inside.min() == pytest.approx(thickness_mm, abs=0.002)
+        # lumen before, lipid core after
+        assert vals[0] == pytest.approx(ph.info["lumen_mu"]) and vals[-1] < ph.info["lumen_mu"]
+    np.testing.assert_allclose(np.linalg.norm(cap.core_point_mm - cap.lumen_point_mm), thickness_mm)
+
+
+def test_random_walk_drift_is_smooth_and_reproducible():
+    m = GeometryErrorModel(drift_per_view=(0.0,) * 3 + (0.01,) * 3 + (0.0,) * 3, drift_kind="random_walk",
+                           drift_smooth_views=8.0, seed=4)
+    a, b = m.sample(300), m.sample(300)
+    np.testing.assert_array_equal(a, b)
+    steps = np.diff(a[:, 3:6], axis=0)
+    assert np.abs(a[:, 3:6]).max() > 0.02            # it wanders ...
+    assert np.abs(steps).max() < 0.01                # ... in steps smaller than the raw walk's
+    assert np.all(a[:, [0, 1, 2, 6, 7, 8]] == 0)
+    both = (robot_coordination(0.1, 0.0, seed=1) + m).sample(300)
+    np.testing.assert_allclose(both - a, robot_coordination(0.1, 0.0, seed=1).sample(300))
+
+
+def test_fine_roi_plus_coarse_rest_projects_like_the_analytic_sphere():
+    from robot_ct_ros.ct.simulation import ellipsoid as ell
+    mu, R = 0.02, 4.0
+    ph = Phantom("sphere", (ell((0.0, 0.0, 0.0), (R, R, R), mu),))
+    geom = circular_scan(4, 60.0, 150.0, 24, 40, 0.5, 0.5)
+    roi = VolumeGrid.centered((16, 16, 16), 0.15)  # interior ROI, much smaller than the sphere
+    two = simulate_scan(ph, geom, None, voxel_size_mm=0.1, roi_grid=roi, outer_voxel_size_mm=0.3)
+    assert len(two.info["parts"]) == 2
+    # analytic chord length of every pixel ray through the sphere
+    nv, nr, nc = two.line_integrals.shape
+    expect = np.empty((nv, nr, nc))
+    for v in range(nv):
+        pix = geom.pixel_centers_mm(v)
+        dirs = pix - geom.source_mm[v]
+        dirs /= np.linalg.norm(dirs, axis=-1, keepdims=True)
+        b = np.einsum("rck,k->rc", dirs, geom.source_mm[v])
+        disc = b * b - (geom.source_mm[v] @ geom.source_mm[v] - R * R)
+        expect[v] = 2 * mu * np.sqrt(np.maximum(disc, 0))
+    inner = expect > 0.5 * expect.max()  # away from the rim, where voxelisation blurs
+    np.testing.assert_allclose(two.line_integrals[inner], expect[inner], atol=0.004)
