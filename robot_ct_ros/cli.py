@@ -10,7 +10,6 @@
 from __future__ import annotations
 
 import argparse
-import inspect
 import json
 import sys
 import time
@@ -104,19 +103,17 @@ def reconstruct_bag(bag, out, *, geometry: str = "auto", voxel_mm=None, shape=No
 
 def calibration_methods() -> tuple:
     """The methods ``robot-ct calibrate`` accepts: the calibration module's, and ``fdk`` (no correction)."""
-    try:
-        from robot_ct_ros.ct import calibration
-        return tuple(getattr(calibration, "LLE_METHODS", {})) + ("fdk",)
-    except ImportError:
-        return ("fdk",)
+    from robot_ct_ros.ct.calibration import METHODS
+
+    return METHODS + ("fdk",)
 
 
 def calibrate_bag(bag, out, *, method: str = "ncc-lle-exact", iterations: int = 2, voxel_mm=None, shape=None,
                   say=_say) -> dict:
     """Calibrate the per-view geometry of a scan bag offline and reconstruct it.
 
-    Runs :func:`robot_ct_ros.ct.calibration.calibrate` (method, iterations) when it is
-    available, else FDK with the nominal geometry (reported). Writes into ``out``: the
+    Runs :func:`robot_ct_ros.ct.calibration.calibrate` (method, iterations; ``"fdk"`` only
+    reconstructs with the nominal geometry). Writes into ``out``: the
     corrected bag (``<bag name>_corrected``: every message of the input plus
     /ct/geometry_corrected), ``volume.npy``/``.tif``/``_grid.json`` and ``report.json``.
     """
@@ -137,22 +134,14 @@ def calibrate_bag(bag, out, *, method: str = "ncc-lle-exact", iterations: int = 
     report.update({"job": "calibrate", "method": method, "iterations": iterations})
     geom, volume, history, notes = scan.geom, None, [], []
     if method != "fdk":
-        try:
-            from robot_ct_ros.ct import calibration
+        from robot_ct_ros.ct.calibration import calibrate
 
-            kwargs = {"method": method, "n_iter": iterations, "valid_mask": mask, "progress": say}
-            params = inspect.signature(calibration.calibrate).parameters
-            kwargs = {k: v for k, v in kwargs.items() if k in params}
-            result = calibration.calibrate(li, scan.geom, grid, **kwargs)
-            geom, volume = result.geom, result.volume
-            history = [getattr(h, "__dict__", h) for h in getattr(result, "history", ())]
-        except (ImportError, AttributeError) as exc:
-            notes.append(f"calibration not available ({type(exc).__name__}: {exc}); FDK with the nominal geometry")
-            say(f"warning: {notes[-1]}")
-            report["method_used"] = "fdk"
+        result = calibrate(li, scan.geom, grid, method=method, n_iter=iterations, valid_mask=mask, progress=say)
+        geom, volume = result.geom, result.volume
+        history = [h.__dict__ for h in result.history]
     if volume is None:
         volume = fdk(li, geom, grid, valid_mask=mask)
-    report.setdefault("method_used", method)
+    report["method_used"] = method
     name = Path(bag).name.removesuffix(".mcap")
     corrected_bag = out / f"{name}_corrected"
     if corrected_bag.exists():

@@ -482,6 +482,8 @@ def _distances(pred: np.ndarray, measured: np.ndarray, mask: np.ndarray, metric:
 
 # ----------------------------------------------------------------------------- alternating loop
 LLE_METHODS = {"l2-lle": "l2", "ncc-lle": "ncc", "ncc-lle-exact": "ncc-exact"}
+METHODS = tuple(LLE_METHODS)
+"""Calibration methods :func:`calibrate` runs."""
 
 
 @dataclass(frozen=True)
@@ -565,8 +567,8 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
     """
     from .reconstruction import fdk
 
-    if method not in LLE_METHODS:
-        raise ValueError(f"method must be one of {tuple(LLE_METHODS)}")
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}")
     t_start = time.perf_counter()
     li = np.ascontiguousarray(line_integrals, dtype=np.float32)
     if li.shape != (nominal.n_views,) + nominal.det_shape:
