@@ -11,6 +11,7 @@ NODES = {
     "arm_driver": "robot_ct_ros.nodes.arm_driver:main",
     "geometry_publisher": "robot_ct_ros.nodes.geometry_publisher:main",
     "pcd_grabber": "robot_ct_ros.nodes.pcd_grabber:main",
+    "recon_service": "robot_ct_ros.nodes.recon_service:main",
     "recorder": "robot_ct_ros.nodes.recorder:main",
     "replay": "robot_ct_ros.nodes.replay:main",
     "scan_orchestrator": "robot_ct_ros.nodes.scan_orchestrator:main",

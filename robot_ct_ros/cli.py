@@ -301,8 +301,10 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="robot-ct", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
-    demo = sub.add_parser("demo", help="simulate a robotic interior scan on simulated hardware and reconstruct it")
-    demo.add_argument("--out", default="out/demo", help="output folder")
+    demo = sub.add_parser("demo", help="scan, record and correct a simulated robotic interior scan end to end")
+    from robot_ct_ros.demo import add_demo_arguments
+
+    add_demo_arguments(demo)
 
     p = sub.add_parser("simulate", help="simulate a robotic ROI scan of a phantom into a scan bag")
     p.add_argument("--phantom", choices=PHANTOMS, default="carotid")

@@ -1,0 +1,114 @@
+"""recon_service in-process: collects a scan from the topics (replayed from a small simulated bag),
+corrects it on recon/run or when scan/status says done, and publishes the corrected geometry of
+every frame, the volume slices, progress and the report; or works on a bag given by path."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+from geometry_msgs.msg import PoseArray
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import Image
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+
+from robot_ct_ros.bag import format as fmt
+from robot_ct_ros.bag import read_scan
+from robot_ct_ros.cli import simulate_bag
+from robot_ct_ros.nodes.recon_service import LATCHED, SLICES, STATUS, STREAM, ReconServiceNode, mid_slices
+from robot_ct_ros.nodes.replay import ReplayNode
+
+N = 10
+
+
+def _params(**kw):
+    return [Parameter(k, value=v) for k, v in kw.items()]
+
+
+def _bag(tmp_path):
+    return simulate_bag(tmp_path / "scan", phantom="mouse", views=N, rows=24, cols=40, sigma_mm=0.05, sigma_deg=0.05,
+                        seed=2, progress=False, say=lambda s: None)
+
+
+class Probe:
+    def __init__(self, ros):
+        node = self.node = ros.node("probe")
+        self.corrected, self.slices, self.progress, self.reports = {}, {}, [], []
+        node.create_subscription(PoseArray, fmt.TOPIC_GEOMETRY_CORRECTED,
+                                 lambda m: self.corrected.__setitem__(fmt.stamp_to_ns(m.header.stamp), m), STREAM)
+        node.create_subscription(String, "recon/progress", lambda m: self.progress.append(json.loads(m.data)), 50)
+        node.create_subscription(String, "recon/report", lambda m: self.reports.append(json.loads(m.data)), LATCHED)
+        for k in SLICES:
+            node.create_subscription(Image, f"recon/slice_{k}", lambda m, k=k: self.slices.__setitem__(k, m), LATCHED)
+
+
+def test_collects_a_replayed_scan_and_corrects_it_when_the_scan_is_done(ros, tmp_path):
+    bag = _bag(tmp_path)
+    scan = read_scan(bag)
+    probe = Probe(ros)
+    out = tmp_path / "recon"
+    recon = ros.add(ReconServiceNode(context=ros.context, parameter_overrides=_params(
+        output_dir=str(out), method="ncc-lle-exact", iterations=1, auto_run=True)))
+    replay = ros.add(ReplayNode(context=ros.context, parameter_overrides=_params(
+        bag_path=str(bag), rate_hz=200.0, wait_for_subscribers=1)))  # recon_service's /ct/projection
+    assert ros.spin_until(lambda: replay.done and recon.n_paired == N, timeout_s=30.0), recon.n_paired
+    assert recon.runs == 0  # nothing runs before the scan is done
+    status = probe.node.create_publisher(String, "scan/status", STATUS)
+    status.publish(String(data=json.dumps({"state": "done", "scan_id": "s1", "frames": N, "view": N - 1})))
+    assert ros.spin_until(lambda: recon.runs == 1, timeout_s=10.0)
+    assert ros.spin_until(lambda: recon.done and len(probe.corrected) == N and len(probe.slices) == 3
+                          and probe.reports, timeout_s=120.0), (recon.state, recon.error)
+    assert recon.state == "done", recon.error
+    # one corrected geometry per frame, with the frame's stamp, equal to the corrected bag's
+    assert set(probe.corrected) == set(int(s) for s in scan.stamps_ns)
+    corrected = read_scan(out / "scan_corrected")
+    for i, s in enumerate(corrected.stamps_ns):
+        src, det, u, v = fmt.view_from_pose_array(probe.corrected[int(s)])
+        np.testing.assert_allclose(src, corrected.geom_corrected.source_mm[i], atol=1e-6)
+        np.testing.assert_allclose(det, corrected.geom_corrected.detector_mm[i], atol=1e-6)
+    assert not corrected.geom_corrected.allclose(scan.geom, atol=1e-6)  # a correction happened
+    # slices: the middle slices of the written volume
+    vol = np.load(out / "volume.npy")
+    for k, sl in mid_slices(vol).items():
+        np.testing.assert_array_equal(fmt.array_from_image(probe.slices[k]), sl)
+        assert probe.slices[k].encoding == "32FC1"
+    # report: where things are and the figures against the true geometry
+    report = probe.reports[-1]
+    assert report["n_views"] == N and report["method_used"] == "ncc-lle-exact"
+    assert json.loads((out / "report.json").read_text())["truth"] == report["truth"]
+    t = report["truth"]
+    assert t["reprojection_error_nominal_px"]["mean"] > 0 and 0 < t["ssim_corrected"] <= 1
+    assert (out / "report.md").read_text().startswith("# Reconstruction report")
+    for key in ("corrected_bag", "volume_npy", "volume_tif", "report_json"):
+        assert (tmp_path / report["paths"][key]).exists()
+    # progress: a start, one line per calibration step, done
+    stages = [p["stage"] for p in probe.progress]
+    assert stages[0] == "start" and stages[-1] == "done" and stages.count("calibrate") >= 2
+
+
+def test_run_service_on_a_bag_path_and_refusals(ros, tmp_path):
+    bag = _bag(tmp_path)
+    probe = Probe(ros)
+    client = probe.node.create_client(Trigger, "recon/run")
+    idle = ros.add(ReconServiceNode("recon_idle", context=ros.context, namespace="idle", parameter_overrides=_params(
+        output_dir=str(tmp_path / "idle"), auto_run=False)))
+    idle_client = probe.node.create_client(Trigger, "/idle/recon/run")
+    answer = ros.call(idle_client, Trigger.Request())
+    assert not answer.success and "no /ct/scan_info" in answer.message and idle.runs == 0
+
+    out = tmp_path / "fdk"
+    recon = ros.add(ReconServiceNode(context=ros.context, parameter_overrides=_params(
+        output_dir=str(out), method="fdk", bag_path=str(bag), auto_run=False, evaluate_truth=False)))
+    answer = ros.call(client, Trigger.Request())
+    assert answer.success, answer.message
+    busy = ros.call(client, Trigger.Request())
+    assert not busy.success and "in progress" in busy.message
+    assert ros.spin_until(lambda: recon.done and len(probe.corrected) == N and len(probe.slices) == 3, timeout_s=60.0)
+    assert recon.state == "done", recon.error
+    scan = read_scan(bag)
+    for i, s in enumerate(scan.stamps_ns):  # fdk: the corrected geometry is the nominal one
+        src, det, u, v = fmt.view_from_pose_array(probe.corrected[int(s)])
+        np.testing.assert_allclose(src, scan.geom.source_mm[i], atol=1e-6)
+        np.testing.assert_allclose(u, scan.geom.u[i], atol=1e-9)
+    assert probe.reports[-1]["method_used"] == "fdk" and probe.reports[-1].get("truth") is None

@@ -1,0 +1,22 @@
+"""`robot-ct demo --quick` end to end in a subprocess: it finishes and leaves the documented outputs."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_demo_quick(tmp_path):
+    out = tmp_path / "demo"
+    proc = subprocess.run([sys.executable, "-m", "robot_ct_ros.cli", "demo", "--quick", "--out", str(out)],
+                          cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert "reprojection error vs true geometry" in proc.stdout and "scan bag" in proc.stdout
+    summary = json.loads((out / "summary.json").read_text())
+    for key in ("scan_bag", "corrected_bag", "volume_npy", "volume_tif", "report_json", "report_md"):
+        assert Path(summary["paths"][key]).exists(), key
+    assert summary["frames"] == 12 and summary["truth"]["reprojection_error_nominal_px"]["mean"] > 0
