@@ -15,13 +15,17 @@ comparison fair when other processes take cores.
 from __future__ import annotations
 
 import argparse
+import os
+import sys
 import time
 
 import numba
 import numpy as np
 
-from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
-from robot_ct_ros.ct.projector import back_project, forward_project
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+
+from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid  # noqa: E402
+from robot_ct_ros.ct.projector import back_project, forward_project  # noqa: E402
 
 SDD_MM = 342.4  # design.md: source-to-detector distance
 SOD_MM = 128.0  # design.md: source-to-ROI distance (magnification 2.67)

@@ -483,8 +483,9 @@ def _distances(pred: np.ndarray, measured: np.ndarray, mask: np.ndarray, metric:
 
 # ----------------------------------------------------------------------------- alternating loop
 LLE_METHODS = {"l2-lle": "l2", "ncc-lle": "ncc", "ncc-lle-exact": "ncc-exact"}
-METHODS = tuple(LLE_METHODS)
-"""Calibration methods :func:`calibrate` runs."""
+METHODS = tuple(LLE_METHODS) + ("gdc", "gdc-log")
+"""Calibration methods :func:`calibrate` runs: the LLE weightings and the GDC baselines
+(:mod:`robot_ct_ros.ct.baselines`)."""
 
 
 @dataclass(frozen=True)
@@ -555,7 +556,7 @@ def _narrowed(config: LLEConfig, iteration: int) -> LLEConfig:
 
 def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGrid, *,
               method: str = "ncc-lle-exact", n_iter: int = 2, valid_mask=None, coarse_binning: int = 2,
-              configs: tuple[LLEConfig, LLEConfig] | None = None, gauge_points_mm=None,
+              configs: tuple | None = None, gauge_points_mm=None,
               fdk_kwargs: dict | None = None, progress=None) -> CalibrationResult:
     """Alternate FDK reconstruction and per-view LLE geometry estimation (design.md §2).
 
@@ -576,7 +577,14 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
         raise ValueError(f"{li.shape[0]} frames but {nominal.n_views} geometries, or detector shape mismatch")
     mask = _as_view_mask(valid_mask, li.shape) & np.isfinite(li)
     li = np.where(mask, li, 0.0).astype(np.float32)
-    coarse_cfg, fine_cfg = configs or default_lle_configs(LLE_METHODS[method])
+    if method in LLE_METHODS:
+        estimate, narrowed = estimate_views, _narrowed
+        coarse_cfg, fine_cfg = configs or default_lle_configs(LLE_METHODS[method])
+    else:  # the baselines run on the same loop, their own search keeps its range
+        from .baselines import default_gdc_configs, estimate_views_gdc
+
+        estimate, narrowed = estimate_views_gdc, (lambda config, iteration: config)
+        coarse_cfg, fine_cfg = configs or default_gdc_configs(method)
     fdk_kwargs = dict(fdk_kwargs or {})
     say = progress or (lambda message: None)
     points = roi_points(grid) if gauge_points_mm is None else np.asarray(gauge_points_mm, float)
@@ -590,10 +598,10 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
         start = params.copy()
         if coarse_binning > 1:
             vol_c = fdk(li_c, nom_c.perturbed(params), grid_c, valid_mask=mask_c, **fdk_kwargs)
-            params, _ = estimate_views(li_c, nom_c, params, vol_c, grid_c, _narrowed(coarse_cfg, it), mask_c)
+            params, _ = estimate(li_c, nom_c, params, vol_c, grid_c, narrowed(coarse_cfg, it), mask_c)
             say(f"iteration {it + 1}/{n_iter}: coarse estimate done ({time.perf_counter() - t0:.1f} s)")
         vol = fdk(li, nominal.perturbed(params), grid, valid_mask=mask, **fdk_kwargs)
-        params, _ = estimate_views(li, nominal, params, vol, grid, _narrowed(fine_cfg, it), mask)
+        params, _ = estimate(li, nominal, params, vol, grid, narrowed(fine_cfg, it), mask)
         params = remove_gauge(nominal.perturbed(params), nominal, points).params_relative_to(nominal)
         rmse, corr = projection_consistency(vol, grid, nominal.perturbed(params), li, mask)
         step = params - start

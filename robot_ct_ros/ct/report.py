@@ -1,0 +1,282 @@
+"""Calibration reports: figures like the NCC-LLE paper's and a metrics table (Markdown + JSON).
+
+:func:`write_report` takes the outcome of several calibration methods on one scan and
+writes into ``out_dir`` (``<name>`` prefixes every file):
+
+* ``<name>_slices.png``: zoomed ROI axial and sagittal slices, one column per method
+  (e.g. "none" = nominal geometry first, "true geometry" last), one grey window for all;
+* ``<name>_rmse.png``: projection RMSE per outer iteration, one curve per method;
+* ``<name>_param_error.png`` (truth known): per-view error of the source shift, detector
+  shift and detector rotation after removing the gauge (:func:`metrics.remove_gauge`);
+* ``<name>.md`` and ``<name>.json``: the table from :func:`summarize`.
+
+Metrics (all from :mod:`robot_ct_ros.ct.metrics`): gauge-aligned reprojection error of ROI
+points (mean, p95, px), SSIM against the reconstruction with the true geometry, edge
+sharpness, fibrous-cap thickness for a plaque phantom, outer iterations, wall time.
+Figures use matplotlib's Agg backend (no display needed).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from .geometry import ConeGeometry, VolumeGrid
+from .metrics import cap_thickness_mm, edge_sharpness, remove_gauge, reprojection_error, roi_points, ssim
+
+COLUMNS = (
+    ("method", "method", "{}"),
+    ("reproj_mean_px", "reproj. error mean (px)", "{:.3f}"),
+    ("reproj_p95_px", "reproj. error p95 (px)", "{:.3f}"),
+    ("ssim", "SSIM vs true-geom. recon", "{:.4f}"),
+    ("sharpness", "edge sharpness", "{:.4f}"),
+    ("cap_um", "cap thickness (um)", "{:.1f}"),
+    ("iterations", "iterations", "{}"),
+    ("wall_s", "wall time (s)", "{:.1f}"),
+)
+
+
+def _unpack(result):
+    """(geom, volume, history, wall_s) from a CalibrationResult or a (geom, volume, history[, wall_s]) tuple."""
+    if hasattr(result, "geom") and hasattr(result, "volume"):
+        return result.geom, result.volume, tuple(getattr(result, "history", ()) or ()), getattr(result, "wall_s", None)
+    items = tuple(result)
+    if len(items) not in (3, 4):
+        raise ValueError("a result is a CalibrationResult or (geom, volume, history[, wall_s])")
+    geom, volume, history = items[:3]
+    return geom, volume, tuple(history or ()), (items[3] if len(items) == 4 else None)
+
+
+def _history_rmse(history) -> list[float]:
+    out = []
+    for h in history:
+        v = h.get("projection_rmse") if isinstance(h, dict) else getattr(h, "projection_rmse", None)
+        out.append(float("nan") if v is None else float(v))
+    return out
+
+
+def _finite_or_none(x):
+    if x is None:
+        return None
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def summarize(results: dict, grid: VolumeGrid, truth=None, points_mm=None) -> list[dict]:
+    """One row per method: the metrics of the table (None where a metric does not apply).
+
+    ``truth`` = (true geometry, volume reconstructed with it, phantom or None); without it only
+    sharpness, iterations and wall time are filled. ``points_mm`` for the reprojection error
+    default to :func:`metrics.roi_points` of ``grid``.
+    """
+    true_geom, true_vol, phantom = (tuple(truth) + (None,) * 3)[:3] if truth is not None else (None, None, None)
+    pts = roi_points(grid) if points_mm is None else np.asarray(points_mm, float)
+    cap = getattr(phantom, "cap", None)
+    rows = []
+    for method, result in results.items():
+        geom, volume, history, wall = _unpack(result)
+        row = {"method": str(method), "reproj_mean_px": None, "reproj_p95_px": None, "ssim": None,
+               "sharpness": _finite_or_none(edge_sharpness(volume)), "cap_um": None,
+               "iterations": len(history), "wall_s": _finite_or_none(wall),
+               "projection_rmse": _history_rmse(history)}
+        if true_geom is not None:
+            err = reprojection_error(geom, true_geom, pts)
+            row["reproj_mean_px"], row["reproj_p95_px"] = err["mean_px"], err["p95_px"]
+        if true_vol is not None:
+            row["ssim"] = _finite_or_none(ssim(volume, true_vol))
+        if cap is not None:
+            row["cap_um"] = _finite_or_none(1000.0 * cap_thickness_mm(volume, grid, cap))
+        rows.append(row)
+    return rows
+
+
+def markdown_table(rows: list[dict], columns=COLUMNS) -> str:
+    """The rows as a GitHub Markdown table ("-" where a metric does not apply)."""
+    cols = [c for c in columns if c[0] == "method" or any(r.get(c[0]) is not None for r in rows)]
+    lines = ["| " + " | ".join(c[1] for c in cols) + " |", "| " + " | ".join("---" for _ in cols) + " |"]
+    for r in rows:
+        cells = []
+        for key, _, fmt in cols:
+            v = r.get(key)
+            cells.append("-" if v is None else fmt.format(v))
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+# ----------------------------------------------------------------------------- figures
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg", force=True)
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _slices(volume, grid: VolumeGrid, center_mm, half_mm):
+    """Zoomed axial (y, x at the centre z) and sagittal (z, y at the centre x) slices and their extents."""
+    vol = np.asarray(volume, np.float32)
+    ax = grid.axes_mm()
+    c = np.asarray(center_mm, float)
+    idx = [int(np.clip(np.argmin(np.abs(ax[a] - c[a])), 0, len(ax[a]) - 1)) for a in range(3)]
+    sel = [np.flatnonzero(np.abs(ax[a] - c[a]) <= half_mm[a] + 1e-9) for a in range(3)]
+    sel = [s if s.size else np.arange(len(ax[a])) for a, s in enumerate(sel)]
+    axial = vol[idx[2]][np.ix_(sel[1], sel[0])]
+    sagittal = vol[:, :, idx[0]][np.ix_(sel[2], sel[1])]
+    ext_ax = (ax[0][sel[0][0]], ax[0][sel[0][-1]], ax[1][sel[1][-1]], ax[1][sel[1][0]])
+    ext_sag = (ax[1][sel[1][0]], ax[1][sel[1][-1]], ax[2][sel[2][-1]], ax[2][sel[2][0]])
+    return axial, sagittal, ext_ax, ext_sag
+
+
+def plot_slices(path, results: dict, grid: VolumeGrid, *, center_mm=None, zoom: float = 0.6, reference=None,
+                title: str = "") -> Path:
+    """Axial (top) and sagittal (bottom) zoomed ROI slices, one column per method."""
+    plt = _plt()
+    center = grid.center_mm if center_mm is None else np.asarray(center_mm, float)
+    half = 0.5 * zoom * grid.extent_mm
+    vols = {m: np.asarray(_unpack(r)[1]) for m, r in results.items()}
+    ref = vols[next(iter(vols))] if reference is None else np.asarray(reference)
+    a0, s0, _, _ = _slices(ref, grid, center, half)
+    both = np.concatenate([a0.ravel(), s0.ravel()])
+    lo, hi = np.percentile(both, [0.5, 99.5])
+    n = len(vols)
+    fig, axes = plt.subplots(2, n, figsize=(2.3 * n + 0.4, 4.9), squeeze=False)
+    for k, (m, v) in enumerate(vols.items()):
+        a, s, ea, es = _slices(v, grid, center, half)
+        axes[0, k].imshow(a, cmap="gray", vmin=lo, vmax=hi, extent=ea, interpolation="nearest")
+        axes[1, k].imshow(s, cmap="gray", vmin=lo, vmax=hi, extent=es, interpolation="nearest", aspect="auto")
+        axes[0, k].set_title(m, fontsize=9)
+        for r in range(2):
+            axes[r, k].set_xticks([])
+            axes[r, k].set_yticks([])
+    axes[0, 0].set_ylabel("axial (x-y)", fontsize=9)
+    axes[1, 0].set_ylabel("sagittal (y-z)", fontsize=9)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)
+
+
+def _color(k: int):
+    return f"C{k % 10}"
+
+
+def _wrap(title: str, width: int) -> str:
+    import textwrap
+
+    return "\n".join(textwrap.wrap(title, width)) if title else ""
+
+
+def plot_rmse(path, results: dict, *, initial_rmse: float | None = None, title: str = "") -> Path:
+    """Projection RMSE after each outer iteration, per method (iteration 0 = nominal, if given)."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(5.4, 3.9))
+    for k, (m, r) in enumerate(results.items()):
+        rmse = _history_rmse(_unpack(r)[2])
+        if not rmse:
+            continue
+        x = np.arange(1, len(rmse) + 1)
+        if initial_rmse is not None:
+            x, rmse = np.concatenate([[0], x]), [initial_rmse] + rmse
+        ax.plot(x, rmse, "o-", color=_color(k), label=m)
+    ax.xaxis.get_major_locator().set_params(integer=True)
+    ax.set_xlabel("outer iteration (0 = nominal geometry)" if initial_rmse is not None else "outer iteration")
+    ax.set_ylabel("projection RMSE (masked)")
+    ax.grid(alpha=0.3)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize=8)
+    if title:
+        ax.set_title(_wrap(title, 60), fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)
+
+
+def gauge_aligned_param_error(geom: ConeGeometry, true_geom: ConeGeometry, points_mm) -> np.ndarray:
+    """(n, 9) parameters taking the true geometry to the estimate after removing the gauge."""
+    return remove_gauge(geom, true_geom, points_mm).params_relative_to(true_geom)
+
+
+def plot_param_error(path, results: dict, true_geom: ConeGeometry, points_mm, *, title: str = "") -> Path:
+    """Per-view error (gauge removed) of source shift |s| (mm), detector shift |d| (mm), rotation (deg)."""
+    plt = _plt()
+    fig, axes = plt.subplots(1, 3, figsize=(12.0, 3.4))
+    for q, (m, r) in enumerate(results.items()):
+        e = gauge_aligned_param_error(_unpack(r)[0], true_geom, points_mm)
+        x = np.arange(e.shape[0])
+        for k, (sl, scale) in enumerate(((slice(0, 3), 1.0), (slice(3, 6), 1.0), (slice(6, 9), 180 / np.pi))):
+            axes[k].plot(x, np.linalg.norm(e[:, sl], axis=1) * scale, ".-", ms=3, lw=0.8, color=_color(q),
+                         label=m)
+    for k, lab in enumerate(("source shift error (mm)", "detector shift error (mm)", "detector rotation error (deg)")):
+        axes[k].set_xlabel("view")
+        axes[k].set_ylabel(lab)
+        axes[k].grid(alpha=0.3)
+    axes[0].legend(fontsize=7)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)
+
+
+# ----------------------------------------------------------------------------- report
+def _json_default(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(f"{type(o).__name__} is not JSON serialisable")
+
+
+def _clean(obj):
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _clean(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_clean(v) for v in obj]
+    return obj
+
+
+def write_report(out_dir, results: dict, grid: VolumeGrid, truth=None, nominal: ConeGeometry | None = None, *,
+                 name: str = "report", title: str = "", points_mm=None, slice_center_mm=None, zoom: float = 0.6,
+                 initial_rmse: float | None = None, notes: dict | None = None) -> dict:
+    """Write the figures and the table of one scan's calibration results; returns their paths.
+
+    ``results`` maps method name to a :class:`~robot_ct_ros.ct.calibration.CalibrationResult`
+    or a ``(geom, volume, history[, wall_s])`` tuple, in the column order of the figures.
+    ``truth`` = (true geometry, reconstruction with it, phantom or None). ``nominal``: if
+    given and no "none" entry exists, the nominal geometry is added to the parameter-error
+    plot as "none". ``initial_rmse`` is plotted at iteration 0. ``notes`` go into the JSON.
+    Returned dict: paths under keys "slices", "rmse", "param_error" (truth known),
+    "markdown", "json", and the table "rows".
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    pts = roi_points(grid) if points_mm is None else np.asarray(points_mm, float)
+    rows = summarize(results, grid, truth, pts)
+    true_geom, true_vol = (truth[0], truth[1]) if truth is not None else (None, None)
+    paths = {"rows": rows}
+    paths["slices"] = plot_slices(out / f"{name}_slices.png", results, grid, center_mm=slice_center_mm, zoom=zoom,
+                                  reference=true_vol, title=title)
+    paths["rmse"] = plot_rmse(out / f"{name}_rmse.png", results, initial_rmse=initial_rmse, title=title)
+    if true_geom is not None:
+        geoms = dict(results)
+        if nominal is not None and "none" not in geoms:
+            geoms = {"none": (nominal, np.zeros(grid.shape_zyx, np.float32), ())} | geoms
+        paths["param_error"] = plot_param_error(out / f"{name}_param_error.png", geoms, true_geom, pts, title=title)
+    md = (f"## {title or name}\n\n" + markdown_table(rows)
+          + "\n" + "".join(f"![{k}]({Path(paths[k]).name})\n" for k in ("slices", "rmse", "param_error") if k in paths))
+    paths["markdown"] = out / f"{name}.md"
+    paths["markdown"].write_text(md)
+    paths["json"] = out / f"{name}.json"
+    paths["json"].write_text(json.dumps(_clean({"name": name, "title": title, "rows": rows, "notes": notes or {}}),
+                                        indent=2, default=_json_default))
+    return paths

@@ -1,0 +1,81 @@
+"""Calibration report: figures and a table whose numbers equal independently computed metrics."""
+
+import json
+
+import numpy as np
+import pytest
+
+from robot_ct_ros.ct.calibration import CalibrationResult, IterationRecord
+from robot_ct_ros.ct.geometry import VolumeGrid
+from robot_ct_ros.ct.metrics import cap_thickness_mm, edge_sharpness, reprojection_error, roi_points, ssim
+from robot_ct_ros.ct.report import markdown_table, write_report
+from robot_ct_ros.ct.simulation import carotid_plaque_phantom, robot_coordination, voxelize
+from robot_ct_ros.ct.trajectory import circular_scan
+
+PNG = b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.fixture(scope="module")
+def inputs():
+    phantom = carotid_plaque_phantom(cap_thickness_mm=0.06)
+    # a small slab around the cap (along -y from the lumen): fine in x-y, coarse along the vessel
+    grid = VolumeGrid.centered((8, 48, 24), (0.03, 0.03, 0.5), (0.0, -2.75, 0.0))
+    truth_vol = voxelize(phantom, grid)
+    rng = np.random.default_rng(0)
+    blurred = truth_vol + rng.normal(0, 0.002, truth_vol.shape).astype(np.float32)
+    nominal = circular_scan(12, 128.0, 342.4, 20, 24, 0.11, 0.11, center_mm=grid.center_mm)
+    true = nominal.perturbed(robot_coordination(0.3, 0.3, seed=2).sample(12))
+    est = nominal.perturbed(0.2 * robot_coordination(0.3, 0.3, seed=2).sample(12) + true.params_relative_to(nominal))
+    hist = (IterationRecord(1, 0.05, 0.99, 0.2, 0.1, 1.5), IterationRecord(2, 0.03, 0.995, 0.05, 0.02, 1.4))
+    results = {
+        "none": (nominal, blurred, ()),
+        "m1": CalibrationResult("m1", est.params_relative_to(nominal), est, blurred * 0.9, hist, 3.25),
+        "true geometry": (true, truth_vol, (), 0.5),
+    }
+    return phantom, grid, truth_vol, nominal, true, results
+
+
+def test_report_files_and_numbers(tmp_path, inputs):
+    phantom, grid, truth_vol, nominal, true, results = inputs
+    paths = write_report(tmp_path, results, grid, truth=(true, truth_vol, phantom), nominal=nominal, name="s",
+                         title="tiny", initial_rmse=0.08)
+    for key in ("slices", "rmse", "param_error"):
+        data = paths[key].read_bytes()
+        assert data.startswith(PNG) and len(data) > 1000, key
+    table = json.loads(paths["json"].read_text())
+    md = paths["markdown"].read_text()
+    assert md.startswith("## tiny") and "| method |" in md and "![slices](s_slices.png)" in md
+    assert len(md.strip().splitlines()[2:]) >= 5  # header, separator, 3 rows
+    pts = roi_points(grid)
+    rows = {r["method"]: r for r in table["rows"]}
+    assert list(rows) == ["none", "m1", "true geometry"]
+    for m, res in results.items():
+        geom = res.geom if hasattr(res, "geom") else res[0]
+        vol = res.volume if hasattr(res, "volume") else res[1]
+        err = reprojection_error(geom, true, pts)
+        r = rows[m]
+        assert r["reproj_mean_px"] == pytest.approx(err["mean_px"], rel=1e-9, abs=1e-12)
+        assert r["reproj_p95_px"] == pytest.approx(err["p95_px"], rel=1e-9, abs=1e-12)
+        assert r["ssim"] == pytest.approx(ssim(vol, truth_vol), rel=1e-9)
+        assert r["sharpness"] == pytest.approx(edge_sharpness(vol), rel=1e-9)
+        cap = cap_thickness_mm(vol, grid, phantom.cap)
+        assert np.isfinite(cap)
+        assert r["cap_um"] == pytest.approx(1000 * cap, rel=1e-9)
+        # and the Markdown shows the same numbers, rounded
+        line = next(ln for ln in md.splitlines() if ln.startswith(f"| {m} |"))
+        assert f"{err['mean_px']:.3f}" in line and f"{1000 * cap:.1f}" in line
+    assert rows["m1"]["iterations"] == 2 and rows["m1"]["wall_s"] == pytest.approx(3.25)
+    assert rows["m1"]["projection_rmse"] == [0.05, 0.03]
+    assert rows["none"]["wall_s"] is None and rows["true geometry"]["wall_s"] == pytest.approx(0.5)
+    assert rows["true geometry"]["reproj_mean_px"] < 1e-6 and rows["true geometry"]["ssim"] == pytest.approx(1.0)
+    assert rows["none"]["reproj_mean_px"] > rows["m1"]["reproj_mean_px"]
+
+
+def test_report_without_truth(tmp_path, inputs):
+    phantom, grid, truth_vol, nominal, true, results = inputs
+    paths = write_report(tmp_path, results, grid, name="u")
+    assert "param_error" not in paths and paths["slices"].read_bytes().startswith(PNG)
+    rows = json.loads(paths["json"].read_text())["rows"]
+    assert all(r["reproj_mean_px"] is None and r["ssim"] is None and r["cap_um"] is None for r in rows)
+    md = markdown_table(rows)
+    assert "SSIM" not in md and "edge sharpness" in md
