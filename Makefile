@@ -7,7 +7,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 export PYTHONPATH := $(CURDIR)$(if $(PYTHONPATH),:$(PYTHONPATH))
 
-.PHONY: venv demo test bench clean
+.PHONY: venv demo test bench bench-calibration clean
 
 venv: $(STAMP)
 
@@ -26,6 +26,9 @@ test: $(STAMP)
 bench: $(STAMP)
 	$(PY) bench/bench_projector.py
 	$(PY) bench/bench_fdk.py
+
+bench-calibration: $(STAMP)
+	$(PY) bench/bench_calibration.py --out docs/results
 
 clean:
 	rm -rf out build install log .pytest_cache
