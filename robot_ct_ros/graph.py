@@ -20,6 +20,8 @@ from pathlib import Path
 
 import yaml
 
+from robot_ct_ros.hardware.detector import warm_up_projector
+
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "config"
 ROLES = ("source", "detector")
 _domains = itertools.count()
@@ -45,26 +47,6 @@ class GraphResult:
     slices: dict = field(default_factory=dict)      # axial|sagittal|coronal -> 2D array received on recon/slice_*
     progress: list = field(default_factory=list)    # recon/progress messages (dicts)
     timings_s: dict = field(default_factory=dict)
-
-
-def warm_up_kernels() -> float:
-    """JIT-compile the projector the simulated detector uses (seconds spent; ~0 with numba's cache warm).
-
-    On a cold cache the first exposure would otherwise compile for many seconds inside the
-    acquisition (holding the GIL, so the whole executor stalls): the detector times out and
-    the scan aborts.
-    """
-    import numpy as np
-
-    from robot_ct_ros.ct.geometry import VolumeGrid
-    from robot_ct_ros.ct.projector import forward_project
-    from robot_ct_ros.ct.trajectory import robotic_roi_scan
-
-    t0 = time.monotonic()
-    geom = robotic_roi_scan(n_views=2, n_rows=4, n_cols=6, fov_diameter_mm=0.3)
-    grid = VolumeGrid.centered((4, 4, 4), 0.05)
-    forward_project(np.ones(grid.shape_zyx, np.float32), grid, geom)
-    return time.monotonic() - t0
 
 
 def _domain_id() -> int:
@@ -146,7 +128,7 @@ def run_scan_graph(out_dir, protocol="quick", *, grabber: dict | None = None, ar
     if scan_timeout_s is None:
         scan_timeout_s = 60.0 + n * (2.0 + proto.exposure_s + proto.settle_s)
 
-    dt = warm_up_kernels()
+    dt = warm_up_projector()
     if dt > 1.0:
         say(f"compiled the projector in {dt:.1f} s (numba; cached for the next runs)")
     timings["compile_s"] = dt

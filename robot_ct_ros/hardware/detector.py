@@ -180,6 +180,23 @@ PoseSource = Callable[[], "tuple[np.ndarray, np.ndarray] | None"]
 BeamFraction = Callable[[int, int], float]
 
 
+def warm_up_projector() -> float:
+    """JIT-compile (or load from numba's cache) the projector; returns the seconds spent.
+
+    On a cold cache the first exposure would otherwise compile for many seconds inside the
+    acquisition (holding the GIL, so the whole executor stalls): the exposure times out and
+    the scan aborts. The simulated detector calls this when it connects.
+    """
+    from robot_ct_ros.ct.projector import forward_project
+    from robot_ct_ros.ct.trajectory import robotic_roi_scan
+
+    t0 = time.monotonic()
+    geom = robotic_roi_scan(n_views=2, n_rows=4, n_cols=6, fov_diameter_mm=0.3)
+    grid = VolumeGrid.centered((4, 4, 4), 0.05)
+    forward_project(np.ones(grid.shape_zyx, np.float32), grid, geom)
+    return time.monotonic() - t0
+
+
 class SimulatedDetector:
     """Simulated PCD (module docstring).
 
@@ -219,6 +236,7 @@ class SimulatedDetector:
 
     # -- interface ------------------------------------------------------------------------
     def connect(self) -> None:
+        warm_up_projector()
         flat, valid = simulate_flat(self.config.raw_shape, self.model, np.random.default_rng(self.model.seed + 1))
         self._flat, self._bad = flat, ~valid
         self._disconnect.clear()
