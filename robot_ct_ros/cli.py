@@ -181,7 +181,6 @@ def simulate_bag(out, *, phantom: str = "carotid", views: int = 360, rows: int =
     from robot_ct_ros.bag import ScanBagWriter, default_stamps, scan_info_for
     from robot_ct_ros.ct import simulation as sim
     from robot_ct_ros.ct.geometry import VolumeGrid
-    from robot_ct_ros.ct.projector import forward_project
     from robot_ct_ros.ct.trajectory import SeedSystem, fov_radius_mm, robotic_roi_scan
 
     system = SeedSystem()
@@ -226,11 +225,7 @@ def simulate_bag(out, *, phantom: str = "carotid", views: int = 360, rows: int =
         bar = tqdm(total=views, desc="simulate", unit="view", disable=not progress, file=sys.stdout)
         for v0 in range(0, views, chunk_views):
             sel = np.arange(v0, min(views, v0 + chunk_views))
-            g = gproj.subset(sel)
-            li = None
-            for vol, grid in parts:
-                p = forward_project(vol, grid, g)
-                li = p if li is None else li + p
+            li = sim.project_parts(parts, gproj.subset(sel))
             counts = sim.simulate_counts(li, det, rng, flat=flat)[0]
             for k, i in enumerate(sel):
                 w.write_frame(counts[k], nominal, int(stamps[i]), int(i), true=true)

@@ -273,13 +273,7 @@ def _extend_rows(rows: np.ndarray, n_fft: int, ext: int, mode: str | None,
         taper = (0.5 * (1.0 + np.cos(np.pi * tail))).astype(np.float32)
         right = right * taper
         left = left * taper
-        if keep_right is not None:
-            right *= keep_right[:, None]
-        if keep_left is not None:
-            left *= keep_left[:, None]
-        buf[:, n:n + ext] = right
-        buf[:, n_fft - ext:] = left[:, ::-1]
-        return buf
+        return _place_extensions(buf, n, n_fft, ext, left, right, keep_left, keep_right)
     k = np.arange(1, ext + 1)
     taper = (0.5 * (1.0 + np.cos(np.pi * k / (ext + 1)))).astype(np.float32)  # 1 -> 0, C1 at the edge
     # reflect indices about the edge pixels (valid for ext larger than the row, too)
@@ -304,12 +298,15 @@ def _extend_rows(rows: np.ndarray, n_fft: int, ext: int, mode: str | None,
         np.minimum(left, 2.0 * np.abs(left_edge), out=left)
     else:
         raise ValueError(f"truncation must be 'extrapolate', 'mirror', 'cylinder' or None, got {mode!r}")
-    right *= taper
-    left *= taper
+    return _place_extensions(buf, n, n_fft, ext, left * taper, right * taper, keep_left, keep_right)
+
+
+def _place_extensions(buf, n, n_fft, ext, left, right, keep_left, keep_right):
+    """Write the (per-row weighted) extensions into the circular buffer of ``_extend_rows``."""
     if keep_right is not None:
-        right *= keep_right[:, None]
+        right = right * keep_right[:, None]
     if keep_left is not None:
-        left *= keep_left[:, None]
+        left = left * keep_left[:, None]
     buf[:, n:n + ext] = right
     buf[:, n_fft - ext:] = left[:, ::-1]
     return buf

@@ -947,6 +947,17 @@ class SimulatedScan:
     info: dict = field(default_factory=dict)
 
 
+def project_parts(parts, geom: ConeGeometry) -> np.ndarray:
+    """Line integrals of the voxelised parts ``[(volume, grid), ...]`` (:func:`scan_volumes`), summed."""
+    from .projector import forward_project
+
+    li = None
+    for vol, grid in parts:
+        p = forward_project(vol, grid, geom)
+        li = p if li is None else li + p
+    return li
+
+
 def simulate_scan(phantom: Phantom, geom_true: ConeGeometry, detector: DetectorModel | None = None, *,
                   voxel_size_mm=0.02, roi_grid: VolumeGrid | None = None, outer_voxel_size_mm=None,
                   roi_margin_mm: float = 0.5, supersample: int = 2, pixel_supersample: int = 1, rng=None,
@@ -961,8 +972,6 @@ def simulate_scan(phantom: Phantom, geom_true: ConeGeometry, detector: DetectorM
     :func:`counts_to_line_integrals`; without one, on ``pixel_supersample``-times finer
     pixels averaged back, noise free. Processed in chunks of ``chunk_views`` views.
     """
-    from .projector import forward_project  # helper A's projector, imported on use
-
     sub = detector.binning if detector is not None else int(pixel_supersample)
     gproj = raw_geometry(geom_true, sub)
     if parts is None:
@@ -977,11 +986,7 @@ def simulate_scan(phantom: Phantom, geom_true: ConeGeometry, detector: DetectorM
         flat, valid = simulate_flat((nr * sub, nc * sub), detector, rng)
     for v0 in range(0, nv, chunk_views):
         sel = np.arange(v0, min(nv, v0 + chunk_views))
-        g = gproj.subset(sel)
-        li = None
-        for vol, grid in parts:
-            p = forward_project(vol, grid, g)
-            li = p if li is None else li + p
+        li = project_parts(parts, gproj.subset(sel))
         ideal[sel] = bin_projections(li, sub, mean=True)
         if detector is not None:
             counts[sel] = simulate_counts(li, detector, rng, flat=flat)[0]
