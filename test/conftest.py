@@ -9,11 +9,22 @@ from __future__ import annotations
 
 import itertools
 import os
+import signal
 import time
 
 import pytest
 
 _domain_counter = itertools.count()
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _sigint_reaches_child_processes():
+    """Tests stop child processes with SIGINT (Ctrl-C). A shell that starts the test run in the
+    background leaves SIGINT ignored, and an ignored signal stays ignored across exec in every
+    child; a handled one is reset to the default there."""
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
 
 
 def _next_domain_id() -> int:

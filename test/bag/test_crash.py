@@ -61,7 +61,7 @@ def test_interrupted_recording_is_readable(tmp_path, sig, check_bag):
     scan = read_scan(bag)
     assert scan.n_views >= written  # every frame reported as written survived
     np.testing.assert_array_equal(scan.counts[:, 0, 0], np.arange(scan.n_views, dtype=np.float32))
-    assert any("200 views" in w for w in scan.warnings)
+    assert any("200 views" in w for w in scan.warnings), (scan.warnings, scan.recovered, scan.info)
     if sig == signal.SIGINT:  # KeyboardInterrupt: the writer closed the bag normally
         assert not scan.recovered and (bag / "metadata.yaml").exists()
         assert check_bag(bag)["/ct/projection"] == scan.n_views
