@@ -36,7 +36,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy import ndimage
 
-from .calibration import detector_homographies, roi_support_mask, warp_projections
+from .calibration import _as_view_mask, detector_homographies, roi_support_mask, warp_projections
 from .geometry import ConeGeometry, VolumeGrid
 
 GDC_METHODS = ("gdc", "gdc-log")
@@ -187,8 +187,7 @@ def estimate_views_gdc(measured: np.ndarray, nominal: ConeGeometry, params0: np.
     params = np.array(params0, dtype=np.float64).reshape(n, 9)
     vol = np.ascontiguousarray(volume, dtype=np.float32)
     sigma = config.log_sigma_px
-    valid = (np.ones(meas.shape, bool) if valid_mask is None
-             else np.broadcast_to(np.asarray(valid_mask, bool), meas.shape)) & np.isfinite(meas)
+    valid = _as_view_mask(valid_mask, meas.shape) & np.isfinite(meas)
     mask = valid & roi_support_mask(nominal, params, grid, config.roi_support_fraction)
     if sigma is None:
         meas_f = np.where(valid, meas, 0.0).astype(np.float32)

@@ -156,9 +156,14 @@ def plot_slices(path, results: dict, grid: VolumeGrid, *, center_mm=None, zoom: 
     axes[1, 0].set_ylabel("sagittal (y-z)", fontsize=9)
     if title:
         fig.suptitle(title, fontsize=10)
+    return _save(fig, path)
+
+
+def _save(fig, path) -> Path:
+    """Lay out, write (110 dpi PNG) and close a figure."""
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _plt().close(fig)
     return Path(path)
 
 
@@ -192,10 +197,7 @@ def plot_rmse(path, results: dict, *, initial_rmse: float | None = None, title: 
         ax.legend(fontsize=8)
     if title:
         ax.set_title(_wrap(title, 60), fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+    return _save(fig, path)
 
 
 def gauge_aligned_param_error(geom: ConeGeometry, true_geom: ConeGeometry, points_mm) -> np.ndarray:
@@ -220,10 +222,7 @@ def plot_param_error(path, results: dict, true_geom: ConeGeometry, points_mm, *,
     axes[0].legend(fontsize=7)
     if title:
         fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+    return _save(fig, path)
 
 
 # ----------------------------------------------------------------------------- report
