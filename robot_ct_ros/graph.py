@@ -152,12 +152,13 @@ def run_scan_graph(out_dir, protocol="quick", *, grabber: dict | None = None, ar
         nodes.append(node)
         return node
 
-    def spin_until(pred, timeout_s: float, what: str, report=None, period_s: float = progress_period_s) -> None:
+    def spin_until(pred, timeout_s: float, what, report=None, period_s: float = progress_period_s) -> None:
         end = time.monotonic() + timeout_s
         next_report = time.monotonic() + period_s
         while not pred():
             now = time.monotonic()
             if now > end:
+                what = what() if callable(what) else what
                 raise GraphError(f"timed out after {timeout_s:.0f} s waiting for {what}")
             if report is not None and now >= next_report:
                 next_report = now + period_s
@@ -167,7 +168,7 @@ def run_scan_graph(out_dir, protocol="quick", *, grabber: dict | None = None, ar
     try:
         say(f"starting the graph (ROS_DOMAIN_ID {domain}, localhost only): protocol {proto.name} ({proto_path}), "
             f"{n} views, detector {geom.n_rows}x{geom.n_cols} of {geom.col_pitch_mm * 1000:.0f} um")
-        add(SourceControlNode(context=context))
+        source = add(SourceControlNode(context=context))
         arm_nodes = {}
         for r, seed in (("source", 1), ("detector", 2)):
             p = dict(role=r, sim_seed=seed, **errors)
@@ -200,9 +201,12 @@ def run_scan_graph(out_dir, protocol="quick", *, grabber: dict | None = None, ar
                                                   lambda m, k=k: slices.__setitem__(k, fmt.array_from_image(m)),
                                                   LATCHED))
 
-        # 1. the arms come up, then the orchestrator accepts the scan
-        spin_until(lambda: all(a.lifecycle_state == "active" for a in arm_nodes.values()), startup_timeout_s,
-                   "both arm drivers to become active")
+        # 1. the hardware nodes (lifecycle, autostart) come up, then the orchestrator accepts the scan
+        hardware = {"source_control": source, "pcd_grabber": grab,
+                    **{f"{r}_arm_driver": a for r, a in arm_nodes.items()}}
+        spin_until(lambda: all(h.lifecycle_state == "active" for h in hardware.values()), startup_timeout_s,
+                   lambda: "the hardware nodes to become active (" + ", ".join(
+                       f"{k}: {h.lifecycle_state}" for k, h in hardware.items()) + ")")
         last = {"msg": ""}
 
         def try_start():
@@ -243,18 +247,23 @@ def run_scan_graph(out_dir, protocol="quick", *, grabber: dict | None = None, ar
         # 4. the online correction (auto_run on scan/status done; else started here)
         t0 = time.monotonic()
         if not recon_node.auto_run:
-            spin_until(lambda: recon_node.n_paired >= frames, 15.0, "recon_service to collect every frame")
+            spin_until(lambda: recon_node.n_paired >= frames and not recon_node.running,
+                       15.0 + (recon_timeout_s if recon_node.every_n_views else 0.0),
+                       "recon_service to collect every frame (and end a partial run)")
             ok, msg = recon_node.start_run()
             if not ok:
                 raise GraphError(f"recon/run refused: {msg}")
-        spin_until(lambda: recon_node.runs > 0 or recon_node.running, 15.0, "the correction to start")
+        # (every_n_views: partial runs may run before; the one on the whole scan is started once they end)
+        spin_until(lambda: recon_node.full_runs > 0, 15.0 + (recon_timeout_s if recon_node.every_n_views else 0.0),
+                   "the correction to start")
         # the acquisition is over: stop its nodes, so the executor (and the CPU) serves the correction
         # alone; the simulated arms alone publish hundreds of messages a second
         for node in [nd for nd in nodes if nd not in (recon_node, probe)]:
             executor.remove_node(node)
             node.destroy_node()
             nodes.remove(node)
-        spin_until(lambda: recon_node.done, recon_timeout_s, "the correction to finish",
+        spin_until(lambda: recon_node.done and not recon_node.run_partial, recon_timeout_s,
+                   "the correction to finish",
                    report=lambda: say(f"recon: working ({time.monotonic() - t0:.0f} s)"),
                    period_s=3 * progress_period_s)
         if recon_node.state == "failed":

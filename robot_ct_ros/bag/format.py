@@ -27,6 +27,7 @@ FORMAT_MAJOR = 1
 # ------------------------------------------------------------------------------ topics
 TOPIC_SCAN_INFO = "/ct/scan_info"
 TOPIC_PROJECTION = "/ct/projection"
+TOPIC_PROJECTION_REJECTED = "/ct/projection_rejected"  # frames the acquisition rejected: never projections
 TOPIC_GEOMETRY = "/ct/geometry"
 TOPIC_FLAT_FIELD = "/ct/flat_field"
 TOPIC_DEAD_PIXELS = "/ct/dead_pixels"
@@ -47,6 +48,7 @@ DIAGNOSTIC_ARRAY = "diagnostic_msgs/msg/DiagnosticArray"
 TOPIC_TYPES = {
     TOPIC_SCAN_INFO: STRING,
     TOPIC_PROJECTION: IMAGE,
+    TOPIC_PROJECTION_REJECTED: IMAGE,
     TOPIC_GEOMETRY: POSE_ARRAY,
     TOPIC_FLAT_FIELD: IMAGE,
     TOPIC_DEAD_PIXELS: IMAGE,
@@ -98,7 +100,8 @@ def offered_qos(topic: str):
     """
     if topic in LATCHED_TOPICS:
         return _qos(1, True)
-    if topic in (TOPIC_PROJECTION, TOPIC_GEOMETRY, TOPIC_GEOMETRY_CORRECTED, TOPIC_GEOMETRY_TRUE):
+    if topic in (TOPIC_PROJECTION, TOPIC_PROJECTION_REJECTED, TOPIC_GEOMETRY, TOPIC_GEOMETRY_CORRECTED,
+                 TOPIC_GEOMETRY_TRUE):
         return _qos(100, False)
     return _qos(10, False)
 

@@ -10,7 +10,9 @@ Two layers:
   by re-synchronising on the next well-formed chunk, and what was lost is reported.
 * :func:`read_scan`: the scan (frames, per-view geometry, flat field, pixel masks) with
   frames and geometries paired by equal header stamps; anything unpaired, undecodable or
-  of the wrong size is counted in ``ScanData.warnings`` and never used.
+  of the wrong size is counted in ``ScanData.warnings`` and never used. A stamp that appears
+  on /ct/projection_rejected (a frame the acquisition rejected, e.g. beam interrupted) is never
+  a view, even when the same frame is also on /ct/projection.
 """
 
 from __future__ import annotations
@@ -467,6 +469,17 @@ def read_scan(path) -> ScanData:
         warnings.append(f"{bad_size} frames dropped: size {size_seen[0]}x{size_seen[1]} differs from scan_info's "
                         f"{shape[0]}x{shape[1]}")
     frames = _by_stamp(frames, "frames", warnings)
+    # frames the acquisition rejected (e.g. the beam dropped during the exposure) are never projections,
+    # even when a writer also put them on /ct/projection
+    rejected = {fmt.stamp_to_ns(m.header.stamp) for _, m in _decode(raw, fmt.TOPIC_PROJECTION_REJECTED, fmt.IMAGE,
+                                                                      warnings)}
+    if rejected:
+        dropped = sorted(set(frames) & rejected)
+        for s in dropped:
+            del frames[s]
+        also = f"; {len(dropped)} of them also on {fmt.TOPIC_PROJECTION}, dropped there" if dropped else ""
+        warnings.append(f"{len(rejected)} frame(s) on {fmt.TOPIC_PROJECTION_REJECTED} were rejected during the "
+                        f"acquisition (e.g. beam interrupted) and are not used{also}")
     geoms = _geometries(raw, fmt.TOPIC_GEOMETRY, warnings)
 
     paired = sorted(set(frames) & set(geoms))

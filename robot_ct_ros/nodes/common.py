@@ -39,3 +39,51 @@ def run_node(node_factory: Callable[[], "object"], description: str, argv: list[
             node.destroy_node()
         rclpy.try_shutdown()
     return 0
+
+
+class ServiceThread:
+    """A service whose callback may block (wait for hardware) without blocking its owner's executor.
+
+    rclpy sends a service's answer when the callback returns, and every callback of a node runs
+    on the one executor the node was added to, so a callback waiting for a detector would stall
+    every node sharing that executor (the project spins SingleThreadedExecutors: the Jazzy wheel's
+    MultiThreadedExecutor busy-loops, rclpy issue 1452, and the test harness and graph.py share one
+    executor between all nodes). Here the service belongs to a private hidden node
+    (``_<owner>_<name>``, same context and namespace, the owner's resolved and remapped service
+    name) spun by its own small MultiThreadedExecutor on a daemon thread; the callback group is
+    reentrant, so a second request is answered (e.g. "busy") while a first one waits. The callback
+    runs on that thread: it must only touch state the owner guards for it.
+    """
+
+    def __init__(self, owner, srv_type, name: str, callback, *, num_threads: int = 2):
+        import threading
+
+        import rclpy
+        from rclpy.callback_groups import ReentrantCallbackGroup
+        from rclpy.executors import MultiThreadedExecutor
+
+        self.name = owner.resolve_service_name(name)
+        suffix = "".join(c if c.isalnum() else "_" for c in name).strip("_")
+        self.node = rclpy.create_node(f"_{owner.get_name()}_{suffix}", namespace=owner.get_namespace(),
+                                      context=owner.context, use_global_arguments=False,
+                                      start_parameter_services=False)
+        self.service = self.node.create_service(srv_type, self.name, callback, callback_group=ReentrantCallbackGroup())
+        self._executor = MultiThreadedExecutor(num_threads=num_threads, context=owner.context)
+        self._executor.add_node(self.node)
+        self._thread = threading.Thread(target=self._spin, name=f"srv{self.name}", daemon=True)
+        self._thread.start()
+
+    def _spin(self) -> None:
+        try:
+            self._executor.spin()
+        except Exception:  # noqa: BLE001 - context shut down (SIGINT) or executor shut down: the thread ends
+            pass
+
+    def close(self, timeout_s: float = 2.0) -> None:
+        """Stop serving; the caller first releases any callback still waiting."""
+        self._executor.shutdown(timeout_sec=timeout_s)
+        self._thread.join(timeout_s)
+        try:
+            self.node.destroy_node()
+        except Exception:  # noqa: BLE001 - already gone with its context
+            pass

@@ -1,26 +1,47 @@
-"""pcd_grabber: the photon-counting detector (PCD); one frame per exposure request.
+"""pcd_grabber: the photon-counting detector (PCD) as a ROS 2 lifecycle node; one frame per exposure request.
 
 Topics (contract names from robot_ct_ros.bag.format; relative names follow the node namespace):
-  publishes   /ct/projection (sensor_msgs/Image 32FC1: binned photon counts, header.stamp = middle of
-              the exposure, frame_id "pcd_detector"; reliable, depth 100),
+  publishes   /ct/projection (sensor_msgs/Image 32FC1: binned photon counts, header.stamp = middle of the
+              exposure, frame_id "pcd_detector"; reliable, depth 100),
               /ct/flat_field (Image 32FC1, mean counts per frame without object) and /ct/dead_pixels
-              (Image mono8, 1 = unusable: dead, hot, chip gap), once at start, transient-local,
+              (Image mono8, 1 = unusable: dead, hot, chip gap), on activation, transient-local,
               /ct/geometry_true (geometry_msgs/PoseArray, simulated detector only: the true geometry
-              of each frame, same stamp), /diagnostics (1 Hz)
-  subscribes  source/beam_on (std_msgs/Bool, transient-local): only the simulated detector uses it,
-              to scale the flux by the fraction of the exposure with the beam on (beam off = dark
-              frame; the detector itself knows no interlock), source_arm/true_tool_pose and
+              of each frame, same stamp), /ct/projection_rejected (Image 32FC1: beam-interrupted
+              frames, below), /diagnostics (1 Hz)
+  subscribes  source/beam_on (std_msgs/Bool, transient-local): the beam state over each exposure, by
+              reception time (below); the simulated detector also scales its flux by it (beam off =
+              dark frame; the detector itself knows no interlock), source_arm/true_tool_pose and
               detector_arm/true_tool_pose (geometry_msgs/PoseStamped, simulated arms): the true poses
               the simulated detector projects with
   services    pcd/expose (std_srvs/Trigger): expose for exposure_s and publish the frame; answered
               when the frame is out (message: JSON {"stamp_ns", "frame", "exposure_s", "n_rows",
               "n_cols"}) or with success false and the reason (detector timeout: no frame within
-              exposure_timeout_s of the request; busy; driver error). Never blocks the executor:
-              the acquisition runs on a worker thread and the answer is sent when it ends.
+              exposure_timeout_s of the request; busy; not active; driver error; beam interrupted).
+              <node>/change_state, <node>/get_state (lifecycle_msgs)
+Beam-interrupted frames (README "Bag format"): a frame is a projection when the beam was on throughout
+its exposure, or a dark frame when it was off throughout and already off at the request. Any other
+frame (the beam dropped, or came on, during the exposure: the interlock or an e-stop cut it) is
+published on /ct/projection_rejected (same layout, no true geometry) and never on /ct/projection, so
+no geometry is made for it and neither the recorder's scan nor recon_service pairs it; pcd/expose
+then answers success false ("beam interrupted ..."). With no source/beam_on publisher the beam counts
+as off (every frame is a dark frame).
 /ct/scan_info is not published here: the scan orchestrator knows the scan (views, ROI) and
 publishes it; this node knows only the detector.
+
+Lifecycle: configure builds and connects the detector (simulated: voxelises the phantom, compiles
+the projector) and offers pcd/expose; activate publishes the flat field and dead-pixel map and
+serves exposures; deactivate stops exposing (an exposure in flight is answered with failure, its
+frame dropped) and refuses requests; cleanup/shutdown/error withdraw pcd/expose and disconnect the
+detector (which releases a hung acquisition). Unconfigured, pcd/expose does not exist, so the scan
+orchestrator's start check sees no detector. With autostart (default) the node configures and
+activates itself in its constructor, as the node did before it had a lifecycle.
+
+Threads: pcd/expose is served on its own executor thread (nodes/common.ServiceThread): its callback
+starts the acquisition on a worker thread and waits (threading.Event) for the frame or the deadline,
+then publishes the frame and answers, so the executor spinning this node never waits for an exposure.
 Parameters: see config/pcd_grabber.yaml (detector grid, exposure, simulation: phantom, voxel size,
-photon counts, defects, seed, fault injection) and the hand_eye.* parameters (nodes/hand_eye_params.py).
+photon counts, defects, seed, fault injection), autostart, and the hand_eye.* parameters
+(nodes/hand_eye_params.py).
 """
 
 from __future__ import annotations
@@ -30,7 +51,7 @@ import threading
 import time
 
 import numpy as np
-from rclpy.node import Node
+from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseArray, PoseStamped
@@ -40,57 +61,28 @@ from std_srvs.srv import Trigger
 
 from robot_ct_ros.bag import format as fmt
 from robot_ct_ros.ct.simulation import DetectorModel
-from robot_ct_ros.hardware.detector import (DetectorConfig, Frame, SimulatedDetector, build_scene,
+from robot_ct_ros.hardware.detector import (DetectorConfig, DetectorError, Frame, SimulatedDetector, build_scene,
                                             make_phantom)
-from robot_ct_ros.nodes.common import run_node
+from robot_ct_ros.nodes.common import ServiceThread, run_node
 from robot_ct_ros.nodes.hand_eye_params import declare_hand_eye, pose_to_matrix_mm, stamp_to_ns
 
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 STREAM = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
 
 
-class DeferredService:
-    """A service whose callback may answer later, from the executor thread, without blocking it.
+class _Exposure:
+    """One pcd/expose request in flight: the worker fills ``result``; ``done`` wakes the service thread."""
 
-    rclpy sends the callback's return value right after the callback; here the callback may
-    return :meth:`defer` (a marker response) instead, and :meth:`answer` sends the real response
-    later. rclpy's own alternative, an ``async`` callback awaiting a future, makes the
-    SingleThreadedExecutor poll the pending task in a busy loop.
-    """
-
-    def __init__(self, node: Node, srv_type, name: str, callback):
-        self._srv = node.create_service(srv_type, name, callback)
-        self._send = self._srv.send_response
-        self._srv.send_response = self._send_or_hold
-        self._held: dict[int, object] = {}  # id(marker response) -> request header
-        self._markers: dict[int, object] = {}
-
-    def defer(self, response):
-        """Return this from the callback to answer later with :meth:`answer` (token = the response)."""
-        self._markers[id(response)] = response
-        return response
-
-    def _send_or_hold(self, response, header) -> None:
-        if id(response) in self._markers and self._markers[id(response)] is response:
-            self._held[id(response)] = header
-            return
-        self._send(response, header)
-
-    def answer(self, token, response=None) -> bool:
-        """Send the deferred answer (``response`` or the token itself, filled in); False if unknown."""
-        key = id(token)
-        header = self._held.pop(key, None)
-        self._markers.pop(key, None)
-        if header is None:
-            return False
-        try:
-            self._send(token if response is None else response, header)
-        except Exception:  # noqa: BLE001 - the client may be gone; nothing to answer then
-            return False
-        return True
+    def __init__(self, rid: int, requested_ns: int):
+        self.id = rid
+        self.requested_ns = requested_ns
+        self.done = threading.Event()
+        self.result: Frame | Exception | None = None
+        self.cancelled = ""   # why the node gave up on it (deactivated, shutting down)
+        self.abandoned = False  # answered already (timeout, cancel): a late frame is dropped
 
 
-class PcdGrabberNode(Node):
+class PcdGrabberNode(LifecycleNode):
     def __init__(self, node_name: str = "pcd_grabber", *, detector_factory=None, **kwargs):
         super().__init__(node_name, **kwargs)
         p = self.declare_parameter
@@ -131,13 +123,16 @@ class PcdGrabberNode(Node):
             "detector_mount_error_rotvec": list(p("sim_mount_error.detector_rotvec_rad", [0.0, 0.0, 0.0]).value),
         }
 
+        autostart = p("autostart", True).value
+
         self.frame_pub = self.create_publisher(Image, fmt.TOPIC_PROJECTION, STREAM)
+        self.frame_rejected_pub = self.create_publisher(Image, fmt.TOPIC_PROJECTION_REJECTED, STREAM)
         self.flat_pub = self.create_publisher(Image, fmt.TOPIC_FLAT_FIELD, LATCHED)
         self.dead_pub = self.create_publisher(Image, fmt.TOPIC_DEAD_PIXELS, LATCHED)
         self.true_geom_pub = self.create_publisher(PoseArray, fmt.TOPIC_GEOMETRY_TRUE, STREAM)
         self.diag_pub = self.create_publisher(DiagnosticArray, fmt.TOPIC_DIAGNOSTICS, 10)
 
-        self._lock = threading.Lock()
+        self._lock = threading.Lock()  # beam log, true poses, and the exposure state below
         self._beam_log: list[tuple[int, bool]] = []
         self._true_pose: dict[str, tuple[int, np.ndarray]] = {}
         self.create_subscription(Bool, "source/beam_on", self._on_beam, LATCHED)
@@ -146,24 +141,88 @@ class PcdGrabberNode(Node):
                                      lambda m, r=role: self._on_true_pose(r, m), 10)
 
         self.frames_published = 0
+        self.frames_rejected = 0
         self.failures = 0
         self.last_error = ""
         self.last_beam_fraction: float | None = None
-        self._pending = None     # the exposure request being served
+        self.detector = None                          # exists between configure and cleanup
+        self._detector_factory = detector_factory or self._make_simulated_detector
+        self._expose_srv: ServiceThread | None = None  # exists between configure and cleanup
+        self._active = False
+        self._pending: _Exposure | None = None         # the exposure request being served
         self._worker: threading.Thread | None = None
-        self._results: list = []  # (request id, Frame | Exception) from the worker
         self._request_id = 0
-        self._done_gc = self.create_guard_condition(self._on_worker_done)
+        self.create_timer(1.0, self._publish_diagnostics)
+        if autostart and self.trigger_configure() == TransitionCallbackReturn.SUCCESS:
+            self.trigger_activate()
 
-        factory = detector_factory or self._make_simulated_detector
+    # -- lifecycle -----------------------------------------------------------------------------
+    @property
+    def lifecycle_state(self) -> str:
+        return self._state_machine.current_state[1]
+
+    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
         t0 = time.monotonic()
-        self.detector = factory()
-        self.detector.connect()
+        try:
+            detector = self._detector_factory()
+            detector.connect()
+        except (DetectorError, ValueError, OSError) as exc:
+            self.last_error = f"configure failed: {exc}"
+            self.get_logger().error(self.last_error)
+            return TransitionCallbackReturn.FAILURE
+        self.detector, self.last_error = detector, ""
+        self._expose_srv = ServiceThread(self, Trigger, "pcd/expose", self._on_expose)
         self.get_logger().info(f"detector ready ({self.driver}, {self.config.n_rows} x {self.config.n_cols} "
                                f"binned {self.config.binning}x{self.config.binning}) in {time.monotonic() - t0:.1f} s")
-        self._publish_calibration()
-        self._expose_srv = DeferredService(self, Trigger, "pcd/expose", self._on_expose)
-        self.create_timer(1.0, self._publish_diagnostics)
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        flat, bad = self.detector.flat_field()
+        stamp = self._now_ns()
+        self.flat_pub.publish(fmt.serialize(fmt.image_from_array(flat, stamp, self.frame_id), fmt.IMAGE))
+        self.dead_pub.publish(fmt.serialize(fmt.mask_image(bad, stamp, self.frame_id), fmt.IMAGE))
+        self._active = True
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._stop_exposing("the detector was deactivated during the exposure")
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._release("the detector was cleaned up during the exposure")
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._release("the detector was shut down during the exposure")
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._release("detector error during the exposure")
+        return TransitionCallbackReturn.SUCCESS
+
+    def _stop_exposing(self, why: str) -> None:
+        with self._lock:
+            self._active = False
+            pending = self._pending
+            if pending is not None:
+                pending.cancelled = why
+        if pending is not None:
+            pending.done.set()  # the service thread answers failure and drops the frame
+
+    def _release(self, why: str) -> None:
+        self._stop_exposing(why)
+        srv, self._expose_srv = self._expose_srv, None
+        if srv is not None:
+            srv.close()
+        detector, self.detector = self.detector, None
+        if detector is not None:
+            detector.disconnect()  # releases a hanging acquisition
+        if self._worker is not None:
+            self._worker.join(2.0)
+
+    def destroy_node(self):
+        self._release("the node shut down during the exposure")
+        return super().destroy_node()
 
     # -- detector ----------------------------------------------------------------------------
     def _make_simulated_detector(self):
@@ -193,11 +252,6 @@ class PcdGrabberNode(Node):
     def _now_ns(self) -> int:
         return self.get_clock().now().nanoseconds
 
-    def _publish_calibration(self) -> None:
-        flat, bad = self.detector.flat_field()
-        stamp = self._now_ns()
-        self.flat_pub.publish(fmt.serialize(fmt.image_from_array(flat, stamp, self.frame_id), fmt.IMAGE))
-        self.dead_pub.publish(fmt.serialize(fmt.mask_image(bad, stamp, self.frame_id), fmt.IMAGE))
 
     # -- inputs of the simulation ------------------------------------------------------------
     def _on_beam(self, msg: Bool) -> None:
@@ -247,76 +301,98 @@ class PcdGrabberNode(Node):
             return None
         return poses[0][1], poses[1][1]
 
-    # -- exposures -----------------------------------------------------------------------------
-    def _on_expose(self, request, response):
-        problem = None
+    # -- exposures (the service thread; the worker thread acquires) ----------------------------
+    def _refusal(self) -> tuple[str, bool] | None:
+        """Why a request cannot start now (and whether that is a detector fault); called under the lock."""
+        if not self._active:
+            return f"detector not active (lifecycle state {self.lifecycle_state})", False
         if self._pending is not None:
-            response.success, response.message = False, "detector busy: an exposure is in progress"
-            return response  # not a detector fault
+            return "detector busy: an exposure is in progress", False
         if self._worker is not None and self._worker.is_alive():
-            problem = "detector not responding: the previous acquisition never completed"
-        elif not self.detector.is_connected:
-            problem = "detector not connected"
-        if problem is not None:
-            self.failures += 1
-            self.last_error = problem
-            self.get_logger().error(f"exposure refused: {problem}")
+            return "detector not responding: the previous acquisition never completed", True
+        if self.detector is None or not self.detector.is_connected:
+            return "detector not connected", True
+        return None
+
+    def _on_expose(self, request, response):
+        with self._lock:
+            refusal = self._refusal()
+            if refusal is None:
+                self._request_id += 1
+                exposure = self._pending = _Exposure(self._request_id, self._now_ns())
+                self._worker = threading.Thread(target=self._acquire, args=(exposure, self.detector),
+                                                name="pcd_acquire", daemon=True)
+                self._worker.start()
+        if refusal is not None:
+            problem, fault = refusal
+            if fault:
+                self._failed(f"exposure refused: {problem}", problem)
             response.success, response.message = False, problem
             return response
-        self._request_id += 1
-        rid = self._request_id
-        deadline = self.create_timer(self.exposure_timeout_s, lambda: self._on_deadline(rid))
-        self._pending = {"id": rid, "response": response, "deadline": deadline}
-        self._worker = threading.Thread(target=self._acquire, args=(rid,), name="pcd_acquire", daemon=True)
-        self._worker.start()
-        return self._expose_srv.defer(response)
 
-    def _acquire(self, rid: int) -> None:
+        in_time = exposure.done.wait(self.exposure_timeout_s)
+        with self._lock:
+            exposure.abandoned = True
+            if self._pending is exposure:
+                self._pending = None
+            result, cancelled = exposure.result, exposure.cancelled
+        if cancelled:
+            response.success, response.message = False, cancelled
+        elif not in_time or result is None:
+            problem = f"detector timeout: no frame within {self.exposure_timeout_s:.3g} s"
+            self._failed(f"exposure failed: {problem}", problem)
+            response.success, response.message = False, problem
+        elif isinstance(result, Exception):
+            problem = f"{type(result).__name__}: {result}"
+            self._failed(f"exposure failed: {problem}", problem)
+            response.success, response.message = False, problem
+        else:
+            fraction = self._beam_fraction(result.start_ns, result.end_ns)
+            self.last_beam_fraction = fraction
+            if fraction == 1.0 or (fraction == 0.0 and not self._beam_on_at(exposure.requested_ns)):
+                self._publish_frame(result)
+                self.last_error = ""  # recovered
+                response.success = True
+                response.message = json.dumps({"stamp_ns": result.stamp_ns, "frame": self.frames_published,
+                                               "exposure_s": self.exposure_s, "n_rows": self.config.n_rows,
+                                               "n_cols": self.config.n_cols})
+            else:
+                problem = self._reject_frame(result, fraction)
+                self.last_error = problem  # not a detector fault: not counted in failures
+                self.get_logger().warn(f"frame rejected: {problem}")
+                response.success, response.message = False, problem
+        return response
+
+    def _acquire(self, exposure: _Exposure, detector) -> None:
         try:
-            result = self.detector.acquire(self.exposure_s)
+            result = detector.acquire(self.exposure_s)
         except Exception as exc:  # DetectorError, or a bug in a driver: reported, never raised into the void
             result = exc
         with self._lock:
-            self._results.append((rid, result))
-        try:
-            self._done_gc.trigger()
-        except Exception:  # the node is being destroyed
-            pass
+            exposure.result = result
+            late = exposure.abandoned
+        exposure.done.set()
+        if late and not isinstance(result, Exception):
+            self.get_logger().warn("a late frame arrived after its request was answered; discarded")
 
-    def _finish(self, success: bool, message: str) -> None:
-        pending, self._pending = self._pending, None
-        if pending is None:
-            return
-        pending["deadline"].cancel()
-        self.destroy_timer(pending["deadline"])
-        response = pending["response"]
-        response.success, response.message = success, message
-        if success:
-            self.last_error = ""  # recovered
-        else:
-            self.failures += 1
-            self.last_error = message
-            self.get_logger().error(f"exposure failed: {message}")
-        self._expose_srv.answer(response)
-
-    def _on_deadline(self, rid: int) -> None:
-        if self._pending is not None and self._pending["id"] == rid:
-            self._finish(False, f"detector timeout: no frame within {self.exposure_timeout_s:.3g} s")
-
-    def _on_worker_done(self) -> None:
+    def _beam_on_at(self, t_ns: int) -> bool:
+        """The beam state at ``t_ns`` as received on source/beam_on (off before the first message)."""
         with self._lock:
-            results, self._results = self._results, []
-        for rid, result in results:
-            if self._pending is None or self._pending["id"] != rid:
-                self.get_logger().warn("a late frame arrived after its request timed out; discarded")
-                continue
-            if isinstance(result, Exception):
-                self._finish(False, f"{type(result).__name__}: {result}")
-                continue
-            self._publish_frame(result)
-            self._finish(True, json.dumps({"stamp_ns": result.stamp_ns, "frame": self.frames_published,
-                                           "exposure_s": self.exposure_s, "n_rows": self.config.n_rows,
-                                           "n_cols": self.config.n_cols}))
+            states = [on for t, on in self._beam_log if t <= t_ns]
+        return bool(states) and states[-1]
+
+    def _reject_frame(self, frame: Frame, fraction: float) -> str:
+        """Publish a beam-interrupted frame on /ct/projection_rejected only (bag contract); the reason."""
+        self.frame_rejected_pub.publish(
+            fmt.serialize(fmt.image_from_array(frame.counts, frame.stamp_ns, self.frame_id), fmt.IMAGE))
+        self.frames_rejected += 1
+        return (f"beam interrupted: on for {100 * fraction:.0f}% of the exposure; the frame (stamp "
+                f"{frame.stamp_ns}) went to {fmt.TOPIC_PROJECTION_REJECTED}, not {fmt.TOPIC_PROJECTION}")
+
+    def _failed(self, log: str, problem: str) -> None:
+        self.failures += 1
+        self.last_error = problem
+        self.get_logger().error(log)
 
     def _publish_frame(self, frame: Frame) -> None:
         stamp = frame.stamp_ns
@@ -326,43 +402,35 @@ class PcdGrabberNode(Node):
         if self.publish_true_geometry and geom is not None:
             msg = fmt.view_pose_array(geom.source_mm[0], geom.detector_mm[0], geom.u[0], geom.v[0], stamp)
             self.true_geom_pub.publish(fmt.serialize(msg, fmt.POSE_ARRAY))
-        fraction = frame.info.get("beam_fraction")
-        if fraction is not None:
-            self.last_beam_fraction = fraction
-            if fraction < 1.0:
-                self.get_logger().warn(f"frame {self.frames_published} exposed with the beam on for only "
-                                       f"{100 * fraction:.0f}% of the exposure")
 
     # -- health -------------------------------------------------------------------------------
     def _publish_diagnostics(self) -> None:
-        connected = self.detector.is_connected
-        if not connected or self.last_error:
-            level = DiagnosticStatus.ERROR if self.last_error.startswith(("detector timeout", "detector not")) \
+        state = self.lifecycle_state
+        connected = self.detector is not None and self.detector.is_connected
+        if self.last_error:
+            level = DiagnosticStatus.ERROR if self.last_error.startswith(("detector timeout", "detector not",
+                                                                          "configure failed")) \
                 else DiagnosticStatus.WARN
+        elif not self._active or not connected:
+            level = DiagnosticStatus.WARN
         else:
             level = DiagnosticStatus.OK
-        values = [("driver", self.driver), ("connected", connected), ("frames", self.frames_published),
+        values = [("lifecycle_state", state), ("driver", self.driver), ("connected", connected),
+                  ("frames", self.frames_published), ("frames_rejected", self.frames_rejected),
                   ("failures", self.failures), ("exposure_s", self.exposure_s),
                   ("exposure_timeout_s", self.exposure_timeout_s),
                   ("shape", f"{self.config.n_rows}x{self.config.n_cols}"), ("binning", self.config.binning),
                   ("busy", self._pending is not None)]
+        values.append(("last_beam_fraction", self.last_beam_fraction))
         if self.driver == "simulated":
-            values += [("phantom", self._sim["phantom"]), ("last_beam_fraction", self.last_beam_fraction)]
+            values.append(("phantom", self._sim["phantom"]))
+        message = self.last_error or ("ready" if self._active and connected else state)
         status = DiagnosticStatus(level=level, name=f"{self.get_fully_qualified_name()}: detector",
-                                  hardware_id=f"{self.driver}_pcd",
-                                  message=self.last_error or ("ready" if connected else "not connected"),
+                                  hardware_id=f"{self.driver}_pcd", message=message,
                                   values=[KeyValue(key=k, value=str(v)) for k, v in values])
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = self.get_clock().now().to_msg()
         self.diag_pub.publish(msg)
-
-    def destroy_node(self):
-        detector = getattr(self, "detector", None)
-        if detector is not None:
-            detector.disconnect()  # releases a hanging acquisition
-        if self._worker is not None:
-            self._worker.join(2.0)
-        return super().destroy_node()
 
 
 def main(argv=None) -> int:

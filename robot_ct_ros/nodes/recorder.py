@@ -2,8 +2,8 @@
 
 Subscribes (serialized, written unchanged)
   /ct/scan_info (std_msgs/String), /ct/flat_field, /ct/dead_pixels (sensor_msgs/Image): transient-local
-  /ct/projection (sensor_msgs/Image), /ct/geometry, /ct/geometry_corrected, /ct/geometry_true
-              (geometry_msgs/PoseArray): reliable
+  /ct/projection, /ct/projection_rejected (sensor_msgs/Image), /ct/geometry, /ct/geometry_corrected,
+              /ct/geometry_true (geometry_msgs/PoseArray): reliable
   /source_arm/tool_pose, /detector_arm/tool_pose (geometry_msgs/PoseStamped), /diagnostics
   (diagnostic_msgs/DiagnosticArray): best effort (matches any publisher); /source/beam_on (std_msgs/Bool)
 Services
@@ -38,10 +38,12 @@ STREAM = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST, reliability=Reli
 ANY = QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT)
 
 SCAN_TOPICS = (fmt.TOPIC_SCAN_INFO, fmt.TOPIC_PROJECTION, fmt.TOPIC_GEOMETRY, fmt.TOPIC_FLAT_FIELD,
-               fmt.TOPIC_DEAD_PIXELS, fmt.TOPIC_GEOMETRY_CORRECTED, fmt.TOPIC_GEOMETRY_TRUE)
+               fmt.TOPIC_DEAD_PIXELS, fmt.TOPIC_GEOMETRY_CORRECTED, fmt.TOPIC_GEOMETRY_TRUE,
+               fmt.TOPIC_PROJECTION_REJECTED)
 ARM_TOPICS = (fmt.TOPIC_SOURCE_POSE, fmt.TOPIC_DETECTOR_POSE, fmt.TOPIC_DIAGNOSTICS, fmt.TOPIC_BEAM_ON)
 OPENS_BAG = (fmt.TOPIC_SCAN_INFO, fmt.TOPIC_PROJECTION, fmt.TOPIC_GEOMETRY)
-FLUSH_AT_ONCE = (fmt.TOPIC_PROJECTION, fmt.TOPIC_GEOMETRY, fmt.TOPIC_GEOMETRY_CORRECTED) + fmt.LATCHED_TOPICS
+FLUSH_AT_ONCE = (fmt.TOPIC_PROJECTION, fmt.TOPIC_GEOMETRY, fmt.TOPIC_GEOMETRY_CORRECTED,
+                 fmt.TOPIC_PROJECTION_REJECTED) + fmt.LATCHED_TOPICS
 
 
 def message_class(msgtype: str):

@@ -28,7 +28,9 @@ aborts: an arm leaving position or falling silent, an arm driver reporting ERROR
 within move_timeout_s, the interlock refusing the beam, the beam dropping during an exposure or
 showing up outside one, the detector failing or timing out, a frame not arriving or of the wrong
 size, an e-stop. Abort = beam off requested, scan/armed false, state "aborted" with the reason.
-Frames already taken stay published (the recorder keeps them).
+Frames already taken stay published (the recorder keeps them). The frame whose exposure a beam drop
+interrupted is not one of them: pcd_grabber publishes it on /ct/projection_rejected only (README
+"Bag format"), so it is neither counted here nor paired with a geometry.
 
 Protocol: a YAML file (protocol_file; config/scan_protocol_*.yaml) with a top-level ``scan_protocol``
 mapping, SI units; see :class:`ScanProtocol`.

@@ -1,39 +1,50 @@
-"""source_control: the X-ray source behind the beam interlock.
+"""source_control: the X-ray source behind the beam interlock, as a ROS 2 lifecycle node.
 
 Topics (relative names; namespace the node to place them):
   subscribes  scan/armed (std_msgs/Bool), source_arm/in_position (std_msgs/Bool),
               detector_arm/in_position (std_msgs/Bool), estop (std_msgs/Bool: true latches the e-stop)
-  publishes   source/beam_on (std_msgs/Bool, transient-local, on every change and at 10 Hz),
-              /diagnostics (diagnostic_msgs/DiagnosticArray, 1 Hz)
+  publishes   source/beam_on (std_msgs/Bool, transient-local: on every change, at 10 Hz while active,
+              and false on every transition out of active), /diagnostics (diagnostic_msgs/DiagnosticArray, 1 Hz)
   services    source/set_beam (std_srvs/SetBool), source/estop (std_srvs/Trigger),
-              source/reset_estop (std_srvs/Trigger)
+              source/reset_estop (std_srvs/Trigger); <node>/change_state, <node>/get_state (lifecycle_msgs)
 Parameters: kvp (kVp, 60-120), power_w (W, <= 150), max_report_age_s (s): an arm report
-older than this counts as "not in position" and cuts the beam.
+older than this counts as "not in position" and cuts the beam; autostart (default true).
+
+Lifecycle: configure builds the (simulated) source at kvp/power_w behind the interlock, activate
+serves source/set_beam and publishes the beam state, deactivate switches the beam off at once and
+refuses beam requests, cleanup/shutdown/error switch it off and release the source. The beam is off
+in every state but active. The interlock inputs (armed, arm reports, e-stop) are followed in every
+state, so they are current on activation; an e-stop is latched in any state (one received while
+unconfigured latches the source built by the next configure). With autostart the node configures
+and activates itself in its constructor, so a plain ``ros2 run`` works without a lifecycle manager.
 """
 
 from __future__ import annotations
 
-from rclpy.node import Node
+from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from std_msgs.msg import Bool
 from std_srvs.srv import SetBool, Trigger
 
-from robot_ct_ros.hardware.xray_source import InterlockedSource, SimulatedXraySource
+from robot_ct_ros.hardware.xray_source import InterlockedSource, SimulatedXraySource, SourceError
 from robot_ct_ros.nodes.common import run_node
 
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 
 
-class SourceControlNode(Node):
-    def __init__(self, **kwargs):
-        super().__init__("source_control", **kwargs)
-        kvp = self.declare_parameter("kvp", 90.0).value
-        power_w = self.declare_parameter("power_w", 150.0).value
-        max_age_s = self.declare_parameter("max_report_age_s", 1.0).value
-        source = SimulatedXraySource()
-        source.configure(kvp, power_w)
-        self.interlock = InterlockedSource(source, max_report_age_s=max_age_s)
+class SourceControlNode(LifecycleNode):
+    def __init__(self, node_name: str = "source_control", *, source_factory=None, **kwargs):
+        super().__init__(node_name, **kwargs)
+        self.kvp = self.declare_parameter("kvp", 90.0).value
+        self.power_w = self.declare_parameter("power_w", 150.0).value
+        self.max_age_s = self.declare_parameter("max_report_age_s", 1.0).value
+        autostart = self.declare_parameter("autostart", True).value
+        self._source_factory = source_factory or SimulatedXraySource
+        self.interlock: InterlockedSource | None = None  # exists between configure and cleanup
+        self._active = False
+        self._estop_unconfigured = False
+        self.last_error = ""
 
         self.beam_pub = self.create_publisher(Bool, "source/beam_on", LATCHED)
         self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
@@ -48,63 +59,165 @@ class SourceControlNode(Node):
         self.create_timer(1.0, self._publish_diagnostics)
         self._last_published: bool | None = None
         self._publish_beam()
+        if autostart and self.trigger_configure() == TransitionCallbackReturn.SUCCESS:
+            self.trigger_activate()
 
+    # -- lifecycle ---------------------------------------------------------------------------
+    @property
+    def lifecycle_state(self) -> str:
+        return self._state_machine.current_state[1]
+
+    @property
+    def beam_on(self) -> bool:
+        return self.interlock is not None and self.interlock.beam_on
+
+    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+        try:
+            source = self._source_factory()
+            source.configure(self.kvp, self.power_w)
+            interlock = InterlockedSource(source, max_report_age_s=self.max_age_s)
+        except (SourceError, ValueError, OSError) as exc:
+            self.last_error = f"configure failed: {exc}"
+            self.get_logger().error(self.last_error)
+            return TransitionCallbackReturn.FAILURE
+        if self._estop_unconfigured:
+            interlock.estop(self._now_s())
+        self.interlock, self.last_error = interlock, ""
+        self.get_logger().info(f"source configured: {self.kvp} kVp, {self.power_w} W")
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._active = True
+        self._publish_beam(force=True)
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._beam_off("deactivated")
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._release("cleaned up")
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._release("shut down")
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._release("error")
+        return TransitionCallbackReturn.SUCCESS
+
+    def _beam_off(self, why: str) -> None:
+        """Refuse beam requests from now on and switch the beam off at once."""
+        self._active = False
+        if self.interlock is not None:
+            self.interlock.request_beam(False, self._now_s())
+            self.interlock.last_reason = f"source_control {why}"
+        if self.context.ok():  # not after SIGINT: nothing can be published then
+            self._publish_beam(force=True)
+
+    def _release(self, why: str) -> None:
+        self._beam_off(why)
+        if self.interlock is not None and self.interlock.inputs.estop_latched:
+            self._estop_unconfigured = True  # the latch outlives the source object
+        self.interlock = None
+
+    def destroy_node(self):
+        self._release("destroyed")
+        return super().destroy_node()
+
+    # -- interlock inputs (followed in every state) --------------------------------------------
     def _now_s(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
 
     def _publish_beam(self, force: bool = False) -> None:
-        on = self.interlock.beam_on
+        on = self.beam_on
         if force or on != self._last_published:
             self.beam_pub.publish(Bool(data=on))
             if self._last_published is not None and on != self._last_published:
-                self.get_logger().info(f"beam {'ON' if on else 'OFF'} ({self.interlock.last_reason})")
+                reason = self.interlock.last_reason if self.interlock is not None else self.lifecycle_state
+                self.get_logger().info(f"beam {'ON' if on else 'OFF'} ({reason})")
             self._last_published = on
 
     def _update(self, **changes) -> None:
-        self.interlock.update(self._now_s(), **changes)
-        self._publish_beam()
+        if self.interlock is not None:
+            self.interlock.update(self._now_s(), **changes)
+            self._publish_beam()
 
     def _arm(self, which: str, in_position: bool) -> None:
-        self.interlock.report_arm(which, in_position, self._now_s())
+        if self.interlock is not None:
+            self.interlock.report_arm(which, in_position, self._now_s())
+            self._publish_beam()
+
+    def _estop(self) -> None:
+        if self.interlock is None:
+            self._estop_unconfigured = True
+        else:
+            self.interlock.estop(self._now_s())
+        self.get_logger().error("e-stop latched")
         self._publish_beam()
 
     def _on_estop_topic(self, msg: Bool) -> None:
         if msg.data:
-            self.interlock.estop(self._now_s())
-            self.get_logger().error("e-stop latched")
-            self._publish_beam()
+            self._estop()
 
+    # -- services ------------------------------------------------------------------------------
     def _on_set_beam(self, request, response):
-        response.success, response.message = self.interlock.request_beam(request.data, self._now_s())
-        self._publish_beam()
+        if not request.data:
+            if self.interlock is not None:
+                self.interlock.request_beam(False, self._now_s())
+            self._publish_beam()
+            response.success, response.message = True, "beam off"
+        elif not self._active:
+            response.success = False
+            response.message = f"beam refused: source_control is {self.lifecycle_state}, not active"
+        else:
+            response.success, response.message = self.interlock.request_beam(True, self._now_s())
+            self._publish_beam()
         return response
 
     def _on_estop_srv(self, request, response):
-        self.interlock.estop(self._now_s())
-        self._publish_beam()
+        self._estop()
         response.success, response.message = True, "e-stop latched, beam off"
         return response
 
     def _on_reset_estop(self, request, response):
-        self.interlock.reset_estop(self._now_s())
+        self._estop_unconfigured = False
+        if self.interlock is not None:
+            self.interlock.reset_estop(self._now_s())
         response.success, response.message = True, "e-stop reset (scan must be re-armed)"
         return response
 
+    # -- periodic -------------------------------------------------------------------------------
     def _tick(self) -> None:
-        self.interlock.tick(self._now_s())
-        self._publish_beam(force=True)
+        if self.interlock is not None:
+            self.interlock.tick(self._now_s())
+        if self._active:
+            self._publish_beam(force=True)
+        elif self.beam_on:  # cannot happen (every way out of active cuts the beam); never leave it on
+            self.interlock.request_beam(False, self._now_s())
+            self._publish_beam(force=True)
 
     def _publish_diagnostics(self) -> None:
-        src = self.interlock.source
-        inputs = self.interlock.inputs
-        level = DiagnosticStatus.ERROR if inputs.estop_latched else DiagnosticStatus.OK
+        state = self.lifecycle_state
+        il = self.interlock
+        latched = self._estop_unconfigured or (il is not None and il.inputs.estop_latched)
+        if latched or self.last_error:
+            level = DiagnosticStatus.ERROR
+        elif not self._active:
+            level = DiagnosticStatus.WARN
+        else:
+            level = DiagnosticStatus.OK
+        values = [("lifecycle_state", state), ("beam_on", self.beam_on), ("kvp", self.kvp),
+                  ("power_w", self.power_w), ("estop_latched", latched)]
+        if il is not None:
+            values += [("scan_armed", il.inputs.scan_armed),
+                       ("beam_on_seconds", f"{getattr(il.source, 'beam_on_seconds', 0.0):.3f}")]
+        message = self.last_error or (il.last_reason if il is not None and self._active else state)
         status = DiagnosticStatus(
             level=level, name=f"{self.get_fully_qualified_name()}: x-ray source",
-            hardware_id="simulated_xray_source", message=self.interlock.last_reason,
-            values=[KeyValue(key=k, value=str(v)) for k, v in (
-                ("beam_on", src.beam_on), ("kvp", src.kvp), ("power_w", src.power_w),
-                ("scan_armed", inputs.scan_armed), ("estop_latched", inputs.estop_latched),
-                ("beam_on_seconds", f"{src.beam_on_seconds:.3f}"))])
+            hardware_id="simulated_xray_source", message=message,
+            values=[KeyValue(key=k, value=str(v)) for k, v in values])
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = self.get_clock().now().to_msg()
         self.diag_pub.publish(msg)

@@ -81,3 +81,26 @@ def test_line_integral_bag_needs_no_flat(tmp_path, tiny_scan):
     out, mask = scan.to_line_integrals()
     np.testing.assert_array_equal(out, li)
     assert mask.all()
+
+
+def test_rejected_frames_are_never_projections(tmp_path, tiny_scan, check_bag):
+    """A stamp on /ct/projection_rejected (README "Bag format") is not a view, even if a writer
+    also put that frame and a geometry for it on /ct/projection and /ct/geometry."""
+    geom, frames, flat, _ = tiny_scan
+    stamps = default_stamps(12)
+    with ScanBagWriter(tmp_path / "b", scan_info_for(geom, projection_units="counts")) as w:
+        w.write_flat(flat, int(stamps[0]) - 1)
+        for i in range(12):
+            if i != 7:  # 7: rejected only; 4: rejected and (wrongly) also recorded as a projection
+                w.write_frame(frames[i], geom, int(stamps[i]), i)
+        for i in (4, 7):
+            w.write_msg(fmt.TOPIC_PROJECTION_REJECTED, fmt.image_from_array(frames[i] * 0.3, int(stamps[i])),
+                        int(stamps[i]))
+    assert check_bag(tmp_path / "b")[fmt.TOPIC_PROJECTION_REJECTED] == 2
+    scan = read_scan(tmp_path / "b")
+    keep = [i for i in range(12) if i not in (4, 7)]
+    np.testing.assert_array_equal(scan.stamps_ns, stamps[keep])
+    np.testing.assert_array_equal(scan.counts, frames[keep])
+    assert scan.geom.allclose(geom.subset(keep), atol=1e-9)
+    assert any("2 frame(s) on /ct/projection_rejected" in w and "1 of them also on /ct/projection" in w
+               for w in scan.warnings), scan.warnings

@@ -15,11 +15,14 @@ from std_msgs.msg import Bool, String
 from std_srvs.srv import Trigger
 
 from robot_ct_ros.bag import format as fmt
+from robot_ct_ros.bag import read_raw_messages, read_scan
 from robot_ct_ros.ct.hand_eye import HandEye, geometry_from_tool_poses, pose_matrix
 from robot_ct_ros.nodes.arm_driver import ArmDriverNode
 from robot_ct_ros.nodes.geometry_publisher import GeometryPublisherNode
 from robot_ct_ros.nodes.hand_eye_params import stamp_to_ns
 from robot_ct_ros.nodes.pcd_grabber import PcdGrabberNode
+from robot_ct_ros.nodes.recon_service import ReconServiceNode
+from robot_ct_ros.nodes.recorder import RecorderNode
 from robot_ct_ros.nodes.scan_orchestrator import ScanOrchestratorNode, ScanProtocol
 from robot_ct_ros.nodes.source_control import SourceControlNode
 
@@ -233,3 +236,51 @@ def test_arm_failure_mid_scan_aborts_and_keeps_frames(ros, tmp_path):
     assert set(g.frames) == set(g.geoms)
     assert ros.spin_until(lambda: g.status and g.status[-1]["state"] == "aborted")
     assert g.status[-1]["frames"] == 5
+
+
+def test_beam_drop_mid_exposure_rejects_that_frame(ros, tmp_path):
+    """The e-stop cuts the beam during the third exposure: the scan aborts, that frame goes to
+    /ct/projection_rejected only, and neither the recorded bag nor recon_service's collection uses it;
+    the two earlier frames are kept, paired and readable."""
+    g = AcquisitionGraph(ros, tmp_path, grabber={"exposure_s": 0.4})
+    rec = ros.add(RecorderNode(context=ros.context, parameter_overrides=_params(
+        {"output_dir": str(tmp_path / "bags"), "record_arm_topics": False})))
+    recon = ros.add(ReconServiceNode(context=ros.context, parameter_overrides=_params(
+        {"output_dir": str(tmp_path / "recon"), "auto_run": False, "evaluate_truth": False})))
+    rejected = []
+    g.subs.append(g.probe.create_subscription(Image, fmt.TOPIC_PROJECTION_REJECTED,
+                                              lambda m: rejected.append(stamp_to_ns(m.header.stamp)), STREAM))
+    estop = g.probe.create_publisher(Bool, "estop", 10)
+    assert ros.wait_for_subscribers(estop, count=2)
+    g.start()
+    assert ros.spin_until(lambda: g.orch.frames == 2 and g.grabber._pending is not None, timeout_s=30)
+    assert g.source.interlock.beam_on
+    estop.publish(Bool(data=True))
+    g.wait_end()
+    assert g.orch.state == "aborted" and g.orch.frames == 2
+    assert ros.spin_until(lambda: rejected and g.grabber.frames_rejected == 1)  # the exposure ends meanwhile
+    assert ros.spin_until(g.safe)
+    (bad,) = rejected
+    assert g.acquisitions[-1]["stamp"] == bad and 0.0 <= g.acquisitions[-1]["fraction"] < 1.0
+    assert "beam interrupted" in g.grabber.last_error
+
+    # on the topics: two frames with their geometry; the rejected one has neither
+    assert ros.spin_until(lambda: len(g.frames) == 2 and len(g.geoms) == 2)
+    kept = sorted(g.frames)
+    assert bad not in g.frames and bad not in g.geoms and bad not in g.true_geoms and set(g.geoms) == set(kept)
+
+    # recon_service collected the two frames only
+    assert ros.spin_until(lambda: recon.n_paired == 2)
+    assert bad not in recon._per_frame[fmt.TOPIC_PROJECTION]
+    snapshot, n = recon._snapshot(tmp_path / "snapshot")
+    assert n == 2 and read_scan(snapshot).stamps_ns.tolist() == kept
+
+    # the recorded bag keeps the rejected frame on its own topic; the reader never uses it
+    assert ros.spin_until(lambda: rec.writer is not None
+                          and rec.writer.counts.get(fmt.TOPIC_PROJECTION_REJECTED, 0) == 1
+                          and rec.writer.counts.get(fmt.TOPIC_GEOMETRY, 0) == 2)
+    bag = rec.close_bag()
+    assert read_raw_messages(bag).topics()[fmt.TOPIC_PROJECTION][1] == 2
+    scan = read_scan(bag)
+    assert scan.n_views == 2 and scan.stamps_ns.tolist() == kept
+    assert any(fmt.TOPIC_PROJECTION_REJECTED in w and "not used" in w for w in scan.warnings)

@@ -1,8 +1,11 @@
-"""pcd_grabber in-process: frames on request, latched flat/dead maps, true geometry, dark frames, timeouts."""
+"""pcd_grabber in-process: frames on request, latched flat/dead maps, true geometry, dark frames,
+beam-interrupted frames, timeouts, lifecycle."""
 
 import json
 
 import numpy as np
+from lifecycle_msgs.msg import Transition
+from lifecycle_msgs.srv import ChangeState
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
@@ -39,9 +42,10 @@ def _grabber(ros, name="pcd_grabber", **params):
 class Probe:
     def __init__(self, ros):
         self.node = ros.node("probe")
-        self.frames, self.true_geoms, self.flat, self.dead, self.diag = [], [], [], [], []
+        self.frames, self.true_geoms, self.flat, self.dead, self.diag, self.rejected = [], [], [], [], [], []
         n = self.node
         self.subs = [n.create_subscription(Image, fmt.TOPIC_PROJECTION, self.frames.append, 10),
+                     n.create_subscription(Image, fmt.TOPIC_PROJECTION_REJECTED, self.rejected.append, 10),
                      n.create_subscription(PoseArray, fmt.TOPIC_GEOMETRY_TRUE, self.true_geoms.append, 10),
                      n.create_subscription(Image, fmt.TOPIC_FLAT_FIELD, self.flat.append, LATCHED),
                      n.create_subscription(Image, fmt.TOPIC_DEAD_PIXELS, self.dead.append, LATCHED),
@@ -125,8 +129,12 @@ def test_requests_never_block_the_executor(ros):
     assert not second.result().success and "busy" in second.result().message
     probe.set_beam(ros, node, False)  # a subscription callback runs during the exposure
     assert ros.spin_until(first.done)
-    assert first.result().success
-    assert 0.0 < node.last_beam_fraction < 1.0  # switched off part-way through the exposure
+    # switched off part-way through the exposure: the frame is rejected, not a projection
+    assert not first.result().success and "beam interrupted" in first.result().message
+    assert 0.0 < node.last_beam_fraction < 1.0
+    assert ros.spin_until(lambda: probe.rejected)
+    assert not probe.frames and not probe.true_geoms and node.frames_published == 0 and node.failures == 0
+    assert str(stamp_to_ns(probe.rejected[-1].header.stamp)) in first.result().message
 
 
 def test_detector_timeout_answers_failure_in_time(ros):
@@ -150,3 +158,69 @@ def test_no_true_poses_is_an_error_not_a_frame(ros):
     assert not answer.success and "poses unknown" in answer.message
     ros.spin_for(0.2)
     assert not probe.frames and node.frames_published == 0
+
+
+def _transition(ros, client, transition_id):
+    return ros.call(client, ChangeState.Request(transition=Transition(id=transition_id))).success
+
+
+def test_lifecycle_configure_activate_deactivate_cleanup(ros):
+    """configure connects and offers pcd/expose, activate serves it, deactivate drops the exposure in flight."""
+    node = _grabber(ros, name="pcd_lc", autostart=False, exposure_s=0.5)
+    probe = Probe(ros)
+    change = probe.node.create_client(ChangeState, "/pcd_lc/change_state")
+    assert ros.wait_for_service(change)
+    ros.spin_for(0.2)
+    assert node.lifecycle_state == "unconfigured" and node.detector is None
+    assert not probe.expose.service_is_ready() and not probe.flat  # no detector, no service
+
+    assert _transition(ros, change, Transition.TRANSITION_CONFIGURE)
+    assert node.detector.is_connected and node.lifecycle_state == "inactive"
+    answer = ros.call(probe.expose, Trigger.Request())
+    assert not answer.success and "not active" in answer.message and "inactive" in answer.message
+    assert node.failures == 0  # a refusal, not a detector fault
+
+    assert _transition(ros, change, Transition.TRANSITION_ACTIVATE)
+    assert ros.spin_until(lambda: probe.flat and probe.dead)  # published on activation
+    geom = tiny_geometry()
+    S, D = tool_goals_from_geometry(geom, HandEye())
+    probe.publish_poses(ros, S[0], D[0])
+    assert ros.spin_until(lambda: len(node._true_pose) == 2)
+    probe.set_beam(ros, node, True)
+    call = probe.expose.call_async(Trigger.Request())
+    assert ros.spin_until(lambda: node._pending is not None)
+    assert _transition(ros, change, Transition.TRANSITION_DEACTIVATE)  # mid-exposure
+    assert ros.spin_until(call.done)
+    assert not call.result().success and "deactivated" in call.result().message
+    ros.spin_for(0.6)  # the acquisition ends meanwhile: its frame is dropped
+    assert not probe.frames and node.frames_published == 0
+    answer = ros.call(probe.expose, Trigger.Request())
+    assert not answer.success and "not active" in answer.message
+
+    detector = node.detector
+    assert _transition(ros, change, Transition.TRANSITION_CLEANUP)
+    assert node.detector is None and not detector.is_connected
+    assert ros.spin_until(lambda: not probe.expose.service_is_ready())
+
+
+def test_configure_fails_without_a_driver(ros):
+    node = _grabber(ros, name="pcd_nodriver", driver="real")
+    assert node.lifecycle_state == "unconfigured" and node.detector is None
+    assert "configure failed" in node.last_error and "not available" in node.last_error
+
+
+def test_beam_coming_on_mid_exposure_rejects_the_frame(ros):
+    """Neither a projection nor a dark frame: off at the request, on for part of the exposure."""
+    node = _grabber(ros, name="pcd_beam_late", exposure_s=0.4)
+    probe = Probe(ros)
+    S, D = tool_goals_from_geometry(tiny_geometry(), HandEye())
+    probe.publish_poses(ros, S[0], D[0])
+    probe.set_beam(ros, node, False)
+    assert ros.wait_for_service(probe.expose)
+    call = probe.expose.call_async(Trigger.Request())
+    assert ros.spin_until(lambda: node._pending is not None)
+    probe.set_beam(ros, node, True)
+    assert ros.spin_until(call.done)
+    assert not call.result().success and "beam interrupted" in call.result().message
+    assert 0.0 < node.last_beam_fraction < 1.0
+    assert ros.spin_until(lambda: probe.rejected) and not probe.frames

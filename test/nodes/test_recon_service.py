@@ -112,3 +112,37 @@ def test_run_service_on_a_bag_path_and_refusals(ros, tmp_path):
         np.testing.assert_allclose(src, scan.geom.source_mm[i], atol=1e-6)
         np.testing.assert_allclose(u, scan.geom.u[i], atol=1e-9)
     assert probe.reports[-1]["method_used"] == "fdk" and probe.reports[-1].get("truth") is None
+
+
+def test_every_n_views_corrects_during_the_scan(tmp_path):
+    """The whole graph (graph.run_scan_graph) on a 16-view scan with every_n_views 8: partial corrections
+    of the first 8 (and 16) frames run while the scan goes on, the scan still completes with every frame
+    recorded, and the final correction covers the whole scan."""
+    from robot_ct_ros.graph import run_scan_graph
+
+    n, every = 16, 8
+    protocol = {"name": "online", "n_views": n, "roi_center_m": [0.4, 0.0, 0.3], "fov_diameter_m": 0.005,
+                "detector": {"n_rows": 32, "n_cols": 64, "binning": 2, "raw_pixel_m": 0.00011},
+                "exposure_s": 0.05, "settle_s": 0.01, "move_timeout_s": 10.0, "exposure_timeout_s": 2.0}
+    grabber = {"sim_phantom": "mouse", "sim_voxel_size_m": 0.0005, "sim_region_size_m": [0.004, 0.004, 0.1],
+               "sim_roi_size_m": [0.0, 0.0, 0.0]}
+    out = tmp_path / "run"
+    r = run_scan_graph(out, protocol, grabber=grabber, quiet=True, say=lambda s: None, scan_timeout_s=120.0,
+                       recon={"method": "ncc-lle-exact", "iterations": 1, "every_n_views": every,
+                              "evaluate_truth": False}, recon_timeout_s=300.0)
+    assert r.frames == n
+    scan = read_scan(r.bag)
+    assert scan.n_views == n and not scan.warnings  # every frame recorded, paired, and nothing else mixed in
+
+    partial = sorted(p.name for p in (out / "recon").glob("partial_*"))
+    assert partial and partial[0] == f"partial_{every:04d}", partial
+    first = json.loads((out / "recon" / partial[0] / "report.json").read_text())
+    assert first["n_views"] == every
+    corrected = read_scan(out / "recon" / partial[0] / "scan_corrected")
+    assert corrected.n_views == every and corrected.geom_corrected is not None
+    assert [int(s) for s in corrected.stamps_ns] == [int(s) for s in scan.stamps_ns[:every]]  # the first 8 frames
+    assert any(p["run"] == 1 and p["stage"] == "start" and p["n_views"] == every for p in r.progress)
+
+    # the final correction: the whole scan, one corrected geometry per frame
+    assert r.report["n_views"] == n and not r.report["partial"]
+    assert sorted(r.corrected) == [int(s) for s in scan.stamps_ns]

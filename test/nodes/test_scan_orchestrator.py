@@ -1,6 +1,7 @@
 """scan_orchestrator in-process with source_control, two simulated arm drivers and a scripted fake detector."""
 
 import json
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -16,8 +17,8 @@ from std_srvs.srv import Trigger
 from robot_ct_ros.bag import format as fmt
 from robot_ct_ros.ct.hand_eye import HandEye, tool_goals_from_geometry
 from robot_ct_ros.nodes.arm_driver import ArmDriverNode
+from robot_ct_ros.nodes.common import ServiceThread
 from robot_ct_ros.nodes.hand_eye_params import ns_to_stamp, pose_to_matrix_mm
-from robot_ct_ros.nodes.pcd_grabber import DeferredService
 from robot_ct_ros.nodes.scan_orchestrator import ScanOrchestratorNode, ScanProtocol
 from robot_ct_ros.nodes.source_control import SourceControlNode
 
@@ -33,15 +34,25 @@ def _params(**kw):
 
 
 class FakeDetector:
-    """pcd/expose answered by the test: 'frame' (publish a frame, answer), 'fail', or 'hold' (answer later)."""
+    """pcd/expose answered by the test: 'frame' (publish a frame, answer), 'fail', or 'hold' (answer on release()).
+
+    Served like the real pcd_grabber's, on its own executor thread (ServiceThread), so a held request
+    blocks nothing the test spins."""
 
     def __init__(self, ros, node, source, arms):
         self.ros, self.node, self.source, self.arms = ros, node, source, arms
         self.plan: dict[int, str] = {}
         self.requests = []
         self.held = None
+        self._release = threading.Event()
         self.pub = node.create_publisher(Image, fmt.TOPIC_PROJECTION, 100)
-        self.srv = DeferredService(node, Trigger, "pcd/expose", self._on_expose)
+        self.srv = ServiceThread(node, Trigger, "pcd/expose", self._on_expose)
+
+    def release(self, success=True, message=""):
+        """Answer the held request now."""
+        held, self.held = self.held, None
+        held.success, held.message = success, message
+        self._release.set()
 
     def _on_expose(self, request, response):
         n = len(self.requests)
@@ -52,8 +63,10 @@ class FakeDetector:
             response.success, response.message = False, "detector exploded (scripted)"
             return response
         if mode == "hold":
+            self._release.clear()
             self.held = response
-            return self.srv.defer(response)
+            self._release.wait(10.0)
+            return response
         stamp = self.node.get_clock().now().nanoseconds
         msg = Image(height=6, width=8, encoding="32FC1", step=32, data=bytes(192))
         msg.header.stamp, msg.header.frame_id = ns_to_stamp(stamp), "pcd_detector"
@@ -215,9 +228,7 @@ def test_beam_lost_during_exposure_aborts(ros, tmp_path):
     assert g.orch.state == "aborted" and "beam lost" in g.orch.message
     assert g.orch.frames == 1
     assert ros.spin_until(g.safe)
-    held, g.detector.held = g.detector.held, None  # the late answer changes nothing
-    held.success, held.message = True, json.dumps({"stamp_ns": 1})
-    g.detector.srv.answer(held)
+    g.detector.release(True, json.dumps({"stamp_ns": 1}))  # the late answer changes nothing
     ros.spin_for(0.1)
     assert g.orch.state == "aborted" and g.orch.frames == 1
 
@@ -233,3 +244,4 @@ def test_abort_service(ros, tmp_path):
     assert ros.spin_until(g.safe)
     answer = ros.call(g.abort_client, Trigger.Request())  # nothing running: still answers, still safe
     assert answer.success and "no scan running" in answer.message
+    g.detector.release(False, "never answered")

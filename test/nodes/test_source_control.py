@@ -1,5 +1,9 @@
-"""source_control in-process: the beam follows the interlock over real topics and services."""
+"""source_control in-process: the beam follows the interlock and the lifecycle over real topics and services."""
 
+from lifecycle_msgs.msg import Transition
+from lifecycle_msgs.srv import ChangeState, GetState
+from rclpy.lifecycle import TransitionCallbackReturn
+from rclpy.parameter import Parameter
 from std_msgs.msg import Bool
 from std_srvs.srv import SetBool, Trigger
 
@@ -65,3 +69,87 @@ def test_arm_leaving_position_cuts_beam(ros):
     pubs["detector_arm/in_position"].publish(Bool(data=False))
     assert ros.spin_until(lambda: not node.interlock.beam_on)
     assert ros.spin_until(lambda: beam and beam[-1] is False)
+
+
+def _transition(ros, client, transition_id):
+    return ros.call(client, ChangeState.Request(transition=Transition(id=transition_id))).success
+
+
+def test_lifecycle_beam_only_while_active(ros):
+    """Configure builds the source, activate serves the beam, deactivate/shutdown switch it off at once."""
+    node = ros.add(SourceControlNode(context=ros.context, parameter_overrides=[Parameter("autostart", value=False)]))
+    probe = ros.node("probe")
+    beam = []
+    sub = probe.create_subscription(Bool, "source/beam_on", lambda m: beam.append(m.data), LATCHED)
+    pubs = {name: probe.create_publisher(Bool, name, 10)
+            for name in ("scan/armed", "source_arm/in_position", "detector_arm/in_position")}
+    for pub in pubs.values():
+        assert ros.wait_for_subscribers(pub)
+    assert ros.wait_for_publishers(sub)
+    set_beam = probe.create_client(SetBool, "source/set_beam")
+    change = probe.create_client(ChangeState, "/source_control/change_state")
+    get = probe.create_client(GetState, "/source_control/get_state")
+
+    assert ros.call(get, GetState.Request()).current_state.label == "unconfigured"
+    assert node.interlock is None
+    answer = ros.call(set_beam, SetBool.Request(data=True))
+    assert not answer.success and "unconfigured" in answer.message
+
+    assert _transition(ros, change, Transition.TRANSITION_CONFIGURE)
+    assert node.lifecycle_state == "inactive" and node.interlock is not None
+    _ready(ros, pubs, node)  # every interlock condition met: only the lifecycle state refuses
+    answer = ros.call(set_beam, SetBool.Request(data=True))
+    assert not answer.success and "inactive" in answer.message and not node.beam_on
+
+    assert _transition(ros, change, Transition.TRANSITION_ACTIVATE)
+    _ready(ros, pubs, node)
+    assert ros.call(set_beam, SetBool.Request(data=True)).success
+    assert ros.spin_until(lambda: beam and beam[-1] is True)
+
+    assert _transition(ros, change, Transition.TRANSITION_DEACTIVATE)
+    assert not node.beam_on and not node.interlock.source.beam_on  # off when the transition answers
+    assert ros.spin_until(lambda: beam and beam[-1] is False)
+    _ready(ros, pubs, node)
+    answer = ros.call(set_beam, SetBool.Request(data=True))
+    assert not answer.success and "inactive" in answer.message
+    ros.spin_for(0.3)  # three interlock ticks: still off
+    assert not node.beam_on and beam[-1] is False
+
+    # re-activated: the beam stays off until requested again
+    assert _transition(ros, change, Transition.TRANSITION_ACTIVATE)
+    assert not node.beam_on
+    _ready(ros, pubs, node)
+    assert ros.call(set_beam, SetBool.Request(data=True)).success and node.beam_on
+    source = node.interlock.source
+    assert _transition(ros, change, Transition.TRANSITION_ACTIVE_SHUTDOWN)
+    assert not source.beam_on and node.interlock is None and node.lifecycle_state == "finalized"
+    assert ros.spin_until(lambda: beam and beam[-1] is False)
+
+
+def test_estop_latches_in_every_state(ros):
+    node = ros.add(SourceControlNode(context=ros.context, parameter_overrides=[Parameter("autostart", value=False)]))
+    probe = ros.node("probe")
+    estop = probe.create_client(Trigger, "source/estop")
+    assert ros.call(estop, Trigger.Request()).success  # unconfigured: no source yet, the latch is kept
+    assert node.trigger_configure() == TransitionCallbackReturn.SUCCESS
+    assert node.trigger_activate() == TransitionCallbackReturn.SUCCESS
+    assert node.interlock.inputs.estop_latched
+    pubs = {name: probe.create_publisher(Bool, name, 10)
+            for name in ("scan/armed", "source_arm/in_position", "detector_arm/in_position")}
+    for pub in pubs.values():
+        assert ros.wait_for_subscribers(pub)
+    for pub in pubs.values():
+        pub.publish(Bool(data=True))
+    assert ros.spin_until(lambda: node.interlock.inputs.detector_arm_in_position)
+    set_beam = probe.create_client(SetBool, "source/set_beam")
+    answer = ros.call(set_beam, SetBool.Request(data=True))
+    assert not answer.success and "e-stop" in answer.message
+    reset = probe.create_client(Trigger, "source/reset_estop")
+    assert ros.call(reset, Trigger.Request()).success
+    assert not node.interlock.inputs.estop_latched
+
+
+def test_bad_source_parameters_fail_configure(ros):
+    node = ros.add(SourceControlNode(context=ros.context, parameter_overrides=[Parameter("kvp", value=200.0)]))
+    assert node.lifecycle_state == "unconfigured" and node.interlock is None  # autostart stopped at configure
+    assert "kVp" in node.last_error
