@@ -49,6 +49,26 @@ def fit_gauge(est: ConeGeometry, ref: ConeGeometry, points_mm) -> tuple[np.ndarr
     return sol.x[:3], sol.x[3:], center
 
 
+def fit_object_scale(est: ConeGeometry, ref: ConeGeometry, points_mm) -> float:
+    """The object scale s that, with the best rigid motion, makes ``est`` project the points
+    scaled by s about their centroid where ``ref`` projects the points themselves.
+
+    A common magnification error of all views reconstructs a sharp object of the wrong size:
+    with the small cone angle of an interior scan, data consistency hardly sees it (it is the
+    similarity part of the gauge), so calibration holds it at the nominal value.
+    """
+    pts = np.atleast_2d(np.asarray(points_mm, dtype=np.float64))
+    center = pts.mean(axis=0)
+    target = ref.project_points(pts)
+
+    def residual(x):
+        moved = rigidly_moved(est, x[:3], x[3:6], center)
+        return (moved.project_points(center + np.exp(x[6]) * (pts - center)) - target).ravel()
+
+    sol = least_squares(residual, np.zeros(7), method="lm", xtol=1e-12, ftol=1e-12)
+    return float(np.exp(sol.x[6]))
+
+
 def remove_gauge(est: ConeGeometry, ref: ConeGeometry, points_mm) -> ConeGeometry:
     """``est`` moved by the rigid motion of :func:`fit_gauge` (the unobservable part removed)."""
     rotvec, t, c = fit_gauge(est, ref, points_mm)

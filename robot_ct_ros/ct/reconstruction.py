@@ -649,23 +649,28 @@ def _projector():
 
 
 def sirt(line_integrals: np.ndarray, geom: ConeGeometry, grid: VolumeGrid, n_iter: int, x0=None,
-         nonneg: bool = True, relaxation: float = 1.0, callback=None) -> np.ndarray:
-    """SIRT: ``x <- x + relaxation * C A^T R (b - A x)``, R = 1/row sums, C = 1/column sums.
+         nonneg: bool = True, relaxation: float = 1.0, callback=None, valid_mask=None) -> np.ndarray:
+    """SIRT: ``x <- x + relaxation * C A^T R M (b - A x)``, R = 1/row sums, C = 1/column sums.
 
-    Row sums ``A 1`` and column sums ``A^T 1`` come from projecting ones with
-    :mod:`robot_ct_ros.ct.projector`. ``callback(it, x, residual_norm)`` is called after each
-    iteration with the norm of the residual of the iterate *before* the update.
+    Row sums ``A 1`` and column sums ``A^T M 1`` come from projecting ones with
+    :mod:`robot_ct_ros.ct.projector`. ``valid_mask`` (rows, cols) or (n, rows, cols), True =
+    usable, drops dead pixels, chip gaps and non-finite values from the fit (M); a voxel no
+    valid ray crosses keeps its ``x0`` value. ``callback(it, x, residual_norm)`` is called after
+    each iteration with the norm of the masked residual of the iterate *before* the update.
     """
     fp, bp = _projector()
     b = np.asarray(line_integrals, dtype=np.float32)
+    mask = np.isfinite(b) if valid_mask is None else (np.broadcast_to(np.asarray(valid_mask, bool), b.shape)
+                                                      & np.isfinite(b))
+    b = np.where(mask, b, 0.0).astype(np.float32)
     row_sum = fp(np.ones(grid.shape_zyx, dtype=np.float32), grid, geom)
-    col_sum = bp(np.ones(b.shape, dtype=np.float32), geom, grid)
     eps = np.float32(1e-6)
-    R = np.where(row_sum > eps * row_sum.max(), 1.0 / np.maximum(row_sum, eps), 0.0).astype(np.float32)
+    R = np.where(mask & (row_sum > eps * row_sum.max()), 1.0 / np.maximum(row_sum, eps), 0.0).astype(np.float32)
+    col_sum = bp(mask.astype(np.float32), geom, grid)
     C = np.where(col_sum > eps * col_sum.max(), 1.0 / np.maximum(col_sum, eps), 0.0).astype(np.float32)
     x = np.zeros(grid.shape_zyx, dtype=np.float32) if x0 is None else np.array(x0, dtype=np.float32)
     for it in range(n_iter):
-        res = b - fp(x, grid, geom)
+        res = (b - fp(x, grid, geom)) * mask
         x += np.float32(relaxation) * C * bp(res * R, geom, grid)
         if nonneg:
             np.maximum(x, 0.0, out=x)
