@@ -641,7 +641,7 @@ scan (it doubled the error), so they are available, not listed here."""
 
 def focus_conjugate_modes(line_integrals, nominal: ConeGeometry, params: np.ndarray, grid: VolumeGrid, mask, *,
                           modes: dict | None = None, step_px: float = 0.5, sweeps: int = 3,
-                          focus_slices: int = 64, inner_fraction: float = 0.7,
+                          focus_slices: int = 64, inner_fraction: float = 1.0,
                           fdk_kwargs=None) -> tuple[np.ndarray, dict]:
     """Set the geometry modes the consistency metric cannot see by image sharpness.
 
@@ -721,7 +721,8 @@ def focus_conjugate_modes(line_integrals, nominal: ConeGeometry, params: np.ndar
     return params, {"modes": fitted, "entropy_before": e0, "entropy_after": e_cur}
 
 
-def reconstruct_for_estimation(line_integrals, geom, grid, mask, sirt_iterations: int, fdk_kwargs=None):
+def reconstruct_for_estimation(line_integrals, geom, grid, mask, sirt_iterations: int, fdk_kwargs=None,
+                               fdk_shape_yx=None):
     """The volume the views are registered against: FDK, then ``sirt_iterations`` of masked SIRT.
 
     FDK of a truncated scan does not reproject to its own data (the extrapolated rows leave
@@ -731,12 +732,20 @@ def reconstruct_for_estimation(line_integrals, geom, grid, mask, sirt_iterations
     against a true-geometry volume became 8x more accurate. Where the object reaches far
     beyond the grid, SIRT piles the missing mass into the border voxels instead; the SIRT
     volume is kept only where it reprojects closer (masked NCC) to the data than the FDK.
-    Returns the volume and the FDK's NCC: a measure of how consistent the geometry is that
+    ``fdk_shape_yx`` keeps the FDK to that central part of the grid (zero around it): outside
+    the field of view FDK has incomplete data and only SIRT may fill the padding
+    (:func:`estimation_grid`). Returns the volume and the FDK's NCC: a measure of how consistent the geometry is that
     SIRT cannot inflate by fitting an underdetermined (few-view) problem.
     """
     from .reconstruction import fdk, sirt
 
     vol = fdk(line_integrals, geom, grid, valid_mask=mask, **(fdk_kwargs or {}))
+    if fdk_shape_yx is not None:
+        _, ny, nx = grid.shape_zyx
+        y0, x0 = (ny - fdk_shape_yx[0]) // 2, (nx - fdk_shape_yx[1]) // 2
+        inner = np.zeros_like(vol)
+        inner[:, y0:y0 + fdk_shape_yx[0], x0:x0 + fdk_shape_yx[1]] = vol[:, y0:y0 + fdk_shape_yx[0], x0:x0 + fdk_shape_yx[1]]
+        vol = inner
     corr_fdk = projection_consistency(vol, grid, geom, line_integrals, mask)[1]
     if sirt_iterations > 0:
         refined = sirt(line_integrals, geom, grid, sirt_iterations, x0=vol, valid_mask=mask)
@@ -781,7 +790,7 @@ def hold_magnification(nominal: ConeGeometry, params: np.ndarray, points_mm, tol
 def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGrid, *,
               method: str = "ncc-lle-exact", n_iter: int = 2, valid_mask=None, coarse_binning: int = 2,
               configs: tuple | None = None, gauge_points_mm=None, sirt_iterations: int = 15,
-              padding: float = 1.0, undo_inconsistent: bool = False,
+              padding: float = 1.25, undo_inconsistent: bool = False,
               focus_modes: dict | None = None, fdk_kwargs: dict | None = None, progress=None, on_iteration=None) -> CalibrationResult:
     """Alternate reconstruction and per-view LLE geometry estimation (design.md §2).
 
@@ -835,15 +844,18 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
     # entering each iteration, for undo_inconsistent
     check_li, check_nom, check_grid, check_mask = ((li_c, nom_c, grid_c, mask_c) if coarse_binning > 1
                                                    else (li, nominal, grid_e, mask))
+    inner_fine = grid.shape_zyx[1:]
+    inner_check = grid.binned(coarse_binning).shape_zyx[1:] if coarse_binning > 1 else inner_fine
     vol_c, corr_prev = reconstruct_for_estimation(check_li, check_nom, check_grid, check_mask, sirt_iterations,
-                                                  fdk_kwargs)
+                                                  fdk_kwargs, inner_check)
     for it in range(n_iter):
         t0 = time.perf_counter()
         start = params.copy()
         if coarse_binning > 1:
             params, _ = estimate(li_c, nom_c, params, vol_c, grid_c, narrowed(coarse_cfg, it), mask_c)
             say(f"iteration {it + 1}/{n_iter}: coarse estimate done ({time.perf_counter() - t0:.1f} s)")
-        vol, _ = reconstruct_for_estimation(li, nominal.perturbed(params), grid_e, mask, sirt_iterations, fdk_kwargs)
+        vol, _ = reconstruct_for_estimation(li, nominal.perturbed(params), grid_e, mask, sirt_iterations, fdk_kwargs,
+                                            inner_fine)
         params, _ = estimate(li, nominal, params, vol, grid_e, narrowed(fine_cfg, it), mask)
         params = remove_gauge(nominal.perturbed(params), nominal, points).params_relative_to(nominal)
         params = hold_magnification(nominal, params, points)
@@ -853,7 +865,7 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
             say(f"iteration {it + 1}/{n_iter}: sharpness focus of {len(focus['modes'])} conjugate modes, entropy "
                 f"{focus['entropy_before']:.6f} -> {focus['entropy_after']:.6f}")
         vol_c, corr_now = reconstruct_for_estimation(check_li, check_nom.perturbed(params), check_grid, check_mask,
-                                                     sirt_iterations, fdk_kwargs)
+                                                     sirt_iterations, fdk_kwargs, inner_check)
         rmse, corr = projection_consistency(vol, grid_e, nominal.perturbed(params), li, mask)
         step = params - start
         rec = IterationRecord(it + 1, rmse, corr, float(np.sqrt((step[:, :6] ** 2).mean())),
