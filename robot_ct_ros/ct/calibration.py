@@ -587,9 +587,13 @@ def projection_consistency(volume, grid, geom, measured, mask) -> tuple[float, f
                            mk.reshape(len(pred), -1)).mean())
 
 
-DEFAULT_BACKGROUND = (2, 2)
-"""Smooth background ignored by the NCC weightings by default: quadratic along columns and rows
-(the truncation bowl of interior scans). (0, 0) is the metric as published."""
+DEFAULT_BACKGROUND = (0, 0)
+"""Smooth background ignored by the NCC weightings by default: (0, 0) = offset and gain only,
+the metric as published. Against FDK volumes a quadratic one, (2, 2), halved the estimator's
+error on truncated scans (it absorbs the bowl the truncated object adds); against the
+SIRT-consistent volumes of :func:`reconstruct_for_estimation` the published metric is the more
+accurate on the mouse scan (0.14 px against 0.37 px after 3 iterations), the quadratic one on
+the battery scan (1.08 px against 1.40 px)."""
 
 
 def default_lle_configs(weighting: str, seed: int = 0, background=DEFAULT_BACKGROUND) -> tuple[LLEConfig, LLEConfig]:
