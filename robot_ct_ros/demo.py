@@ -24,6 +24,7 @@ from pathlib import Path
 
 DEFAULTS = {"views": 120, "rows": 64, "cols": 128, "phantom": "mouse", "method": "ncc-lle-exact", "iterations": 2,
             "exposure_s": 0.1, "sigma_mm": 0.1, "sigma_deg": 0.05}
+MOUSE_SPINE_Y_M = 0.0066  # the vertebral bodies lie 6.6 mm dorsal (-y) of the mouse phantom's centre
 QUICK = {"views": 12, "rows": 32, "cols": 64, "iterations": 1, "exposure_s": 0.02}
 
 
@@ -66,7 +67,11 @@ def demo_setup(s: dict) -> tuple[dict, dict]:
                 "exposure_s": s["exposure_s"], "settle_s": 0.05 if not s.get("quick") else 0.01,
                 "move_timeout_s": 30.0, "exposure_timeout_s": 5.0}
     box = 0.6 * fov_m  # an object inside the field of view (its diagonal < the FOV diameter)
-    grabber = {"sim_phantom": s["phantom"], "sim_voxel_size_m": 0.0005,
+    roi_m = protocol["roi_center_m"]
+    # the mouse's lumbar spine in the ROI: vertebrae and discs give every view axial structure
+    # (a column through the heart and lungs has too little of it to fix the views along v)
+    phantom_m = [roi_m[0], roi_m[1] + (MOUSE_SPINE_Y_M if s["phantom"] == "mouse" else 0.0), roi_m[2]]
+    grabber = {"sim_phantom": s["phantom"], "sim_voxel_size_m": 0.0005, "sim_phantom_center_m": phantom_m,
                "sim_roi_size_m": [fov_m * 0.8] * 2 + [s["rows"] * pitch_m / magnification * 1.2],
                "sim_roi_voxel_size_m": 2.5e-5}
     if not s["truncated"]:

@@ -117,7 +117,8 @@ def run_scan_graph(out_dir, protocol="quick", *, grabber: dict | None = None, ar
     grabber_params = {"n_rows": geom.n_rows, "n_cols": geom.n_cols, "binning": proto.binning,
                       "raw_pixel_m": proto.raw_pixel_m, "exposure_s": proto.exposure_s,
                       "exposure_timeout_s": proto.exposure_timeout_s,
-                      "sim_phantom_center_m": [float(x) for x in proto.roi_center_m]}
+                      "sim_phantom_center_m": [float(x) for x in proto.roi_center_m],
+                      "sim_region_center_m": [float(x) for x in proto.roi_center_m]}
     grabber_params.update(grabber or {})
     errors = {"sim_sigma_mm": 0.1, "sim_sigma_deg": 0.05}
     errors.update(arm_errors or {})

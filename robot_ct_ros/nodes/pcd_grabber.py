@@ -52,6 +52,7 @@ import time
 
 import numpy as np
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
+from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseArray, PoseStamped
@@ -100,6 +101,8 @@ class PcdGrabberNode(LifecycleNode):
         self._sim = {
             "phantom": p("sim_phantom", "carotid").value,
             "phantom_center_m": list(p("sim_phantom_center_m", [0.4, 0.0, 0.3]).value),
+            # where the simulated region and fine ROI are centred; [] = the phantom centre
+            "region_center_m": list(p("sim_region_center_m", Parameter.Type.DOUBLE_ARRAY).value or []),
             "phantom_seed": p("sim_phantom_seed", 0).value,
             "voxel_size_m": p("sim_voxel_size_m", 5e-4).value,
             "region_size_m": list(p("sim_region_size_m", [0.0, 0.0, 0.0]).value),
@@ -230,9 +233,12 @@ class PcdGrabberNode(LifecycleNode):
             raise ValueError(f"detector driver {self.driver!r} is not available (only 'simulated')")
         s = self._sim
         center_mm = np.asarray(s["phantom_center_m"], float) * 1e3
+        region_mm = np.asarray(s["region_center_m"], float) * 1e3 if len(s["region_center_m"]) else center_mm
+        if region_mm.shape != (3,):
+            raise ValueError(f"sim_region_center_m needs 3 values (m), got {s['region_center_m']}")
         phantom = make_phantom(s["phantom"], center_mm, seed=s["phantom_seed"])
-        scene = build_scene(phantom, s["voxel_size_m"] * 1e3, region_center_mm=center_mm,
-                            region_size_mm=np.asarray(s["region_size_m"], float) * 1e3, roi_center_mm=center_mm,
+        scene = build_scene(phantom, s["voxel_size_m"] * 1e3, region_center_mm=region_mm,
+                            region_size_mm=np.asarray(s["region_size_m"], float) * 1e3, roi_center_mm=region_mm,
                             roi_size_mm=np.asarray(s["roi_size_m"], float) * 1e3,
                             roi_voxel_size_mm=s["roi_voxel_size_m"] * 1e3, supersample=s["supersample"])
         model = DetectorModel(photons_per_pixel=s["photons_per_pixel"], binning=self.config.binning,
