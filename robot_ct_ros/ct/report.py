@@ -65,12 +65,15 @@ def _finite_or_none(x):
     return x if math.isfinite(x) else None
 
 
-def summarize(results: dict, grid: VolumeGrid, truth=None, points_mm=None) -> list[dict]:
+def summarize(results: dict, grid: VolumeGrid, truth=None, points_mm=None, reconstruct=None) -> list[dict]:
     """One row per method: the metrics of the table (None where a metric does not apply).
 
     ``truth`` = (true geometry, volume reconstructed with it, phantom or None); without it only
     sharpness, iterations and wall time are filled. ``points_mm`` for the reprojection error
-    default to :func:`metrics.roi_points` of ``grid``.
+    default to :func:`metrics.roi_points` of ``grid``. With ``reconstruct(geom) -> volume``
+    the SSIM compares the reconstruction with each estimate moved into the true gauge
+    (:func:`metrics.remove_gauge`): calibration cannot know where the object is, only its
+    shape, and a voxel of global offset would otherwise dominate the SSIM.
     """
     true_geom, true_vol, phantom = (tuple(truth) + (None,) * 3)[:3] if truth is not None else (None, None, None)
     pts = roi_points(grid) if points_mm is None else np.asarray(points_mm, float)
@@ -86,7 +89,10 @@ def summarize(results: dict, grid: VolumeGrid, truth=None, points_mm=None) -> li
             err = reprojection_error(geom, true_geom, pts)
             row["reproj_mean_px"], row["reproj_p95_px"] = err["mean_px"], err["p95_px"]
         if true_vol is not None:
-            row["ssim"] = _finite_or_none(ssim(volume, true_vol))
+            aligned = volume
+            if reconstruct is not None and true_geom is not None:
+                aligned = reconstruct(remove_gauge(geom, true_geom, pts))
+            row["ssim"] = _finite_or_none(ssim(aligned, true_vol))
         if cap is not None:
             row["cap_um"] = _finite_or_none(1000.0 * cap_thickness_mm(volume, grid, cap))
         rows.append(row)
@@ -246,7 +252,7 @@ def _clean(obj):
 
 def write_report(out_dir, results: dict, grid: VolumeGrid, truth=None, nominal: ConeGeometry | None = None, *,
                  name: str = "report", title: str = "", points_mm=None, slice_center_mm=None, zoom: float = 0.6,
-                 initial_rmse: float | None = None, notes: dict | None = None) -> dict:
+                 initial_rmse: float | None = None, notes: dict | None = None, reconstruct=None) -> dict:
     """Write the figures and the table of one scan's calibration results; returns their paths.
 
     ``results`` maps method name to a :class:`~robot_ct_ros.ct.calibration.CalibrationResult`
@@ -254,13 +260,14 @@ def write_report(out_dir, results: dict, grid: VolumeGrid, truth=None, nominal: 
     ``truth`` = (true geometry, reconstruction with it, phantom or None). ``nominal``: if
     given and no "none" entry exists, the nominal geometry is added to the parameter-error
     plot as "none". ``initial_rmse`` is plotted at iteration 0. ``notes`` go into the JSON.
+    ``reconstruct``: see :func:`summarize`.
     Returned dict: paths under keys "slices", "rmse", "param_error" (truth known),
     "markdown", "json", and the table "rows".
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     pts = roi_points(grid) if points_mm is None else np.asarray(points_mm, float)
-    rows = summarize(results, grid, truth, pts)
+    rows = summarize(results, grid, truth, pts, reconstruct=reconstruct)
     true_geom, true_vol = (truth[0], truth[1]) if truth is not None else (None, None)
     paths = {"rows": rows}
     paths["slices"] = plot_slices(out / f"{name}_slices.png", results, grid, center_mm=slice_center_mm, zoom=zoom,

@@ -265,7 +265,7 @@ def test_estimation_volume_is_consistent_with_truncated_data():
     bad = measured.copy()
     bad[:, :, 7] = 1e3
     from robot_ct_ros.ct.calibration import projection_consistency
-    vol_fdk, ncc_fdk = reconstruct_for_estimation(bad, true, grid, mask, 0)
+    _, ncc_fdk = reconstruct_for_estimation(bad, true, grid, mask, 0)
     vol, ncc_fdk_again = reconstruct_for_estimation(bad, true, grid, mask, 10)
     assert ncc_fdk_again == ncc_fdk
     assert projection_consistency(vol, grid, true, measured, mask)[1] > ncc_fdk + 0.01

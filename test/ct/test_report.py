@@ -79,3 +79,25 @@ def test_report_without_truth(tmp_path, inputs):
     assert all(r["reproj_mean_px"] is None and r["ssim"] is None and r["cap_um"] is None for r in rows)
     md = markdown_table(rows)
     assert "SSIM" not in md and "edge sharpness" in md
+
+
+def test_ssim_is_taken_in_the_true_gauge_when_a_reconstruction_is_given(inputs):
+    """An estimate that differs from the truth by the gauge alone (a rigid motion) reconstructs
+    the true image once moved back: SSIM 1 with ``reconstruct``, not without."""
+    from robot_ct_ros.ct.metrics import rigidly_moved
+    from robot_ct_ros.ct.report import summarize
+
+    phantom, grid, truth_vol, nominal, true, _ = inputs
+    pts = roi_points(grid)
+    moved = rigidly_moved(true, [0.0, 0.0, 0.02], [0.05, -0.03, 0.0], pts.mean(axis=0))
+    shifted = np.roll(truth_vol, 2, axis=1)  # what the moved geometry reconstructs: the object elsewhere
+    calls = []
+
+    def reconstruct(geom):
+        calls.append(geom)
+        return truth_vol if np.allclose(geom.source_mm, true.source_mm, atol=1e-5) else shifted
+
+    results = {"gauge only": (moved, shifted, (), 1.0)}
+    plain = summarize(results, grid, (true, truth_vol, None), pts)[0]["ssim"]
+    aligned = summarize(results, grid, (true, truth_vol, None), pts, reconstruct=reconstruct)[0]["ssim"]
+    assert len(calls) == 1 and aligned == pytest.approx(1.0) and plain < 0.9, (plain, aligned)
