@@ -59,8 +59,12 @@ def _det(text: str) -> tuple[int, int]:
     return parts[0], parts[1]
 
 
-def make_scenario(key: str, views: int, det: tuple[int, int], vol: int, binning: int, seed: int, say):
-    """Nominal and true geometry, simulated scan, ROI grid, phantom and truth reconstruction."""
+def make_scenario(key: str, views: int, det: tuple[int, int], vol: int, binning: int, seed: int, say,
+                  sim_oversample: int = 2):
+    """Nominal and true geometry, simulated scan, ROI grid, phantom and truth reconstruction.
+
+    The field of view is simulated on a grid ``sim_oversample`` times finer than the
+    reconstruction's."""
     system = SeedSystem()
     rows, cols = det
     pitch = system.raw_pixel_mm * binning
@@ -89,12 +93,12 @@ def make_scenario(key: str, views: int, det: tuple[int, int], vol: int, binning:
     nz = max(8, min(vol, int(0.9 * axial / voxel)))
     vs = 0.95 * fov / nxy  # the grid covers the field of view
     grid = VolumeGrid.centered((nz, nxy, nxy), vs, center)
-    # simulation: a fine grid over the field of view (half the reconstruction voxel), coarse elsewhere
+    # simulation: a fine grid over the field of view (1/sim_oversample of the reconstruction voxel), coarse elsewhere
     sim_roi = VolumeGrid.centered((max(1, round(axial * 1.2 / vs)), round(fov * 1.1 / vs), round(fov * 1.1 / vs)),
                                   vs, center)
     detector = sim.DetectorModel.from_transmitted(4000.0, 130.0, binning=2, seed=seed)
     t0 = time.perf_counter()
-    scan = sim.simulate_scan(phantom, true, detector, voxel_size_mm=0.5 * vs, roi_grid=sim_roi,
+    scan = sim.simulate_scan(phantom, true, detector, voxel_size_mm=vs / sim_oversample, roi_grid=sim_roi,
                              outer_voxel_size_mm=0.4, rng=seed, chunk_views=8)
     say(f"  simulated {views} views {rows}x{cols} at {pitch * 1000:.0f} um, grid {grid.shape_zyx[::-1]} of "
         f"{vs * 1000:.1f} um, FOV {fov:.2f} mm ({time.perf_counter() - t0:.1f} s)")

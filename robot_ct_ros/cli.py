@@ -109,11 +109,11 @@ def calibration_methods() -> tuple:
 
 
 def calibrate_bag(bag, out, *, method: str = "ncc-lle-exact", iterations: int = 2, voxel_mm=None, shape=None,
-                  say=_say) -> dict:
+                  schedule: str = "accurate", say=_say) -> dict:
     """Calibrate the per-view geometry of a scan bag offline and reconstruct it.
 
-    Runs :func:`robot_ct_ros.ct.calibration.calibrate` (method, iterations; ``"fdk"`` only
-    reconstructs with the nominal geometry). Writes into ``out``: the
+    Runs :func:`robot_ct_ros.ct.calibration.calibrate` (method, iterations, schedule; ``"fdk"``
+    only reconstructs with the nominal geometry). Writes into ``out``: the
     corrected bag (``<bag name>_corrected``: every message of the input plus
     /ct/geometry_corrected), ``volume.npy``/``.tif``/``_grid.json`` and ``report.json``.
     """
@@ -129,14 +129,15 @@ def calibrate_bag(bag, out, *, method: str = "ncc-lle-exact", iterations: int = 
     li, mask = scan.to_line_integrals()
     grid = _grid_for(scan, voxel_mm, shape)
     say(f"{scan.n_views} views, detector {scan.geom.n_rows}x{scan.geom.n_cols}, grid {grid.shape_zyx[::-1]} of "
-        f"{grid.voxel_size_mm[0] * 1000:.1f} um; method {method}, {iterations} iteration(s)")
+        f"{grid.voxel_size_mm[0] * 1000:.1f} um; method {method}, {iterations} iteration(s), schedule {schedule}")
     report = _base_report(scan, grid)
-    report.update({"job": "calibrate", "method": method, "iterations": iterations})
+    report.update({"job": "calibrate", "method": method, "iterations": iterations, "schedule": schedule})
     geom, volume, history, notes = scan.geom, None, [], []
     if method != "fdk":
         from robot_ct_ros.ct.calibration import calibrate
 
-        result = calibrate(li, scan.geom, grid, method=method, n_iter=iterations, valid_mask=mask, progress=say)
+        result = calibrate(li, scan.geom, grid, method=method, n_iter=iterations, valid_mask=mask, schedule=schedule,
+                           progress=say)
         geom, volume = result.geom, result.volume
         history = [h.__dict__ for h in result.history]
     if volume is None:
@@ -288,7 +289,7 @@ def _cmd_reconstruct(args) -> int:
 
 def _cmd_calibrate(args) -> int:
     calibrate_bag(args.bag, args.out, method=args.method, iterations=args.iterations, voxel_mm=args.voxel_mm,
-                  shape=args.shape)
+                  shape=args.shape, schedule=args.schedule)
     return 0
 
 
@@ -336,6 +337,9 @@ def main(argv: list[str] | None = None) -> int:
             p.add_argument("--method", default="ncc-lle-exact",
                            help=f"one of {', '.join(calibration_methods())} (fdk: no correction)")
             p.add_argument("--iterations", type=int, default=2, help="outer iterations (default 2)")
+            p.add_argument("--schedule", choices=("accurate", "fast"), default="accurate",
+                           help="accurate: 2x binned then full size with SIRT; fast (large scans): 4x then 2x "
+                                "binned, SIRT on the coarse level only (default accurate)")
 
     args = parser.parse_args(argv)
     if args.command == "demo":

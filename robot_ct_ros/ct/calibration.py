@@ -18,7 +18,8 @@ the reconstructed ROI); all arrays are flattened per view: measured (n, P), neig
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit, prange
@@ -276,7 +277,8 @@ class LLEConfig:
     values: mm x6, rad x3, geometry.py parameter order) around the current estimate; the
     box shrinks by ``shrink`` per level. Source shifts are drawn from a small set of
     positions (``source_positions``: ``"star"`` = centre and ±half width along each axis,
-    7 ray-casts per view; ``"grid"`` = 3 x 3 x 3); detector shifts and rotations are drawn
+    7 ray-casts per view; ``"grid"`` = 3 x 3 x 3; ``"fixed"`` = the current source only, one
+    ray-cast per view: a detector-only refinement); detector shifts and rotations are drawn
     uniformly and rendered by homography from the ray-cast of their source position.
     ``safeguard`` keeps the best sample when the embedding scores worse than it.
     ``background`` = (order along columns, order along rows) of the smooth per-view
@@ -313,6 +315,8 @@ class LLEConfig:
 
 
 def _source_offsets(kind: str, h: np.ndarray) -> np.ndarray:
+    if kind == "fixed":
+        return np.zeros((1, 3))
     if kind == "star":
         offs = np.zeros((7, 3))
         for k in range(3):
@@ -607,8 +611,6 @@ def default_lle_configs(weighting: str, seed: int = 0, background=DEFAULT_BACKGR
 def _narrowed(config: LLEConfig, iteration: int) -> LLEConfig:
     """The search box of outer iteration ``iteration`` (0-based): halved each time, so later
     iterations refine around the estimate instead of re-exploring the whole range."""
-    from dataclasses import replace
-
     return replace(config, half_width=tuple(np.asarray(config.half_width) * 0.5 ** iteration),
                    seed=config.seed + 7919 * iteration)
 
@@ -725,8 +727,14 @@ def focus_conjugate_modes(line_integrals, nominal: ConeGeometry, params: np.ndar
     return params, {"modes": fitted, "entropy_before": e0, "entropy_after": e_cur}
 
 
+class EstimationVolume(NamedTuple):
+    volume: np.ndarray    # the volume to register the views against
+    fdk_ncc: float        # masked NCC of the FDK's reprojection to the data
+    fdk: np.ndarray       # the FDK it started from (zero outside ``fdk_shape_yx``)
+
+
 def reconstruct_for_estimation(line_integrals, geom, grid, mask, sirt_iterations: int, fdk_kwargs=None,
-                               fdk_shape_yx=None):
+                               fdk_shape_yx=None, correction=None) -> EstimationVolume:
     """The volume the views are registered against: FDK, then ``sirt_iterations`` of masked SIRT.
 
     FDK of a truncated scan does not reproject to its own data (the extrapolated rows leave
@@ -738,9 +746,15 @@ def reconstruct_for_estimation(line_integrals, geom, grid, mask, sirt_iterations
     volume is kept only where it reprojects closer (masked NCC) to the data than the FDK.
     ``fdk_shape_yx`` keeps the FDK to that central part of the grid (zero around it): outside
     the field of view FDK has incomplete data and only SIRT may fill the padding
-    (:func:`estimation_grid`). Returns the volume and the FDK's NCC: a measure of how consistent the geometry is that
-    SIRT cannot inflate by fitting an underdetermined (few-view) problem.
+    (:func:`estimation_grid`). ``correction`` = (volume - fdk of a coarser reconstruction,
+    its grid) replaces the SIRT iterations: the difference, resampled onto ``grid``, is added
+    to this FDK (the coarse level's SIRT fixes the low frequencies and the rim at a fraction of
+    the cost of fine SIRT). Returns an :class:`EstimationVolume`; its ``fdk_ncc`` measures how
+    consistent the geometry is, which SIRT cannot inflate by fitting an underdetermined
+    (few-view) problem.
     """
+    from .reconstruction import resample
+
     from .reconstruction import fdk, sirt
 
     vol = fdk(line_integrals, geom, grid, valid_mask=mask, **(fdk_kwargs or {}))
@@ -750,12 +764,16 @@ def reconstruct_for_estimation(line_integrals, geom, grid, mask, sirt_iterations
         inner = np.zeros_like(vol)
         inner[:, y0:y0 + fdk_shape_yx[0], x0:x0 + fdk_shape_yx[1]] = vol[:, y0:y0 + fdk_shape_yx[0], x0:x0 + fdk_shape_yx[1]]
         vol = inner
+    if correction is not None:
+        delta, delta_grid = correction
+        return EstimationVolume(vol + resample(delta, delta_grid, grid), float("nan"), vol)
     corr_fdk = projection_consistency(vol, grid, geom, line_integrals, mask)[1]
+    out = vol
     if sirt_iterations > 0:
         refined = sirt(line_integrals, geom, grid, sirt_iterations, x0=vol, valid_mask=mask)
         if projection_consistency(refined, grid, geom, line_integrals, mask)[1] > corr_fdk:
-            vol = refined
-    return vol, corr_fdk
+            out = refined
+    return EstimationVolume(out, corr_fdk, vol)
 
 
 def estimation_grid(grid: VolumeGrid, padding: float) -> VolumeGrid:
@@ -791,8 +809,28 @@ def hold_magnification(nominal: ConeGeometry, params: np.ndarray, points_mm, tol
     return params
 
 
+SCHEDULES = {
+    "accurate": {"coarse_binning": 2, "fine_binning": 1, "fine_sirt": True, "fine_source": "star"},
+    "fast": {"coarse_binning": 4, "fine_binning": 2, "fine_sirt": False, "fine_source": "fixed"},
+}
+"""Resolution schedules of :func:`calibrate`. ``accurate``: estimate on 2x2 binned data, then
+at full size against a full-size SIRT volume. ``fast`` (large scans): 4x4 binned, then 2x2
+binned against FDK plus the coarse level's SIRT correction (:func:`reconstruct_for_estimation`),
+the source held at the coarse estimate on the finer level (one ray-cast per view and level);
+the final volume is still the full-size FDK."""
+
+
+def _level(li, mask, nominal, grid, factor):
+    """Data, mask, nominal geometry and grid binned ``factor`` times (the inputs themselves at 1)."""
+    if factor <= 1:
+        return li, mask, nominal, grid
+    li_b, mask_b = bin_masked(li, mask, factor)
+    return li_b, mask_b, nominal.binned(factor), grid.binned(factor)
+
+
 def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGrid, *,
-              method: str = "ncc-lle-exact", n_iter: int = 2, valid_mask=None, coarse_binning: int = 2,
+              method: str = "ncc-lle-exact", n_iter: int = 2, valid_mask=None, schedule: str = "accurate",
+              coarse_binning: int | None = None, fine_binning: int | None = None, fine_sirt: bool | None = None,
               configs: tuple | None = None, gauge_points_mm=None, sirt_iterations: int = 15,
               padding: float = 1.25, undo_inconsistent: bool = False,
               focus_modes: dict | None = None, fdk_kwargs: dict | None = None, progress=None, on_iteration=None) -> CalibrationResult:
@@ -802,7 +840,9 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
     (:func:`reconstruct_for_estimation`: FDK then ``sirt_iterations`` of SIRT, on ``grid``
     widened ``padding`` times across, :func:`estimation_grid`) and
     re-estimates every view, first on ``coarse_binning``-binned projections and a coarser
-    volume, then at full size; the unobservable gauge (a global rigid motion of all views,
+    volume, then on ``fine_binning``-binned ones (``schedule``, :data:`SCHEDULES`, gives the
+    defaults of these two and of ``fine_sirt``: whether the finer level runs its own SIRT or
+    adds the coarse level's correction to its FDK); the unobservable gauge (a global rigid motion of all views,
     i.e. of the object) is then removed by aligning the estimate to the nominal geometry on
     ``gauge_points_mm`` (default: points filling ``grid``), so the correction does not wander
     between iterations, and the common magnification is held at the nominal one
@@ -813,14 +853,22 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
     that lowers the data consistency (masked NCC of the FDK, coarse level) is undone and ends
     the loop: that kept the strongly truncated carotid scan at its nominal geometry instead of
     diverging, but also stopped a 24-view scan whose error the iteration had cut from 2.8 to
-    1.7 px, so it is off by default. The returned volume is the FDK with the final geometry.
-    ``progress(message)`` receives one line per step, ``on_iteration(record, params)`` the
+    1.7 px, so it is off by default. The returned volume is the full-size FDK with the final
+    geometry. ``progress(message)`` receives one line per step, ``on_iteration(record, params)`` the
     :class:`IterationRecord` and the (n, 9) parameters after each outer iteration.
     """
     from .reconstruction import fdk
 
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}")
+    if schedule not in SCHEDULES:
+        raise ValueError(f"schedule must be one of {tuple(SCHEDULES)}")
+    plan = SCHEDULES[schedule]
+    coarse_binning = plan["coarse_binning"] if coarse_binning is None else int(coarse_binning)
+    fine_binning = plan["fine_binning"] if fine_binning is None else int(fine_binning)
+    fine_sirt = plan["fine_sirt"] if fine_sirt is None else bool(fine_sirt)
+    if fine_binning < 1 or coarse_binning < 1:
+        raise ValueError("binning factors must be >= 1")
     t_start = time.perf_counter()
     li = np.ascontiguousarray(line_integrals, dtype=np.float32)
     if li.shape != (nominal.n_views,) + nominal.det_shape:
@@ -829,7 +877,11 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
     li = np.where(mask, li, 0.0).astype(np.float32)
     if method in LLE_METHODS:
         estimate, narrowed = estimate_views, _narrowed
-        coarse_cfg, fine_cfg = configs or default_lle_configs(LLE_METHODS[method])
+        if configs is None:
+            coarse_cfg, fine_cfg = default_lle_configs(LLE_METHODS[method])
+            fine_cfg = replace(fine_cfg, source_positions=plan["fine_source"])
+        else:
+            coarse_cfg, fine_cfg = configs
     else:  # the baselines run on the same loop, their own search keeps its range
         from .baselines import default_gdc_configs, estimate_views_gdc
 
@@ -839,28 +891,30 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
     say = progress or (lambda message: None)
     points = roi_points(grid) if gauge_points_mm is None else np.asarray(gauge_points_mm, float)
     grid_e = estimation_grid(grid, padding)
-    if coarse_binning > 1:
-        li_c, mask_c = bin_masked(li, mask, coarse_binning)
-        nom_c, grid_c = nominal.binned(coarse_binning), grid_e.binned(coarse_binning)
+    has_coarse = coarse_binning > fine_binning
+    li_f, mask_f, nom_f, grid_f = _level(li, mask, nominal, grid_e, fine_binning)
+    inner_f = grid.binned(fine_binning).shape_zyx[1:]
+    if has_coarse:
+        li_c, mask_c, nom_c, grid_c = _level(li, mask, nominal, grid_e, coarse_binning)
+        inner_c = grid.binned(coarse_binning).shape_zyx[1:]
+    else:  # the data consistency check (undo_inconsistent) runs on the only level
+        li_c, mask_c, nom_c, grid_c, inner_c, fine_sirt = li_f, mask_f, nom_f, grid_f, inner_f, True
     params = np.zeros((nominal.n_views, 9))
     history = []
-    # data consistency (masked NCC of the FDK's reprojection, coarse level) of the geometry
-    # entering each iteration, for undo_inconsistent
-    check_li, check_nom, check_grid, check_mask = ((li_c, nom_c, grid_c, mask_c) if coarse_binning > 1
-                                                   else (li, nominal, grid_e, mask))
-    inner_fine = grid.shape_zyx[1:]
-    inner_check = grid.binned(coarse_binning).shape_zyx[1:] if coarse_binning > 1 else inner_fine
-    vol_c, corr_prev = reconstruct_for_estimation(check_li, check_nom, check_grid, check_mask, sirt_iterations,
-                                                  fdk_kwargs, inner_check)
+    # the coarse level's reconstruction with the geometry entering each iteration: its volume
+    # for the coarse estimate, its FDK's NCC for undo_inconsistent, its SIRT correction for a
+    # fine level without SIRT
+    rec_c = reconstruct_for_estimation(li_c, nom_c, grid_c, mask_c, sirt_iterations, fdk_kwargs, inner_c)
     for it in range(n_iter):
         t0 = time.perf_counter()
         start = params.copy()
-        if coarse_binning > 1:
-            params, _ = estimate(li_c, nom_c, params, vol_c, grid_c, narrowed(coarse_cfg, it), mask_c)
+        if has_coarse:
+            params, _ = estimate(li_c, nom_c, params, rec_c.volume, grid_c, narrowed(coarse_cfg, it), mask_c)
             say(f"iteration {it + 1}/{n_iter}: coarse estimate done ({time.perf_counter() - t0:.1f} s)")
-        vol, _ = reconstruct_for_estimation(li, nominal.perturbed(params), grid_e, mask, sirt_iterations, fdk_kwargs,
-                                            inner_fine)
-        params, _ = estimate(li, nominal, params, vol, grid_e, narrowed(fine_cfg, it), mask)
+        correction = None if fine_sirt else (rec_c.volume - rec_c.fdk, grid_c)
+        vol = reconstruct_for_estimation(li_f, nom_f.perturbed(params), grid_f, mask_f, sirt_iterations, fdk_kwargs,
+                                         inner_f, correction=correction).volume
+        params, _ = estimate(li_f, nom_f, params, vol, grid_f, narrowed(fine_cfg, it), mask_f)
         params = remove_gauge(nominal.perturbed(params), nominal, points).params_relative_to(nominal)
         params = hold_magnification(nominal, params, points)
         if focus_modes:
@@ -868,18 +922,18 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
                                                   fdk_kwargs=fdk_kwargs)
             say(f"iteration {it + 1}/{n_iter}: sharpness focus of {len(focus['modes'])} conjugate modes, entropy "
                 f"{focus['entropy_before']:.6f} -> {focus['entropy_after']:.6f}")
-        vol_c, corr_now = reconstruct_for_estimation(check_li, check_nom.perturbed(params), check_grid, check_mask,
-                                                     sirt_iterations, fdk_kwargs, inner_check)
-        rmse, corr = projection_consistency(vol, grid_e, nominal.perturbed(params), li, mask)
+        rec_next = reconstruct_for_estimation(li_c, nom_c.perturbed(params), grid_c, mask_c, sirt_iterations,
+                                              fdk_kwargs, inner_c)
+        rmse, corr = projection_consistency(vol, grid_f, nom_f.perturbed(params), li_f, mask_f)
         step = params - start
         rec = IterationRecord(it + 1, rmse, corr, float(np.sqrt((step[:, :6] ** 2).mean())),
                               float(np.rad2deg(np.sqrt((step[:, 6:] ** 2).mean()))), time.perf_counter() - t0)
-        if undo_inconsistent and not corr_now > corr_prev:
-            say(f"iteration {it + 1}/{n_iter}: data consistency fell ({corr_prev:.5f} -> {corr_now:.5f}); "
+        if undo_inconsistent and not rec_next.fdk_ncc > rec_c.fdk_ncc:
+            say(f"iteration {it + 1}/{n_iter}: data consistency fell ({rec_c.fdk_ncc:.5f} -> {rec_next.fdk_ncc:.5f}); "
                 f"undone, stopping")
             params = start
             break
-        corr_prev = corr_now
+        rec_c = rec_next
         history.append(rec)
         if on_iteration is not None:
             on_iteration(rec, params.copy())

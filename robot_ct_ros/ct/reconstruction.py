@@ -45,6 +45,7 @@ import warnings
 
 import numpy as np
 import scipy.fft
+from scipy import ndimage
 from numba import njit, prange
 
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
@@ -710,3 +711,17 @@ def cgls(line_integrals: np.ndarray, geom: ConeGeometry, grid: VolumeGrid, n_ite
         if callback is not None:
             callback(it, x, float(np.linalg.norm(r)))
     return x
+
+
+def resample(volume: np.ndarray, src: VolumeGrid, dst: VolumeGrid) -> np.ndarray:
+    """Trilinear resampling of ``volume`` (on ``src``) at the voxel centres of ``dst``.
+
+    Both grids are axis-aligned in the world frame; a ``dst`` voxel outside ``src`` takes the
+    nearest border value (a coarse grid covering the same box as a fine one has its outer
+    voxel centres half a coarse voxel inside the box).
+    """
+    scale = np.asarray(dst.voxel_size_mm) / np.asarray(src.voxel_size_mm)  # x, y, z
+    offset = (np.asarray(dst.origin_mm) - np.asarray(src.origin_mm)) / np.asarray(src.voxel_size_mm)
+    out = ndimage.affine_transform(np.asarray(volume, dtype=np.float32), scale[::-1], offset=offset[::-1],
+                                   output_shape=dst.shape_zyx, order=1, mode="nearest")
+    return out.astype(np.float32, copy=False)

@@ -9,7 +9,7 @@ Parameters
   bag_path (bag directory or .mcap, damaged bags are recovered), rate_hz (frames per second;
   <= 0: do not republish), wait_for_subscribers (start republishing once /ct/projection has this
   many subscribers), method ("" = no offline job; "fdk" = reconstruct only; else a calibration
-  method, e.g. ncc-lle-exact), iterations, output_dir (corrected bag, volume .npy/.tif and
+  method, e.g. ncc-lle-exact), iterations, schedule (accurate or fast), output_dir (corrected bag, volume .npy/.tif and
   report.json, as ``robot-ct calibrate``).
 """
 
@@ -58,6 +58,7 @@ class ReplayNode(Node):
         self.wait_for_subscribers = int(self.declare_parameter("wait_for_subscribers", 0).value)
         self.method = self.declare_parameter("method", "").value
         self.iterations = int(self.declare_parameter("iterations", 2).value)
+        self.schedule = self.declare_parameter("schedule", "accurate").value
         self.output_dir = Path(self.declare_parameter("output_dir", "replay_out").value)
         if not self.bag_path:
             raise ValueError("parameter bag_path is required")
@@ -125,7 +126,7 @@ class ReplayNode(Node):
         log = self.get_logger()
         try:
             report = calibrate_bag(self.bag_path, self.output_dir, method=self.method, iterations=self.iterations,
-                                   say=lambda s: log.info(s))
+                                   schedule=self.schedule, say=lambda s: log.info(s))
         except Exception as exc:  # noqa: BLE001 - reported, the node keeps running
             self.error = f"{type(exc).__name__}: {exc}"
             log.error(f"offline calibration failed: {self.error}")
