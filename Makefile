@@ -7,7 +7,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 export PYTHONPATH := $(CURDIR)$(if $(PYTHONPATH),:$(PYTHONPATH))
 
-.PHONY: venv demo test bench bench-calibration clean
+.PHONY: venv demo test bench bench-calibration bench-calibration-speed clean
 
 venv: $(STAMP)
 
@@ -29,6 +29,9 @@ bench: $(STAMP)
 
 bench-calibration: $(STAMP)
 	$(PY) bench/bench_calibration.py --out docs/results
+
+bench-calibration-speed: $(STAMP)
+	$(PY) bench/bench_calibration_speed.py --json docs/results/speed.json
 
 clean:
 	rm -rf out build install log .pytest_cache

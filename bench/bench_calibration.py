@@ -60,21 +60,22 @@ def _det(text: str) -> tuple[int, int]:
 
 
 def make_scenario(key: str, views: int, det: tuple[int, int], vol: int, binning: int, seed: int, say,
-                  sim_oversample: int = 2):
+                  sim_oversample: int = 2, phantom_scale: float = 1.0):
     """Nominal and true geometry, simulated scan, ROI grid, phantom and truth reconstruction.
 
     The field of view is simulated on a grid ``sim_oversample`` times finer than the
-    reconstruction's."""
+    reconstruction's. ``phantom_scale`` scales the mouse and the battery (a larger detector
+    at the same pixel size needs a larger object for the same truncation)."""
     system = SeedSystem()
     rows, cols = det
     pitch = system.raw_pixel_mm * binning
     fov = 0.98 * 2 * fov_radius_mm(0.5 * cols * pitch, system.sod_mm, system.sdd_mm)
     if key == "a":
-        phantom = sim.mouse_phantom(body_width_mm=9.0, length_mm=40.0, seed=seed)  # scaled with the detector
+        phantom = sim.mouse_phantom(body_width_mm=9.0 * phantom_scale, length_mm=40.0 * phantom_scale, seed=seed)  # scaled with the detector
         center = np.array([0.0, 0.0, 0.0])  # thorax
         errors = sim.robot_coordination(0.3, 0.3, seed=seed).sample(views)
     elif key == "b":
-        phantom = sim.battery_phantom(radius_mm=5.0, height_mm=12.0, seed=seed)  # scaled with the detector
+        phantom = sim.battery_phantom(radius_mm=5.0 * phantom_scale, height_mm=12.0 * phantom_scale, seed=seed)  # scaled with the detector
         center = np.array([1.0, 0.0, 0.0])  # in the jelly roll, off the mandrel
         errors = sim.detector_drift(0.6 / views, 0.15 / views, kind="linear", seed=seed).sample(views)
     elif key == "c":

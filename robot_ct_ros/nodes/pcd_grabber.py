@@ -33,7 +33,8 @@ the projector) and offers pcd/expose; activate publishes the flat field and dead
 serves exposures; deactivate stops exposing (an exposure in flight is answered with failure, its
 frame dropped) and refuses requests; cleanup/shutdown/error withdraw pcd/expose and disconnect the
 detector (which releases a hung acquisition). Unconfigured, pcd/expose does not exist, so the scan
-orchestrator's start check sees no detector. With autostart (default) the node configures and
+orchestrator's start check sees no detector; inactive, the orchestrator refuses to start from the
+lifecycle_state this node reports on /diagnostics. With autostart (default) the node configures and
 activates itself in its constructor, as the node did before it had a lifecycle.
 
 Threads: pcd/expose is served on its own executor thread (nodes/common.ServiceThread): its callback

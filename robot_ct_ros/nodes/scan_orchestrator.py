@@ -10,7 +10,8 @@ Topics and services (relative names follow the node namespace; /ct/* from robot_
               /diagnostics (1 Hz)
   subscribes  source_arm/in_position, detector_arm/in_position (std_msgs/Bool), source_arm/tool_pose,
               detector_arm/tool_pose (geometry_msgs/PoseStamped), source/beam_on (std_msgs/Bool), estop
-              (std_msgs/Bool), /diagnostics (arm driver ERROR aborts), /ct/projection (frame check),
+              (std_msgs/Bool), /diagnostics (arm driver ERROR aborts; a detector or x-ray source
+              lifecycle node reported not active refuses the start), /ct/projection (frame check),
               /ct/geometry (pairing count)
   clients     source/set_beam (std_srvs/SetBool), pcd/expose (std_srvs/Trigger)
   services    scan/start (std_srvs/Trigger): load the protocol, check the graph, start; answers at once
@@ -65,6 +66,10 @@ STREAM = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST, reliability=Reli
 ROLES = ("source", "detector")
 RUNNING = ("moving", "settling", "beam_on", "exposing", "beam_off", "waiting_frame", "finishing")
 IN_POSITION_REQUIRED = ("settling", "beam_on", "exposing", "beam_off")
+DEVICE_DIAGNOSTICS = ("detector", "x-ray source")
+"""/diagnostics status names (suffixes) of pcd_grabber and source_control, whose
+``lifecycle_state`` value must be "active" for a scan to start."""
+DEVICE_REPORT_MAX_AGE_S = 3.0  # they report at 1 Hz; an older report is not evidence either way
 
 
 # ------------------------------------------------------------------------------ protocol
@@ -203,6 +208,8 @@ class ScanOrchestratorNode(Node):
         self._in_pos_t: dict[str, float] = {r: -math.inf for r in ROLES}
         self._pose: dict[str, np.ndarray | None] = {r: None for r in ROLES}
         self._pose_t: dict[str, float] = {r: -math.inf for r in ROLES}
+        # latest /diagnostics lifecycle state of the detector and the source: (time, state)
+        self._device_state: dict[str, tuple[float, str]] = {}
         self._beam_on: bool | None = None
         # scan state
         self.state = "idle"
@@ -306,6 +313,11 @@ class ScanOrchestratorNode(Node):
             self.abort("e-stop")
 
     def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+        for s in msg.status:
+            device = next((d for d in DEVICE_DIAGNOSTICS if s.name.endswith(": " + d)), None)
+            state = next((kv.value for kv in s.values if kv.key == "lifecycle_state"), None)
+            if device is not None and state is not None:
+                self._device_state[device] = (self._now(), state)
         if not self.running:
             return
         for s in msg.status:
@@ -353,6 +365,9 @@ class ScanOrchestratorNode(Node):
             problems.append("source/set_beam not available (source_control)")
         if not self.expose.service_is_ready():
             problems.append("pcd/expose not available (pcd_grabber)")
+        for device, (t, state) in self._device_state.items():
+            if now - t <= DEVICE_REPORT_MAX_AGE_S and state != "active":
+                problems.append(f"{device} is {state}, not active (lifecycle: configure and activate it)")
         if self.armed_pub.get_subscription_count() < 1:
             problems.append("nobody subscribes to scan/armed (source_control)")
         for r in ROLES:

@@ -83,15 +83,16 @@ class AcquisitionGraph:
             set_beam(on, now_s)
         src.set_beam = logged_set_beam
         self.acquisitions = []
-        det = self.grabber.detector
-        acquire = det.acquire
+        det = self.grabber.detector  # None until the grabber is configured (autostart false)
+        if det is not None:
+            acquire = det.acquire
 
-        def logged_acquire(exposure_s):
-            frame = acquire(exposure_s)
-            self.acquisitions.append({"start": frame.start_ns, "end": frame.end_ns, "stamp": frame.stamp_ns,
-                                      "arms": self._arm_state(), "fraction": frame.info["beam_fraction"]})
-            return frame
-        det.acquire = logged_acquire
+            def logged_acquire(exposure_s):
+                frame = acquire(exposure_s)
+                self.acquisitions.append({"start": frame.start_ns, "end": frame.end_ns, "stamp": frame.stamp_ns,
+                                          "arms": self._arm_state(), "fraction": frame.info["beam_fraction"]})
+                return frame
+            det.acquire = logged_acquire
 
         probe = self.probe = ros.node("probe")
         self.frames, self.geoms, self.true_geoms, self.status = {}, {}, {}, []
@@ -284,3 +285,23 @@ def test_beam_drop_mid_exposure_rejects_that_frame(ros, tmp_path):
     scan = read_scan(bag)
     assert scan.n_views == 2 and scan.stamps_ns.tolist() == kept
     assert any(fmt.TOPIC_PROJECTION_REJECTED in w and "not used" in w for w in scan.warnings)
+
+
+def test_start_refuses_an_inactive_detector(ros, tmp_path):
+    """A configured but inactive pcd_grabber (lifecycle) is refused at scan start, from its
+    /diagnostics report, instead of failing at the first exposure; once active the scan starts."""
+    g = AcquisitionGraph(ros, tmp_path, grabber={"autostart": False})
+    assert g.grabber.lifecycle_state == "unconfigured"
+    g.grabber.trigger_configure()
+    assert g.grabber.lifecycle_state == "inactive"
+    assert ros.spin_until(lambda: g._ready() and g.orch._device_state.get("detector", (0, ""))[1] == "inactive",
+                          timeout_s=10.0)
+    ok, message = g.orch.start()
+    assert not ok and "detector is inactive" in message, message
+    assert g.orch.state == "idle" and g.safe()
+    g.grabber.trigger_activate()
+    assert ros.spin_until(lambda: g.orch._device_state["detector"][1] == "active", timeout_s=10.0)
+    g.start()
+    assert g.orch.running
+    g.orch.abort("test over")
+    assert ros.spin_until(g.safe)
