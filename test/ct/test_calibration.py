@@ -173,7 +173,10 @@ def test_fast_schedule_reduces_the_geometry_error():
     nominal, true, grid, measured = _small_scan(n_det=64)
     pts = roi_points(grid)
     before = reprojection_error(nominal, true, pts)["mean_px"]
-    result = calibrate(measured, nominal, grid, method="ncc-lle", n_iter=2, schedule="fast")
+    said = []
+    result = calibrate(measured, nominal, grid, method="ncc-lle", n_iter=2, schedule="fast", truncated=None,
+                       progress=said.append)
+    assert "not truncated, FDK" in said[0]  # the object fits in the field of view
     after = reprojection_error(result.geom, true, pts)["mean_px"]
     assert before > 1.0
     assert after < 0.6 * before, (before, after)
@@ -322,3 +325,20 @@ def test_focus_finds_an_odd_detector_shift_mode():
     residual = np.abs(params[:, 3]).max() / nominal.col_pitch_mm
     assert residual < 0.3, (residual, info)
     assert info["entropy_after"] < info["entropy_before"]
+
+
+def test_truncation_level_tells_interior_scans_apart():
+    """About zero when the object fits in the field of view, clearly above the threshold for
+    an object wider than it; dead edge pixels are ignored."""
+    from robot_ct_ros.ct.calibration import TRUNCATED_ABOVE, truncation_level
+
+    _, _, _, inside = _small_scan(n_views=8, body_width_mm=9.0, length_mm=30.0)
+    _, _, _, wider = _small_scan(n_views=8, body_width_mm=40.0, length_mm=30.0)
+    assert truncation_level(inside) < 0.1 * TRUNCATED_ABOVE
+    assert truncation_level(wider) > 5 * TRUNCATED_ABOVE
+    hot = inside.copy()
+    hot[:, :, 0] = 1e3  # a dead, saturated edge column, masked out
+    mask = np.ones(inside.shape[1:], bool)
+    mask[:, 0] = False
+    assert truncation_level(hot, mask) < 0.1 * TRUNCATED_ABOVE
+    assert truncation_level(hot) > TRUNCATED_ABOVE
