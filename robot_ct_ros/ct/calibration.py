@@ -771,14 +771,13 @@ def reconstruct_for_estimation(line_integrals, geom, grid, mask, sirt_iterations
     the field of view FDK has incomplete data and only SIRT may fill the padding
     (:func:`estimation_grid`). ``correction`` = (volume - fdk of a coarser reconstruction,
     its grid) replaces the SIRT iterations: the difference, resampled onto ``grid``, is added
-    to this FDK (the coarse level's SIRT fixes the low frequencies and the rim at a fraction of
-    the cost of fine SIRT). Returns an :class:`EstimationVolume`; its ``fdk_ncc`` measures how
+    to this FDK (the coarse level's SIRT, for the low frequencies and the rim, at a fraction of
+    the cost of fine SIRT; on the 360-view scan of :data:`SCHEDULES` it registered the views
+    worse than the FDK alone). Returns an :class:`EstimationVolume`; its ``fdk_ncc`` measures how
     consistent the geometry is, which SIRT cannot inflate by fitting an underdetermined
     (few-view) problem.
     """
-    from .reconstruction import resample
-
-    from .reconstruction import fdk, sirt
+    from .reconstruction import fdk, resample, sirt
 
     vol = fdk(line_integrals, geom, grid, valid_mask=mask, **(fdk_kwargs or {}))
     if fdk_shape_yx is not None:
@@ -943,7 +942,7 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
         truncated = level > TRUNCATED_ABOVE
         say(f"truncation level {level:.4f}: {'truncated, FDK + SIRT' if truncated else 'not truncated, FDK'} volumes")
     if not truncated:
-        sirt_iterations, fine_volume = 0, "sirt"  # i.e. FDK
+        sirt_iterations = 0  # every volume is then an FDK
     if method in LLE_METHODS:
         estimate, narrowed = estimate_views, _narrowed
         if configs is None:
@@ -965,8 +964,10 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
     if has_coarse:
         li_c, mask_c, nom_c, grid_c = _level(li, mask, nominal, grid_e, coarse_binning)
         inner_c = grid.binned(coarse_binning).shape_zyx[1:]
-    else:  # the data consistency check (undo_inconsistent) runs on the only level
-        li_c, mask_c, nom_c, grid_c, inner_c, fine_volume = li_f, mask_f, nom_f, grid_f, inner_f, "sirt"
+    else:  # one level: it also runs the data consistency check (undo_inconsistent)
+        li_c, mask_c, nom_c, grid_c, inner_c = li_f, mask_f, nom_f, grid_f, inner_f
+        if fine_volume == "fdk+coarse-sirt":  # no coarse level to take the correction from
+            fine_volume = "sirt"
     params = np.zeros((nominal.n_views, 9))
     history = []
     # the coarse level's reconstruction with the geometry entering each iteration: its volume
@@ -991,8 +992,10 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
                                                   fdk_kwargs=fdk_kwargs)
             say(f"iteration {it + 1}/{n_iter}: sharpness focus of {len(focus['modes'])} conjugate modes, entropy "
                 f"{focus['entropy_before']:.6f} -> {focus['entropy_after']:.6f}")
-        rec_next = reconstruct_for_estimation(li_c, nom_c.perturbed(params), grid_c, mask_c, sirt_iterations,
-                                              fdk_kwargs, inner_c)
+        # the next iteration's coarse volume (and the consistency check): not after the last
+        rec_next = (reconstruct_for_estimation(li_c, nom_c.perturbed(params), grid_c, mask_c, sirt_iterations,
+                                               fdk_kwargs, inner_c)
+                    if undo_inconsistent or it + 1 < n_iter else None)
         rmse, corr = projection_consistency(vol, grid_f, nom_f.perturbed(params), li_f, mask_f)
         step = params - start
         rec = IterationRecord(it + 1, rmse, corr, float(np.sqrt((step[:, :6] ** 2).mean())),
