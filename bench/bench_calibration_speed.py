@@ -14,7 +14,7 @@ and prints, per outer iteration, the elapsed time and the gauge-aligned reprojec
 iteration whose error is within 10 % of the best it reaches in the run; the ratio of those
 times is the speed-to-accuracy ratio.
 
-    .venv/bin/python bench/bench_calibration_speed.py                 # about 10 min on 2 cores
+    .venv/bin/python bench/bench_calibration_speed.py                 # about 8 min on 2 cores
     .venv/bin/python bench/bench_calibration_speed.py --views 120 --det 128 --vol 128 --no-rtk
 """
 
@@ -88,9 +88,9 @@ def main(argv=None) -> int:
         f"numba threads {numba.get_num_threads()}")
     # the mouse scaled with the field of view, so the scan is as truncated as scenario (a) of
     # bench_calibration.py (64 x 96 detector of 220 um pixels, 9 mm body)
-    fov_a = 2 * fov_radius_mm(0.5 * 96 * 4 * SeedSystem().raw_pixel_mm, SeedSystem().sod_mm, SeedSystem().sdd_mm)
-    fov = 2 * fov_radius_mm(0.5 * args.det[1] * args.binning * SeedSystem().raw_pixel_mm, SeedSystem().sod_mm,
-                            SeedSystem().sdd_mm)
+    system = SeedSystem()
+    fov_a = 2 * fov_radius_mm(0.5 * 96 * 4 * system.raw_pixel_mm, system.sod_mm, system.sdd_mm)
+    fov = 2 * fov_radius_mm(0.5 * args.det[1] * args.binning * system.raw_pixel_mm, system.sod_mm, system.sdd_mm)
     sc = make_scenario("a", args.views, args.det, args.vol, args.binning, args.seed, say, sim_oversample=1,
                        phantom_scale=fov / fov_a)
     say(f"  mouse scaled {fov / fov_a:.3f}x; truncation level {calibration.truncation_level(sc.li, sc.mask):.4f}")

@@ -337,7 +337,9 @@ def main(argv: list[str] | None = None) -> int:
             p.add_argument("--method", default="ncc-lle-exact",
                            help=f"one of {', '.join(calibration_methods())} (fdk: no correction)")
             p.add_argument("--iterations", type=int, default=2, help="outer iterations (default 2)")
-            p.add_argument("--schedule", choices=("accurate", "fast"), default="accurate",
+            from robot_ct_ros.ct.calibration import SCHEDULES
+
+            p.add_argument("--schedule", choices=tuple(SCHEDULES), default="accurate",
                            help="accurate: 2x binned then full size with SIRT; fast (large scans): 4x then 2x "
                                 "binned, SIRT on the coarse level only (default accurate)")
 
