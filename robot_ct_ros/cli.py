@@ -109,7 +109,7 @@ def calibration_methods() -> tuple:
 
 
 def calibrate_bag(bag, out, *, method: str = "ncc-lle-exact", iterations: int = 2, voxel_mm=None, shape=None,
-                  schedule: str = "accurate", say=_say) -> dict:
+                  schedule: str = "accurate", prior_sigma="default", say=_say) -> dict:
     """Calibrate the per-view geometry of a scan bag offline and reconstruct it.
 
     Runs :func:`robot_ct_ros.ct.calibration.calibrate` (method, iterations, schedule; ``"fdk"``
@@ -136,8 +136,12 @@ def calibrate_bag(bag, out, *, method: str = "ncc-lle-exact", iterations: int = 
     if method != "fdk":
         from robot_ct_ros.ct.calibration import calibrate
 
+        from robot_ct_ros.ct.calibration import DEFAULT_PRIOR_SIGMA
+
+        prior = DEFAULT_PRIOR_SIGMA if isinstance(prior_sigma, str) and prior_sigma == "default" else prior_sigma
+        report["prior_sigma"] = None if prior is None else [float(x) for x in prior]
         result = calibrate(li, scan.geom, grid, method=method, n_iter=iterations, valid_mask=mask, schedule=schedule,
-                           progress=say)
+                           prior_sigma=prior, progress=say)
         geom, volume = result.geom, result.volume
         history = [h.__dict__ for h in result.history]
     if volume is None:
@@ -275,6 +279,32 @@ def _cmd_info(args) -> int:
     return 0
 
 
+def _prior_sigma(text: str):
+    """``MM,DEG`` -> the 9 prior standard deviations (mm x6, rad x3); ``none`` -> None;
+    ``default`` -> calibration.DEFAULT_PRIOR_SIGMA."""
+    if text.strip().lower() == "none":
+        return None
+    if text.strip().lower() == "default":
+        from robot_ct_ros.ct.calibration import DEFAULT_PRIOR_SIGMA
+
+        return DEFAULT_PRIOR_SIGMA
+    try:
+        mm, deg = (float(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError("prior sigma is MM,DEG (e.g. 0.3,0.3) or none") from None
+    if mm <= 0 or deg <= 0:
+        raise argparse.ArgumentTypeError("prior sigmas must be positive")
+    return prior_sigma_from(mm, deg)
+
+
+def prior_sigma_from(translation_mm: float, rotation_deg: float):
+    """The 9 prior standard deviations (mm x6, rad x3) of :func:`calibration.calibrate`; None
+    when either is not positive (no prior: the data alone)."""
+    if not (translation_mm > 0 and rotation_deg > 0):
+        return None
+    return (float(translation_mm),) * 6 + (float(np.deg2rad(rotation_deg)),) * 3
+
+
 def _shape(text: str):
     parts = [int(x) for x in text.lower().replace("x", ",").split(",") if x]
     if len(parts) != 3:
@@ -289,7 +319,7 @@ def _cmd_reconstruct(args) -> int:
 
 def _cmd_calibrate(args) -> int:
     calibrate_bag(args.bag, args.out, method=args.method, iterations=args.iterations, voxel_mm=args.voxel_mm,
-                  shape=args.shape, schedule=args.schedule)
+                  shape=args.shape, schedule=args.schedule, prior_sigma=args.prior_sigma)
     return 0
 
 
@@ -342,6 +372,9 @@ def main(argv: list[str] | None = None) -> int:
             p.add_argument("--schedule", choices=tuple(SCHEDULES), default="accurate",
                            help="accurate: 2x binned then full size with SIRT; fast (large scans): 4x then 2x "
                                 "binned, SIRT on the coarse level only (default accurate)")
+            p.add_argument("--prior-sigma", type=_prior_sigma, default="default", metavar="MM,DEG",
+                           help="the robots' per-view coordination error (translations in mm, rotations in deg), "
+                                "the prior of the MAP estimate; 'none': the data alone (default 0.3,0.3)")
 
     args = parser.parse_args(argv)
     if args.command == "demo":

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 
 from robot_ct_ros.cli import main
 
@@ -57,6 +58,15 @@ def test_simulate_info_reconstruct_calibrate(tmp_path, capsys):
     assert _read_with_rosbags_and_mcap(calib / "scan_corrected") == 3 + 4 * 24
     assert main(["info", str(calib / "scan_corrected")]) == 0
     assert "corrected geometry: yes" in capsys.readouterr().out
+
+    mapped = tmp_path / "calib_prior"
+    assert main(["calibrate", str(bag), "--method", "ncc-lle", "--iterations", "1", "--prior-sigma", "0.2,0.25",
+                 "--out", str(mapped)]) == 0
+    report = json.loads((mapped / "report.json").read_text())
+    np.testing.assert_allclose(report["prior_sigma"], [0.2] * 6 + [np.deg2rad(0.25)] * 3)
+    with pytest.raises(SystemExit):
+        main(["calibrate", str(bag), "--prior-sigma", "0.2", "--out", str(tmp_path / "never")])
+    assert "MM,DEG" in capsys.readouterr().err and not (tmp_path / "never").exists()
 
 
 def test_clear_errors(tmp_path, capsys):

@@ -87,3 +87,17 @@ class ServiceThread:
             self.node.destroy_node()
         except Exception:  # noqa: BLE001 - already gone with its context
             pass
+
+
+def declare_prior_sigma(node):
+    """Declare ``prior_sigma_translation_m`` and ``prior_sigma_rotation_rad`` (SI, REP 103: the
+    robots' per-view coordination error, the prior of the calibration's MAP estimate; 0 = the
+    data alone) and return them as :func:`calibration.calibrate`'s ``prior_sigma`` (mm, rad)."""
+    import numpy as np
+
+    from robot_ct_ros.cli import prior_sigma_from
+    from robot_ct_ros.ct.calibration import DEFAULT_PRIOR_SIGMA
+
+    t_m = float(node.declare_parameter("prior_sigma_translation_m", DEFAULT_PRIOR_SIGMA[0] * 1e-3).value)
+    r_rad = float(node.declare_parameter("prior_sigma_rotation_rad", DEFAULT_PRIOR_SIGMA[6]).value)
+    return prior_sigma_from(t_m * 1e3, float(np.rad2deg(r_rad)))

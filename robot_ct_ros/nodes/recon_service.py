@@ -15,7 +15,9 @@ Topics and services (contract names from robot_ct_ros.bag.format; relative names
               recon/report (std_msgs/String JSON, transient-local: where the results are and the
               figures), /diagnostics (1 Hz)
 Parameters (config/recon_service.yaml): method (a calibration method of robot_ct_ros.ct.calibration,
-or "fdk" for no correction), iterations, schedule (accurate or fast, calibration.SCHEDULES), voxel_size_m (0: scan_info's, else pitch / magnification),
+or "fdk" for no correction), iterations, schedule (accurate or fast, calibration.SCHEDULES),
+prior_sigma_translation_m and prior_sigma_rotation_rad (the robots' per-view coordination error, the
+prior of the calibration's MAP estimate; 0 = the data alone), voxel_size_m (0: scan_info's, else pitch / magnification),
 roi_shape ([nx, ny, nz] voxels; zeros: scan_info's ROI or the field of view), output_dir, auto_run,
 every_n_views (0 = off: also correct every N frames during the scan, into output_dir/partial_NNNN),
 bag_path ("" = the collected topics), evaluate_truth (simulated scans: error of the nominal and the
@@ -58,7 +60,7 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from robot_ct_ros.bag import format as fmt
-from robot_ct_ros.nodes.common import run_node
+from robot_ct_ros.nodes.common import declare_prior_sigma, run_node
 from robot_ct_ros.nodes.recorder import message_class
 
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
@@ -135,7 +137,7 @@ def markdown_report(report: dict) -> str:
 
 
 def run_correction(bag, out, *, method: str, iterations: int, voxel_mm=None, shape=None, evaluate_truth=True,
-                   schedule: str = "accurate", say=print) -> dict:
+                   schedule: str = "accurate", prior_sigma="default", say=print) -> dict:
     """``robot-ct calibrate`` of ``bag`` into ``out`` (cli.calibrate_bag), then the figures of this node.
 
     Returns the report (also in ``out/report.json`` and ``out/report.md``) with ``paths``, and the
@@ -147,7 +149,7 @@ def run_correction(bag, out, *, method: str, iterations: int, voxel_mm=None, sha
 
     out = Path(out)
     report = calibrate_bag(bag, out, method=method, iterations=iterations, voxel_mm=voxel_mm, shape=shape,
-                           schedule=schedule, say=say)
+                           schedule=schedule, prior_sigma=prior_sigma, say=say)
     corrected = read_scan(report["corrected_bag"])
     geom = corrected.geom_corrected if corrected.geom_corrected is not None else corrected.geom
     volume = np.load(out / "volume.npy")
@@ -172,6 +174,7 @@ class ReconServiceNode(Node):
         self.method = p("method", "ncc-lle-exact").value
         self.iterations = int(p("iterations", 2).value)
         self.schedule = p("schedule", "accurate").value
+        self.prior_sigma = declare_prior_sigma(self)
         voxel = float(p("voxel_size_m", 0.0).value)
         self.voxel_mm = voxel * 1e3 if voxel > 0 else None
         shape = [int(x) for x in p("roi_shape", [0, 0, 0]).value]
@@ -382,7 +385,8 @@ class ReconServiceNode(Node):
             self._progress("calibrate", line, run, n)
         try:
             report = run_correction(bag, out, method=self.method, iterations=self.iterations, voxel_mm=self.voxel_mm,
-                                    shape=self.shape, schedule=self.schedule, evaluate_truth=self.evaluate_truth, say=say)
+                                    shape=self.shape, schedule=self.schedule, prior_sigma=self.prior_sigma,
+                                    evaluate_truth=self.evaluate_truth, say=say)
             report["partial"] = partial
             report["scan_id"] = self.scan_id
             result = (run, report, None)

@@ -9,8 +9,9 @@ Parameters
   bag_path (bag directory or .mcap, damaged bags are recovered), rate_hz (frames per second;
   <= 0: do not republish), wait_for_subscribers (start republishing once /ct/projection has this
   many subscribers), method ("" = no offline job; "fdk" = reconstruct only; else a calibration
-  method, e.g. ncc-lle-exact), iterations, schedule (accurate or fast), output_dir (corrected bag, volume .npy/.tif and
-  report.json, as ``robot-ct calibrate``).
+  method, e.g. ncc-lle-exact), iterations, schedule (accurate or fast), prior_sigma_translation_m and
+  prior_sigma_rotation_rad (the robots' per-view error, the calibration prior; 0 = none), output_dir
+  (corrected bag, volume .npy/.tif and report.json, as ``robot-ct calibrate``).
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from std_msgs.msg import String
 
 from robot_ct_ros.bag import format as fmt
 from robot_ct_ros.bag.reader import read_raw_messages
-from robot_ct_ros.nodes.common import run_node
+from robot_ct_ros.nodes.common import declare_prior_sigma, run_node
 from robot_ct_ros.nodes.recorder import LATCHED, message_class
 
 STREAM = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
@@ -59,6 +60,7 @@ class ReplayNode(Node):
         self.method = self.declare_parameter("method", "").value
         self.iterations = int(self.declare_parameter("iterations", 2).value)
         self.schedule = self.declare_parameter("schedule", "accurate").value
+        self.prior_sigma = declare_prior_sigma(self)
         self.output_dir = Path(self.declare_parameter("output_dir", "replay_out").value)
         if not self.bag_path:
             raise ValueError("parameter bag_path is required")
@@ -126,7 +128,7 @@ class ReplayNode(Node):
         log = self.get_logger()
         try:
             report = calibrate_bag(self.bag_path, self.output_dir, method=self.method, iterations=self.iterations,
-                                   schedule=self.schedule, say=lambda s: log.info(s))
+                                   schedule=self.schedule, prior_sigma=self.prior_sigma, say=lambda s: log.info(s))
         except Exception as exc:  # noqa: BLE001 - reported, the node keeps running
             self.error = f"{type(exc).__name__}: {exc}"
             log.error(f"offline calibration failed: {self.error}")

@@ -342,3 +342,108 @@ def test_truncation_level_tells_interior_scans_apart():
     mask[:, 0] = False
     assert truncation_level(hot, mask) < 0.1 * TRUNCATED_ABOVE
     assert truncation_level(hot) > TRUNCATED_ABOVE
+
+
+# ----------------------------------------------------------------------------- MAP estimate (prior)
+from robot_ct_ros.ct.calibration import effective_pixel_fraction, posterior_cost  # noqa: E402
+
+
+def _constrained_minimum(objective, K, rng):
+    best = None
+    for _ in range(4):
+        x0 = rng.dirichlet(np.ones(K))[:-1]
+        res = minimize(lambda free: objective(np.append(free, 1.0 - free.sum())), x0, method="BFGS",
+                       options={"gtol": 1e-10, "maxiter": 10000})
+        best = res if best is None or res.fun < best.fun else best
+    return np.append(best.x, 1.0 - best.x.sum())
+
+
+@pytest.mark.parametrize("method", ["l2", "ncc-exact"])
+def test_map_weights_equal_the_brute_force_posterior_minimiser(method):
+    """Data term in units of the best data-only fit's residual variance, plus a Gaussian prior on
+    the embedded parameters (for ncc-exact at the unconstrained fit's gain)."""
+    rng = np.random.default_rng(7)
+    K, P, D = 5, 300, 9
+    base = rng.normal(size=P).cumsum()
+    Y = base + rng.normal(size=(K, P)) * 3.0
+    b = 0.8 * base + rng.normal(size=P) * 3.0 + (4.0 if method == "ncc-exact" else 0.0)
+    g = rng.normal(size=(K, D))
+    inv_var = rng.uniform(0.5, 2.0, size=D) * 30.0
+    w = lle_weights(b[None], Y[None], method, reg=0.0, prior=(g[None], inv_var))[0]
+    np.testing.assert_allclose(w.sum(), 1.0, atol=1e-12)
+    if method == "l2":
+        w0 = lle_weights(b[None], Y[None], "l2", reg=0.0)[0]
+        var = np.sum((b - w0 @ Y) ** 2) / P
+        gain, bt, Yt = 1.0, b, Y
+    else:
+        bt, Yt = b - b.mean(), Y - Y.mean(axis=1, keepdims=True)
+        v = np.linalg.solve(Yt @ Yt.T, Yt @ bt)
+        gain, var = v.sum(), np.sum((bt - v @ Yt) ** 2) / P
+
+    def posterior(ww):
+        return np.sum((bt - gain * (ww @ Yt)) ** 2) / var + (ww @ g) ** 2 @ inv_var
+
+    w_brute = _constrained_minimum(posterior, K, rng)
+    assert posterior(w) <= posterior(w_brute) + 1e-8
+    np.testing.assert_allclose(w, w_brute, atol=1e-4)
+    # a vanishing prior gives the data-only weights back; a strong one pulls the parameters in
+    w_data = lle_weights(b[None], Y[None], method, reg=0.0)[0]
+    np.testing.assert_allclose(lle_weights(b[None], Y[None], method, reg=0.0, prior=(g[None], inv_var * 1e-12))[0],
+                               w_data, atol=1e-8)
+    strong = lle_weights(b[None], Y[None], method, reg=0.0, prior=(g[None], inv_var * 1e6))[0]
+    M = (g * inv_var) @ g.T  # the affine combination with the smallest prior term
+    w_min = np.linalg.solve(M, np.ones(K)) / np.linalg.solve(M, np.ones(K)).sum()
+    np.testing.assert_allclose(strong, w_min, atol=1e-3)
+
+
+def test_effective_pixel_fraction_counts_white_residuals_fully_and_smooth_ones_little():
+    rng = np.random.default_rng(3)
+    n, R, C = 3, 40, 60
+    pred = rng.normal(size=(n, R, C)).cumsum(axis=2)
+    mask = np.ones((n, R, C), bool)
+    mask[:, :, 5] = False  # a chip gap
+    white = 2.0 * pred + 1.0 + rng.normal(size=(n, R, C))
+    smooth = 2.0 * pred + 1.0 + 30.0 * np.sin(np.linspace(0, 3, C))[None, None, :] * np.cos(
+        np.linspace(0, 2, R))[None, :, None] + 0.05 * rng.normal(size=(n, R, C))
+    assert np.all(effective_pixel_fraction(white, pred, mask) > 0.8)
+    assert np.all(effective_pixel_fraction(smooth, pred, mask) < 0.05)
+
+
+def test_posterior_cost_is_chi_square_plus_prior():
+    d = np.array([[0.1, 0.2, np.inf]])
+    params = np.zeros((1, 3, 2))
+    params[0, 1] = [1.0, 0.0]
+    cost = posterior_cost(d, params, np.full((1, 3), 100.0), "l2", np.array([4.0, 1.0]))
+    np.testing.assert_allclose(cost[0, :2], [100.0, 200.0 + 4.0])
+    assert cost[0, 2] == np.inf
+    rho = 1.0 - d[0, :2]
+    ncc_cost = posterior_cost(d, params, np.full((1, 3), 100.0), "ncc", np.array([4.0, 1.0]))
+    np.testing.assert_allclose(ncc_cost[0, 1], 100.0 * (1 - rho[1] ** 2) / (1 - rho[0] ** 2) + 4.0)
+
+
+def test_prior_keeps_views_whose_data_the_volume_cannot_explain_near_nominal():
+    """Registered against a volume of another object, views follow spurious optima by the data
+    alone; the posterior keeps them near the nominal geometry, and still moves views whose data
+    the volume explains."""
+    nominal, true, grid, measured = _small_scan(n_views=8)
+    other = voxelize(mouse_phantom(body_width_mm=9.0, length_mm=10.0, seed=5), grid)[::-1].copy()
+    sigma = (0.3,) * 6 + (np.deg2rad(0.3),) * 3
+    moved = {}
+    for prior in (None, sigma):
+        cfg = LLEConfig(levels=3, shift_search_px=4, prior_sigma=prior)
+        params, _ = estimate_views(measured, nominal, np.zeros((8, 9)), other, grid, cfg)
+        moved[prior is not None] = float(np.sqrt((params[:, 3:5] ** 2).mean()))
+    assert moved[True] < 0.5 * moved[False], moved
+    # consistent data: the prior does not stop the estimate
+    volume = voxelize(mouse_phantom(body_width_mm=9.0, length_mm=10.0), grid)
+    offset = np.zeros((8, 9))
+    offset[:, 3] = 1.0  # 1.5 px, over 3 prior sigmas
+    target = nominal.perturbed(offset)
+    exact = forward_project(volume, grid, target)
+    params, _ = estimate_views(exact, nominal, np.zeros((8, 9)), volume, grid, LLEConfig(levels=3, prior_sigma=sigma))
+    pts = roi_points(grid)
+    before = reprojection_error(nominal, target, pts, align_gauge=False)["mean_px"]
+    after = reprojection_error(nominal.perturbed(params), target, pts, align_gauge=False)["mean_px"]
+    assert before > 1.2 and after < 0.2 * before, (before, after)
+    with pytest.raises(ValueError, match="prior_sigma"):
+        LLEConfig(prior_sigma=(0.3,) * 8)
