@@ -96,17 +96,26 @@ def posterior_cost(dist, params, n_valid, metric: str, inv_var, best_dist=None) 
     return np.where(np.isfinite(e), data + (g * g * np.asarray(inv_var, np.float64)).sum(axis=-1), np.inf)
 
 
-def effective_pixel_fraction(measured, predicted, mask, basis=None) -> np.ndarray:
+def effective_pixel_fraction(measured, predicted, mask, basis=None, highpass_px: float = 16.0) -> np.ndarray:
     """Per view, the fraction of its valid pixels that count as independent in the data term.
 
     The residual of ``measured`` (n, rows, cols) against the best-gain fit of ``predicted``
     (after projecting out ``basis``, :func:`background_basis`; the mean by default) is noise
-    plus model error. Photon noise is white; model error (what the ROI volume lacks: the
-    truncated object's edges, a misplaced reconstruction) is smooth and would count its
-    information once per pixel. With the residual's lag-one correlation ρ along rows and along
-    columns, the fraction is ((1 - ρ_u) / (1 + ρ_u)) ((1 - ρ_v) / (1 + ρ_v)), the effective
-    sample size of a first-order autoregressive field: 1 for white residuals.
+    plus model error. Geometry is located by edges, so only the residual at their scale
+    matters: a Gaussian of ``highpass_px`` pixels (masked, normalised) takes the smooth part
+    out (what FDK of a truncated scan leaves at low frequencies hides no edge). Photon noise
+    stays white; model error at the edges' scale (edges of the object outside the ROI that the
+    volume lacks, a blurred or misplaced reconstruction) is correlated and would otherwise count
+    its information once per pixel. With that residual's lag-one correlation ρ along rows and
+    along columns, the fraction is ((1 - ρ_u) / (1 + ρ_u)) ((1 - ρ_v) / (1 + ρ_v)), the effective
+    sample size of a first-order autoregressive field: about 1 for white residuals. The 16
+    pixels were measured: on the 360-view mouse scan of bench/bench_calibration_speed.py the
+    raw residual (0) made the prior hold the views back (0.90 px after 2 iterations, 0.64 px
+    without prior), 8 pixels let the carotid scan of bench/bench_calibration.py drift (6.1 px
+    against 3.4 px nominal), 16 pixels did neither (0.68 px; 4.0 px).
     """
+    from scipy.ndimage import gaussian_filter
+
     mask = np.asarray(mask, bool)
     if basis is None:
         basis = background_basis(mask)
@@ -114,6 +123,11 @@ def effective_pixel_fraction(measured, predicted, mask, basis=None) -> np.ndarra
     p = _project_out(np.asarray(predicted, np.float64), basis, mask)
     gain = np.einsum("nrc,nrc->n", b, p) / np.maximum(np.einsum("nrc,nrc->n", p, p), 1e-300)
     r = np.where(mask, b - gain[:, None, None] * p, 0.0)
+    if highpass_px > 0:
+        sig = (0.0, highpass_px, highpass_px)
+        smooth = gaussian_filter(r, sig, mode="nearest") / np.maximum(
+            gaussian_filter(mask.astype(np.float64), sig, mode="nearest"), 1e-12)
+        r = np.where(mask, r - smooth, 0.0)
     fraction = np.ones(len(r))
     for axis in (1, 2):
         n = r.shape[axis]
@@ -1078,8 +1092,9 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
     1.7 px, so it is off by default. ``prior_sigma`` (9 values, mm x6, rad x3; default
     :data:`DEFAULT_PRIOR_SIGMA`; None = data alone) is the nominal geometry's error: the LLE
     methods then estimate each view by maximum a posteriori (:attr:`LLEConfig.prior_sigma`),
-    which kept the strongly truncated carotid scan near its nominal geometry (3.9 px against
-    18 px without) and took the battery drift scan from 1.39 to 1.00 px; explicit ``configs``
+    which kept the strongly truncated carotid scan near its nominal geometry (4.0 px against
+    17.9 px without; 3.4 px nominal) and took the battery drift scan from 1.40 to 1.02 px
+    (ncc-lle-exact, bench/bench_calibration.py); explicit ``configs``
     carry their own. The returned volume is the full-size FDK with the final
     geometry. ``progress(message)`` receives one line per step, ``on_iteration(record, params)`` the
     :class:`IterationRecord` and the (n, 9) parameters after each outer iteration.

@@ -396,17 +396,24 @@ def test_map_weights_equal_the_brute_force_posterior_minimiser(method):
     np.testing.assert_allclose(strong, w_min, atol=1e-3)
 
 
-def test_effective_pixel_fraction_counts_white_residuals_fully_and_smooth_ones_little():
+def test_effective_pixel_fraction_counts_white_residuals_fully_and_structured_ones_little():
+    """White residuals count fully; residuals at the edges' scale hardly; a smooth bowl (what
+    FDK of a truncated scan leaves) is mostly taken out by the high-pass before it counts."""
+    from scipy.ndimage import gaussian_filter
+
     rng = np.random.default_rng(3)
-    n, R, C = 3, 40, 60
+    n, R, C = 3, 48, 160
     pred = rng.normal(size=(n, R, C)).cumsum(axis=2)
     mask = np.ones((n, R, C), bool)
     mask[:, :, 5] = False  # a chip gap
-    white = 2.0 * pred + 1.0 + rng.normal(size=(n, R, C))
-    smooth = 2.0 * pred + 1.0 + 30.0 * np.sin(np.linspace(0, 3, C))[None, None, :] * np.cos(
-        np.linspace(0, 2, R))[None, :, None] + 0.05 * rng.normal(size=(n, R, C))
+    fit = 2.0 * pred + 1.0  # gain and offset are not residual
+    white = fit + rng.normal(size=(n, R, C))
+    edges = fit + gaussian_filter(rng.normal(size=(n, R, C)) * 5.0, (0, 1.5, 1.5)) + 0.05 * rng.normal(size=(n, R, C))
+    bowl = fit + 20.0 * np.linspace(-1, 1, C)[None, None, :] ** 2 + rng.normal(size=(n, R, C))
     assert np.all(effective_pixel_fraction(white, pred, mask) > 0.8)
-    assert np.all(effective_pixel_fraction(smooth, pred, mask) < 0.05)
+    assert np.all(effective_pixel_fraction(edges, pred, mask) < 0.02)
+    high_passed, raw = effective_pixel_fraction(bowl, pred, mask), effective_pixel_fraction(bowl, pred, mask, highpass_px=0)
+    assert np.all(high_passed > 0.05) and np.all(high_passed > 100 * raw), (high_passed, raw)
 
 
 def test_posterior_cost_is_chi_square_plus_prior():
