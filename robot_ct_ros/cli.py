@@ -112,8 +112,9 @@ def calibrate_bag(bag, out, *, method: str = "ncc-lle-exact", iterations: int = 
                   schedule: str = "accurate", prior_sigma="default", say=_say) -> dict:
     """Calibrate the per-view geometry of a scan bag offline and reconstruct it.
 
-    Runs :func:`robot_ct_ros.ct.calibration.calibrate` (method, iterations, schedule; ``"fdk"``
-    only reconstructs with the nominal geometry). Writes into ``out``: the
+    Runs :func:`robot_ct_ros.ct.calibration.calibrate` (method, iterations, schedule,
+    prior_sigma: ``"default"`` for calibration.DEFAULT_PRIOR_SIGMA, None for the data alone;
+    ``"fdk"`` only reconstructs with the nominal geometry). Writes into ``out``: the
     corrected bag (``<bag name>_corrected``: every message of the input plus
     /ct/geometry_corrected), ``volume.npy``/``.tif``/``_grid.json`` and ``report.json``.
     """
@@ -134,9 +135,7 @@ def calibrate_bag(bag, out, *, method: str = "ncc-lle-exact", iterations: int = 
     report.update({"job": "calibrate", "method": method, "iterations": iterations, "schedule": schedule})
     geom, volume, history, notes = scan.geom, None, [], []
     if method != "fdk":
-        from robot_ct_ros.ct.calibration import calibrate
-
-        from robot_ct_ros.ct.calibration import DEFAULT_PRIOR_SIGMA
+        from robot_ct_ros.ct.calibration import DEFAULT_PRIOR_SIGMA, calibrate
 
         prior = DEFAULT_PRIOR_SIGMA if isinstance(prior_sigma, str) and prior_sigma == "default" else prior_sigma
         report["prior_sigma"] = None if prior is None else [float(x) for x in prior]
@@ -294,15 +293,9 @@ def _prior_sigma(text: str):
         raise argparse.ArgumentTypeError("prior sigma is MM,DEG (e.g. 0.3,0.3) or none") from None
     if mm <= 0 or deg <= 0:
         raise argparse.ArgumentTypeError("prior sigmas must be positive")
+    from robot_ct_ros.ct.calibration import prior_sigma_from
+
     return prior_sigma_from(mm, deg)
-
-
-def prior_sigma_from(translation_mm: float, rotation_deg: float):
-    """The 9 prior standard deviations (mm x6, rad x3) of :func:`calibration.calibrate`; None
-    when either is not positive (no prior: the data alone)."""
-    if not (translation_mm > 0 and rotation_deg > 0):
-        return None
-    return (float(translation_mm),) * 6 + (float(np.deg2rad(rotation_deg)),) * 3
 
 
 def _shape(text: str):

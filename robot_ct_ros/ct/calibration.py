@@ -80,9 +80,9 @@ def posterior_cost(dist, params, n_valid, metric: str, inv_var, best_dist=None) 
     variances (the nominal geometry's error, e.g. the robots' coordination error). The data
     term is chi-square with the residual variance of the view's best sample (or of
     ``best_dist`` (...,)) as noise: n d / d_best for ``"l2"``, n (1 - ρ²) / (1 - ρ_best²) for
-    ``"ncc"`` (ρ = 1 - d, the residual of a best-gain fit). Noise and model error count alike, so a view whose reprojections explain
-    little of its data leans on the prior: a strongly truncated scan then stays near its
-    nominal geometry instead of following spurious optima.
+    ``"ncc"`` (ρ = 1 - d, the residual of a best-gain fit). Noise and model error count alike,
+    so a view whose reprojections explain little of its data leans on the prior: a strongly
+    truncated scan then stays near its nominal geometry instead of following spurious optima.
     """
     def energy(d):
         return d if metric == "l2" else d * (2.0 - d)
@@ -171,8 +171,8 @@ def lle_weights(measured, neighbours, method: str = "ncc-exact", mask=None, reg:
     out of every image instead of the mean: the correlation then ignores any smooth
     background in that span as well as the gain (default: the mean alone, as published).
 
-    ``prior`` = (neighbour parameters (n, K, D), inverse variances (D,) or (n, D)) makes the ``l2`` and
-    ``ncc-exact`` weights maximum a posteriori: they minimise the embedding residual in units
+    ``prior`` = (neighbour parameters (n, K, D), inverse variances (D,) or (n, D)) makes the
+    ``l2`` and ``ncc-exact`` weights maximum a posteriori: they minimise the embedding residual in units
     of its own per-pixel variance (that of the best data-only embedding: noise plus model
     error) plus the prior term (sum_k w_k g_k)ᵀ diag(inverse variances) (sum_k w_k g_k), a
     zero-mean Gaussian on the embedded parameters (:func:`posterior_cost`). The published
@@ -227,11 +227,11 @@ def lle_weights(measured, neighbours, method: str = "ncc-exact", mask=None, reg:
         var = np.maximum(bb - np.einsum("nk,nk->n", r, w * total), 1e-12 * bb) / count + 1e-300
         ok = ~bad & (gain > 0)
         if np.any(ok):
-            P, inv_var = prior
+            P = np.asarray(prior[0], np.float64)
+            inv_var = np.broadcast_to(np.asarray(prior[1], np.float64), (n, P.shape[2]))
             scale = gain[ok] / var[ok]
-            inv_var = np.broadcast_to(np.asarray(inv_var, np.float64), (n, np.shape(P)[2]))
             w[ok] = _map_weights(_regularised(G[ok], reg) * (gain[ok] * scale)[:, None, None], r[ok] * scale[:, None],
-                                 (np.asarray(P)[ok], inv_var[ok]))
+                                 (P[ok], inv_var[ok]))
     return w
 
 
@@ -795,6 +795,14 @@ DEFAULT_PRIOR_SIGMA = (0.3,) * 6 + (float(np.deg2rad(0.3)),) * 3
 default (mm x6, rad x3): the seed system's robot coordination error, a fraction of a millimetre
 and of a degree per arm (design.md §1). It is the prior of the MAP estimate
 (:attr:`LLEConfig.prior_sigma`); set it to the robots' measured accuracy."""
+
+
+def prior_sigma_from(translation_mm: float, rotation_deg: float):
+    """The 9 prior standard deviations (mm x6, rad x3) of :func:`calibrate` from one translation
+    and one rotation error; None when either is not positive (no prior: the data alone)."""
+    if not (translation_mm > 0 and rotation_deg > 0):
+        return None
+    return (float(translation_mm),) * 6 + (float(np.deg2rad(rotation_deg)),) * 3
 
 
 def default_lle_configs(weighting: str, seed: int = 0, background=DEFAULT_BACKGROUND,

@@ -95,8 +95,7 @@ def declare_prior_sigma(node):
     data alone) and return them as :func:`calibration.calibrate`'s ``prior_sigma`` (mm, rad)."""
     import numpy as np
 
-    from robot_ct_ros.cli import prior_sigma_from
-    from robot_ct_ros.ct.calibration import DEFAULT_PRIOR_SIGMA
+    from robot_ct_ros.ct.calibration import DEFAULT_PRIOR_SIGMA, prior_sigma_from
 
     t_m = float(node.declare_parameter("prior_sigma_translation_m", DEFAULT_PRIOR_SIGMA[0] * 1e-3).value)
     r_rad = float(node.declare_parameter("prior_sigma_rotation_rad", DEFAULT_PRIOR_SIGMA[6]).value)

@@ -146,3 +146,18 @@ def test_every_n_views_corrects_during_the_scan(tmp_path):
     # the final correction: the whole scan, one corrected geometry per frame
     assert r.report["n_views"] == n and not r.report["partial"]
     assert sorted(r.corrected) == [int(s) for s in scan.stamps_ns]
+
+
+def test_prior_parameters_are_si_and_zero_turns_the_prior_off(ros, tmp_path):
+    from robot_ct_ros.ct.calibration import DEFAULT_PRIOR_SIGMA
+
+    default = ros.add(ReconServiceNode("recon_default", context=ros.context, parameter_overrides=_params(
+        output_dir=str(tmp_path / "a"), auto_run=False)))
+    np.testing.assert_allclose(default.prior_sigma, DEFAULT_PRIOR_SIGMA, rtol=1e-6)
+    set_ = ros.add(ReconServiceNode("recon_set", context=ros.context, parameter_overrides=_params(
+        output_dir=str(tmp_path / "b"), auto_run=False, prior_sigma_translation_m=0.0005,
+        prior_sigma_rotation_rad=0.01)))
+    np.testing.assert_allclose(set_.prior_sigma, (0.5,) * 6 + (0.01,) * 3)
+    off = ros.add(ReconServiceNode("recon_off", context=ros.context, parameter_overrides=_params(
+        output_dir=str(tmp_path / "c"), auto_run=False, prior_sigma_translation_m=0.0)))
+    assert off.prior_sigma is None
