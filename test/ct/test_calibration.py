@@ -195,6 +195,7 @@ def test_calibrate_reduces_the_geometry_error(method):
     assert before > 1.0
     assert after < 0.6 * before, (method, before, after)
     assert len(result.history) == 2 and result.volume.shape == grid.shape_zyx
+    assert all(0.0 < h.independent_fraction <= 1.0 for h in result.history)  # the default prior is on
 
 
 def test_ncc_ignores_an_intensity_offset_that_misleads_l2():
@@ -454,3 +455,9 @@ def test_prior_keeps_views_whose_data_the_volume_cannot_explain_near_nominal():
     assert before > 1.2 and after < 0.2 * before, (before, after)
     with pytest.raises(ValueError, match="prior_sigma"):
         LLEConfig(prior_sigma=(0.3,) * 8)
+
+
+def test_without_prior_the_loop_reports_no_independent_fraction():
+    nominal, _, grid, measured = _small_scan(n_views=12)
+    result = calibrate(measured, nominal, grid, method="ncc-lle-exact", n_iter=1, prior_sigma=None)
+    assert np.isnan(result.history[0].independent_fraction)
