@@ -14,7 +14,7 @@ and prints, per outer iteration, the elapsed time and the gauge-aligned reprojec
 iteration whose error is within 10 % of the best it reaches in the run; the ratio of those
 times is the speed-to-accuracy ratio.
 
-    .venv/bin/python bench/bench_calibration_speed.py                 # about 8 min on 2 cores
+    .venv/bin/python bench/bench_calibration_speed.py                 # about 6 min on 2 cores
     .venv/bin/python bench/bench_calibration_speed.py --views 120 --det 128 --vol 128 --no-rtk
 """
 

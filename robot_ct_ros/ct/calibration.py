@@ -123,10 +123,10 @@ def effective_pixel_fraction(measured, predicted, mask, basis=None, highpass_px:
     p = _project_out(np.asarray(predicted, np.float64), basis, mask)
     gain = np.einsum("nrc,nrc->n", b, p) / np.maximum(np.einsum("nrc,nrc->n", p, p), 1e-300)
     r = np.where(mask, b - gain[:, None, None] * p, 0.0)
-    if highpass_px > 0:
-        sig = (0.0, highpass_px, highpass_px)
-        smooth = gaussian_filter(r, sig, mode="nearest") / np.maximum(
-            gaussian_filter(mask.astype(np.float64), sig, mode="nearest"), 1e-12)
+    if highpass_px > 0:  # float32 and a kernel of +-2.5 sigma: the smooth part needs no more
+        sig, cut = (0.0, highpass_px, highpass_px), 2.5
+        smooth = gaussian_filter(r.astype(np.float32), sig, mode="nearest", truncate=cut) / np.maximum(
+            gaussian_filter(mask.astype(np.float32), sig, mode="nearest", truncate=cut), 1e-6)
         r = np.where(mask, r - smooth, 0.0)
     fraction = np.ones(len(r))
     for axis in (1, 2):

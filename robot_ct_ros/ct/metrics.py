@@ -250,7 +250,8 @@ def edge_rise_distance_mm(volume, grid: VolumeGrid, p0_mm, p1_mm, lo: float = 0.
     return float(abs(crossing(hi, +1) - crossing(lo, -1)))
 
 
-def cap_thickness_mm(volume, grid: VolumeGrid, cap, step_mm: float = 0.005, n_lines: int = 9) -> float:
+def cap_thickness_mm(volume, grid: VolumeGrid, cap, step_mm: float = 0.005, n_lines: int = 9,
+                     min_prominence: float = 0.25) -> float:
     """Fibrous-cap thickness measured in a reconstruction: FWHM of the cap ridge.
 
     ``cap`` is the phantom's :class:`~robot_ct_ros.ct.simulation.CapGeometry`. The profile is
@@ -259,6 +260,9 @@ def cap_thickness_mm(volume, grid: VolumeGrid, cap, step_mm: float = 0.005, n_li
     ridge is bounded by the half-maximum crossings towards the lumen and towards the core,
     each against its own plateau (the two tissues differ). ``cap`` may also be the phantom.
     A cap thinner than the system resolution reads as about the resolution (FWHM of the PSF).
+    NaN when there is no ridge to measure: its rise above the higher plateau must be at least
+    ``min_prominence`` of its rise above the lower one (a plain edge between lumen and core, or
+    a cap blurred into it, would otherwise read as a thickness of a few sampling steps).
     """
     cap = getattr(cap, "cap", cap)
     if cap is None:
@@ -275,6 +279,8 @@ def cap_thickness_mm(volume, grid: VolumeGrid, cap, step_mm: float = 0.005, n_li
     search = (r > -0.3) & (r < cap.thickness_mm + 0.25 * cap.core_depth_mm)
     k = np.flatnonzero(search)[np.argmax(prof[search])]
     peak = prof[k]
+    if not peak - max(inner, outer) >= min_prominence * (peak - min(inner, outer)) or peak <= max(inner, outer):
+        return float("nan")
     half_in, half_out = 0.5 * (peak + inner), 0.5 * (peak + outer)
     i = k
     while i > 0 and prof[i] > half_in:

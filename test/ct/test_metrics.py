@@ -132,3 +132,15 @@ def test_cap_thickness_accepts_the_phantom_and_blur_widens_it():
     sharp = cap_thickness_mm(vol, grid, ph)
     assert sharp == pytest.approx(0.1, abs=0.01)
     assert cap_thickness_mm(gaussian_filter(vol, (0, 6, 6)), grid, ph) > sharp + 0.02
+
+
+def test_cap_thickness_is_nan_without_a_ridge():
+    """A plain edge from lumen to core (no cap, or one blurred into the edge) is not a cap."""
+    ph = carotid_plaque_phantom(cap_thickness_mm=0.06)
+    cap = ph.cap
+    grid = VolumeGrid.centered((40, 64, 64), 0.115, cap.lumen_point_mm + 0.03 * np.asarray(cap.direction))
+    z, y, x = np.meshgrid(*[np.arange(n) for n in grid.shape_zyx], indexing="ij")
+    pts = np.stack([x, y, z], axis=-1) * 0.115 + np.asarray(grid.origin_mm)
+    depth = (pts - cap.lumen_point_mm) @ np.asarray(cap.direction)
+    assert np.isnan(cap_thickness_mm((depth > 0.02).astype(np.float32), grid, cap))
+    assert np.isnan(cap_thickness_mm(depth.astype(np.float32), grid, cap))  # a ramp has no ridge either
