@@ -142,7 +142,9 @@ def calibrate_bag(bag, out, *, method: str = "ncc-lle-exact", iterations: int = 
         result = calibrate(li, scan.geom, grid, method=method, n_iter=iterations, valid_mask=mask, schedule=schedule,
                            prior_sigma=prior, progress=say)
         geom, volume = result.geom, result.volume
-        history = [h.__dict__ for h in result.history]
+        # strict JSON: a quantity an iteration did not measure (NaN) is null
+        history = [{k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in h.__dict__.items()}
+                   for h in result.history]
     if volume is None:
         volume = fdk(li, geom, grid, valid_mask=mask)
     report["method_used"] = method

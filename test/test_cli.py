@@ -64,6 +64,16 @@ def test_simulate_info_reconstruct_calibrate(tmp_path, capsys):
                  "--out", str(mapped)]) == 0
     report = json.loads((mapped / "report.json").read_text())
     np.testing.assert_allclose(report["prior_sigma"], [0.2] * 6 + [np.deg2rad(0.25)] * 3)
+    assert 0.0 < report["history"][0]["independent_fraction"] <= 1.0
+    data_alone = tmp_path / "calib_gdc"  # GDC has no independent-pixel fraction: NaN in the record
+    assert main(["calibrate", str(bag), "--method", "gdc", "--iterations", "1", "--prior-sigma", "none",
+                 "--out", str(data_alone)]) == 0
+
+    def no_nan(token):
+        raise AssertionError(f"report.json is not strict JSON: {token}")
+
+    report = json.loads((data_alone / "report.json").read_text(), parse_constant=no_nan)
+    assert report["prior_sigma"] is None and report["history"][0]["independent_fraction"] is None
     with pytest.raises(SystemExit):
         main(["calibrate", str(bag), "--prior-sigma", "0.2", "--out", str(tmp_path / "never")])
     assert "MM,DEG" in capsys.readouterr().err and not (tmp_path / "never").exists()

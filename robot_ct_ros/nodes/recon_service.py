@@ -123,6 +123,11 @@ def markdown_report(report: dict) -> str:
              f"{[round(float(v) * 1000, 2) for v in report.get('grid', {}).get('voxel_size_mm', [])]} um",
              f"- correction applied: {report.get('correction_rms_translation_mm', 0.0):.4f} mm RMS translation, "
              f"{report.get('correction_rms_rotation_deg', 0.0):.4f} deg RMS rotation"]
+    last, prior = (report.get("history") or [{}])[-1], report.get("prior_sigma")
+    if last.get("independent_fraction") is not None and prior:
+        lines.append(f"- last iteration: projection NCC {last['projection_ncc']:.4f}; independent pixels "
+                     f"{last['independent_fraction']:.3f} (near 0: the data explain little of the projections and "
+                     f"the correction leans on the prior of {prior[0]:.3g} mm / {np.rad2deg(prior[6]):.3g} deg)")
     t = report.get("truth")
     if t:
         n, c = t["reprojection_error_nominal_px"], t["reprojection_error_corrected_px"]
