@@ -262,7 +262,8 @@ def cap_thickness_mm(volume, grid: VolumeGrid, cap, step_mm: float = 0.005, n_li
     A cap thinner than the system resolution reads as about the resolution (FWHM of the PSF).
     NaN when there is no ridge to measure: its rise above the higher plateau must be at least
     ``min_prominence`` of its rise above the lower one (a plain edge between lumen and core, or
-    a cap blurred into it, would otherwise read as a thickness of a few sampling steps).
+    a cap blurred into it, would otherwise read as a thickness: 60 µm for a sharp edge on a
+    115 µm grid, a few µm in blurred reconstructions).
     """
     cap = getattr(cap, "cap", cap)
     if cap is None:
