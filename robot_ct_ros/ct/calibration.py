@@ -62,9 +62,7 @@ def _map_weights(M_data, q_data, prior) -> np.ndarray:
     P, inv_var = prior
     P = np.asarray(P, np.float64)
     inv_var = np.broadcast_to(np.asarray(inv_var, np.float64), (P.shape[0], P.shape[2]))
-    M = M_data + np.einsum("nkd,nd,njd->nkj", P, inv_var, P)
-    K = M.shape[-1]
-    M = M + 1e-12 * (np.trace(M, axis1=1, axis2=2) / K)[:, None, None] * np.eye(K)
+    M = _regularised(M_data + np.einsum("nkd,nd,njd->nkj", P, inv_var, P), 1e-12)
     a = np.linalg.solve(M, q_data[..., None])[..., 0]
     o = np.linalg.solve(M, np.ones(q_data.shape)[..., None])[..., 0]
     lam = (1.0 - a.sum(axis=1)) / o.sum(axis=1)
@@ -172,9 +170,9 @@ def lle_weights(measured, neighbours, method: str = "ncc-exact", mask=None, reg:
     background in that span as well as the gain (default: the mean alone, as published).
 
     ``prior`` = (neighbour parameters (n, K, D), inverse variances (D,) or (n, D)) makes the
-    ``l2`` and ``ncc-exact`` weights maximum a posteriori: they minimise the embedding residual in units
-    of its own per-pixel variance (that of the best data-only embedding: noise plus model
-    error) plus the prior term (sum_k w_k g_k)ᵀ diag(inverse variances) (sum_k w_k g_k), a
+    ``l2`` and ``ncc-exact`` weights maximum a posteriori: they minimise the embedding residual
+    in units of its own per-pixel variance (that of the best data-only embedding: noise plus
+    model error) plus the prior term (sum_k w_k g_k)ᵀ diag(inverse variances) (sum_k w_k g_k), a
     zero-mean Gaussian on the embedded parameters (:func:`posterior_cost`). The published
     ``ncc`` closed form has no such variant and ignores it.
     """
@@ -550,13 +548,13 @@ def _score_samples(vol, grid, nom_c, src_params, sample_params, image_index, mea
     return sample_distances(sums, metric, res2).reshape(c, S), images, H, sums[:, 0].reshape(c, S)
 
 
-def _ranking(dist, params, n_valid, config, fraction=None, best_dist=None):
+def _ranking(dist, params, n_valid, config, fraction, best_dist=None):
     """What samples (c, S) are ranked by: the data distance, or with a prior the posterior cost,
     counting ``fraction`` (c,) of each view's valid pixels (:func:`effective_pixel_fraction`)."""
     inv_var = config.prior_inv_var
     if inv_var is None:
         return dist
-    n_eff = np.asarray(n_valid, np.float64) * (1.0 if fraction is None else np.asarray(fraction)[:, None])
+    n_eff = np.asarray(n_valid, np.float64) * np.asarray(fraction)[:, None]
     return posterior_cost(dist, params, n_eff, "l2" if config.weighting == "l2" else "ncc", inv_var, best_dist)
 
 
@@ -803,19 +801,19 @@ accurate on the mouse scan (0.14 px against 0.37 px after 3 iterations), the qua
 the battery scan (1.08 px against 1.40 px)."""
 
 
-DEFAULT_PRIOR_SIGMA = (0.3,) * 6 + (float(np.deg2rad(0.3)),) * 3
-"""Standard deviation of the nominal geometry's per-view error that :func:`calibrate` assumes by
-default (mm x6, rad x3): the seed system's robot coordination error, a fraction of a millimetre
-and of a degree per arm (design.md §1). It is the prior of the MAP estimate
-(:attr:`LLEConfig.prior_sigma`); set it to the robots' measured accuracy."""
-
-
 def prior_sigma_from(translation_mm: float, rotation_deg: float):
     """The 9 prior standard deviations (mm x6, rad x3) of :func:`calibrate` from one translation
     and one rotation error; None when either is not positive (no prior: the data alone)."""
     if not (translation_mm > 0 and rotation_deg > 0):
         return None
     return (float(translation_mm),) * 6 + (float(np.deg2rad(rotation_deg)),) * 3
+
+
+DEFAULT_PRIOR_SIGMA = prior_sigma_from(0.3, 0.3)
+"""Standard deviation of the nominal geometry's per-view error that :func:`calibrate` assumes by
+default (mm x6, rad x3): the seed system's robot coordination error, a fraction of a millimetre
+and of a degree per arm (design.md §1). It is the prior of the MAP estimate
+(:attr:`LLEConfig.prior_sigma`); set it to the robots' measured accuracy."""
 
 
 def default_lle_configs(weighting: str, seed: int = 0, background=DEFAULT_BACKGROUND,
@@ -1114,7 +1112,7 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
     :data:`DEFAULT_PRIOR_SIGMA`; None = data alone) is the nominal geometry's error: the LLE
     methods then estimate each view by maximum a posteriori (:attr:`LLEConfig.prior_sigma`),
     which kept the strongly truncated carotid scan near its nominal geometry (4.0 px against
-    17.9 px without; 3.4 px nominal) and took the battery drift scan from 1.40 to 1.02 px
+    17.9 px without; 3.4 px nominal) and took the battery drift scan from 1.40 to 1.01 px
     (ncc-lle-exact, bench/bench_calibration.py); explicit ``configs``
     carry their own. The returned volume is the full-size FDK with the final
     geometry. ``progress(message)`` receives one line per step, ``on_iteration(record, params)`` the
