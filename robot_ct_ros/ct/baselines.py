@@ -36,7 +36,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy import ndimage
 
-from .calibration import _as_view_mask, detector_homographies, roi_support_mask, warp_projections
+from .calibration import (_as_view_mask, blas_single_threaded, detector_homographies, roi_support_mask,
+                          warp_projections)
 from .geometry import ConeGeometry, VolumeGrid
 
 GDC_METHODS = ("gdc", "gdc-log")
@@ -164,6 +165,7 @@ def _jacobian_chunk(vol, grid, nom_c: ConeGeometry, g: np.ndarray, fd: np.ndarra
     return pred, J, on_virtual
 
 
+@blas_single_threaded
 def estimate_views_gdc(measured: np.ndarray, nominal: ConeGeometry, params0: np.ndarray, volume: np.ndarray,
                        grid: VolumeGrid, config: GDCConfig = GDCConfig(), valid_mask=None,
                        progress=None) -> tuple[np.ndarray, dict]:

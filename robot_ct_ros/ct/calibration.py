@@ -23,25 +23,42 @@ from typing import NamedTuple
 
 import numpy as np
 from numba import njit, prange
+from threadpoolctl import threadpool_limits
 
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
 from robot_ct_ros.ct.metrics import ncc, remove_gauge, roi_points
 
 WEIGHTINGS = ("l2", "ncc", "ncc-exact")
 
+blas_single_threaded = threadpool_limits.wrap(limits=1, user_api="blas")
+"""Decorator: BLAS (numpy's matrix products) on one thread while the function runs. The
+estimators alternate numba kernels, which use every core, with small BLAS products; BLAS's
+idle threads keep spinning after each call and took the cores from the kernels that
+followed (bench/bench_calibration_speed.py, 2 cores: 68 s with them, 62 s without)."""
+
 
 def _masked(measured, neighbours, mask):
     b = np.asarray(measured, dtype=np.float64)
-    Y = np.asarray(neighbours, dtype=np.float64)
+    Y = np.asarray(neighbours)
     if b.ndim == 1:
         b, Y = b[None], Y[None]
     if Y.ndim != 3 or Y.shape[0] != b.shape[0] or Y.shape[2] != b.shape[1]:
         raise ValueError(f"neighbours must be (n, K, P) for measured (n, P); got {Y.shape} and {b.shape}")
     m = np.ones(b.shape, dtype=bool) if mask is None else np.broadcast_to(np.asarray(mask, dtype=bool), b.shape)
-    m = m & np.isfinite(b) & np.all(np.isfinite(Y), axis=1)
+    # a sum over the neighbours is finite exactly where all of them are (one pass, no (n, K, P) mask)
+    finite = np.isfinite(Y.sum(axis=1, dtype=np.float64))
+    m = m & np.isfinite(b) & finite
     if np.any(m.sum(axis=1) < 2):
         raise ValueError("a view has fewer than 2 valid pixels to embed")
-    return np.where(m, b, 0.0), np.where(m[:, None, :], Y, 0.0), m.astype(np.float64)
+    if not finite.all():  # 0 * nan is nan: only then the slower select
+        Y = np.where(m[:, None, :], Y, 0.0)
+    mf = m.astype(np.float64)
+    return np.where(m, b, 0.0), Y * mf[:, None, :], mf
+
+
+def _gram(A, B) -> np.ndarray:
+    """Batched A Bᵀ of (n, K, P) and (n, J, P) stacks: (n, K, J), by BLAS (einsum does not use it)."""
+    return np.matmul(A, np.swapaxes(B, 1, 2))
 
 
 def _regularised(G, reg):
@@ -100,8 +117,8 @@ def effective_pixel_fraction(measured, predicted, mask, basis=None, highpass_px:
     The residual of ``measured`` (n, rows, cols) against the best-gain fit of ``predicted``
     (after projecting out ``basis``, :func:`background_basis`; the mean by default) is noise
     plus model error. Geometry is located by edges, so only the residual at their scale
-    matters: a Gaussian of ``highpass_px`` pixels (masked, normalised) takes the smooth part
-    out (what FDK of a truncated scan leaves at low frequencies hides no edge). Photon noise
+    matters: a Gaussian of about ``highpass_px`` pixels (masked, normalised; :func:`_smooth_images`)
+    takes the smooth part out (what FDK of a truncated scan leaves at low frequencies hides no edge). Photon noise
     stays white; model error at the edges' scale (edges of the object outside the ROI that the
     volume lacks, a blurred or misplaced reconstruction) is correlated and would otherwise count
     its information once per pixel. With that residual's lag-one correlation ρ along rows and
@@ -112,8 +129,6 @@ def effective_pixel_fraction(measured, predicted, mask, basis=None, highpass_px:
     without prior), 8 pixels let the carotid scan of bench/bench_calibration.py drift (6.1 px
     against 3.4 px nominal), 16 pixels did neither (0.68 px; 4.0 px).
     """
-    from scipy.ndimage import gaussian_filter
-
     mask = np.asarray(mask, bool)
     if basis is None:
         basis = background_basis(mask)
@@ -121,10 +136,9 @@ def effective_pixel_fraction(measured, predicted, mask, basis=None, highpass_px:
     p = _project_out(np.asarray(predicted, np.float64), basis, mask)
     gain = np.einsum("nrc,nrc->n", b, p) / np.maximum(np.einsum("nrc,nrc->n", p, p), 1e-300)
     r = np.where(mask, b - gain[:, None, None] * p, 0.0)
-    if highpass_px > 0:  # float32 and a kernel of +-2.5 sigma: the smooth part needs no more
-        sig, cut = (0.0, highpass_px, highpass_px), 2.5
-        smooth = gaussian_filter(r.astype(np.float32), sig, mode="nearest", truncate=cut) / np.maximum(
-            gaussian_filter(mask.astype(np.float32), sig, mode="nearest", truncate=cut), 1e-6)
+    if highpass_px > 0:
+        smooth = _smooth_images(r.astype(np.float32), highpass_px) / np.maximum(
+            _smooth_images(mask.astype(np.float32), highpass_px), 1e-6)
         r = np.where(mask, r - smooth, 0.0)
     fraction = np.ones(len(r))
     for axis in (1, 2):
@@ -136,6 +150,20 @@ def effective_pixel_fraction(measured, predicted, mask, basis=None, highpass_px:
         rho = np.clip(rho, 0.0, 0.99)
         fraction *= (1.0 - rho) / (1.0 + rho)
     return fraction
+
+
+def _smooth_images(images: np.ndarray, sigma_px: float) -> np.ndarray:
+    """Low-pass of each (rows, cols) image of a stack: three passes of an odd box filter along
+    each axis (edges repeated), a Gaussian of about ``sigma_px`` (at 16 px: 16.5) at a cost
+    independent of its width, where a truncated Gaussian kernel costs 5 sigma taps a pixel."""
+    from scipy.ndimage import uniform_filter1d
+
+    width = 2 * int(np.sqrt(4.0 * sigma_px ** 2 + 1.0) / 2.0) + 1  # 3 (w^2 - 1) / 12 = sigma^2
+    out = images
+    for axis in (1, 2):
+        for _ in range(3):
+            out = uniform_filter1d(out, width, axis=axis, mode="nearest")
+    return out
 
 
 def background_basis(mask: np.ndarray, order_u: int = 0, order_v: int = 0) -> np.ndarray:
@@ -183,7 +211,7 @@ def lle_weights(measured, neighbours, method: str = "ncc-exact", mask=None, reg:
     count = m.sum(axis=1)
     if method == "l2":
         D = b[:, None, :] - Y  # (n, K, P) residuals, zero outside the mask
-        C = np.einsum("nkp,njp->nkj", D, D)
+        C = _gram(D, D)
         w = _solve_regularised(C, np.ones((n, K)), reg)
         w = w / w.sum(axis=1, keepdims=True)
         if prior is None:
@@ -192,21 +220,21 @@ def lle_weights(measured, neighbours, method: str = "ncc-exact", mask=None, reg:
         return _map_weights(_regularised(C, reg) / np.maximum(var, 1e-300)[:, None, None], np.zeros((n, K)),
                             prior)
 
-    if basis is None:  # mean-centre over the valid pixels of each view
-        bc = (b - (b.sum(axis=1) / count)[:, None]) * m
-        Yc = (Y - (Y.sum(axis=2) / count[:, None])[:, :, None]) * m[:, None, :]
-    else:  # project out the background span (orthonormal over the mask)
-        Q = np.asarray(basis, np.float64).reshape(n, -1, b.shape[1]) * m[:, None, :]
-        bc = (b - np.einsum("nbp,nb->np", Q, np.einsum("nbp,np->nb", Q, b))) * m
-        Yc = (Y - np.einsum("nbp,nkb->nkp", Q, np.einsum("nbp,nkp->nkb", Q, Y))) * m[:, None, :]
-    r = np.einsum("nkp,np->nk", Yc, bc)
+    # project the background span out (orthonormal over the mask; the mean alone by default)
+    # without forming the centred neighbours: with Q that basis, Ỹ = Y - (Y Q) Qᵀ gives
+    # G = ỸỸᵀ = Y Yᵀ - (Y Q)(Y Q)ᵀ and, the centred b being orthogonal to Q, r = Ỹ b̃ = Y b̃
+    Q = ((m / np.sqrt(count)[:, None])[:, None, :] if basis is None
+         else np.asarray(basis, np.float64).reshape(n, -1, b.shape[1]) * m[:, None, :])
+    bc = (b - _gram(_gram(b[:, None, :], Q), np.swapaxes(Q, 1, 2))[:, 0]) * m
+    YQ = _gram(Y, Q)
+    G = _gram(Y, Y) - _gram(YQ, YQ)
+    r = _gram(Y, bc[:, None, :])[:, :, 0]
     if method == "ncc":
-        s = np.sqrt(np.einsum("nkp,nkp->nk", Yc, Yc) / np.maximum(count - 1, 1)[:, None])
+        s = np.sqrt(np.diagonal(G, axis1=1, axis2=2) / np.maximum(count - 1, 1)[:, None])
         sb = np.sqrt(np.einsum("np,np->n", bc, bc) / np.maximum(count - 1, 1))
         c = r / np.maximum(count - 1, 1)[:, None] / np.maximum(s * sb[:, None], 1e-300)
         w = c / np.maximum(s, 1e-300)
     else:
-        G = np.einsum("nkp,njp->nkj", Yc, Yc)
         w = _solve_regularised(G, r, reg)
     total = w.sum(axis=1, keepdims=True)
     # A non-positive sum means the affine constraint cannot reach the maximising direction
@@ -258,37 +286,43 @@ def detector_homographies(virtual: ConeGeometry, target: ConeGeometry) -> np.nda
     return np.einsum("nij,njk->nik", P, M)
 
 
+@njit(inline="always", fastmath=True)
+def _warped_value(img, h, r, c):
+    """Bilinear value of virtual image ``img`` at the point homography ``h`` maps detector pixel
+    (c, r) to, and 1.0 where that point lies on the virtual detector (else 0.0, with the value
+    taken at clamped coordinates: branch-free, so the caller's pixel loop vectorises)."""
+    vr, vc = img.shape
+    x_max = vc - 1.0
+    y_max = vr - 1.0
+    z = h[2, 0] * c + h[2, 1] * r + h[2, 2]
+    on = z != 0.0
+    inv = 1.0 / z if on else 0.0
+    x = (h[0, 0] * c + h[0, 1] * r + h[0, 2]) * inv
+    y = (h[1, 0] * c + h[1, 1] * r + h[1, 2]) * inv
+    on = on & (x >= 0.0) & (y >= 0.0) & (x <= x_max) & (y <= y_max)
+    xc = min(max(x, 0.0), x_max)
+    yc = min(max(y, 0.0), y_max)
+    i0 = min(int(xc), vc - 2)
+    j0 = min(int(yc), vr - 2)
+    fx = np.float32(xc - i0)
+    fy = np.float32(yc - j0)
+    top = img[j0, i0] + fx * (img[j0, i0 + 1] - img[j0, i0])
+    bottom = img[j0 + 1, i0] + fx * (img[j0 + 1, i0 + 1] - img[j0 + 1, i0])
+    return np.float64(top + fy * (bottom - top)), 1.0 if on else 0.0
+
+
 @njit(parallel=True, fastmath=True, cache=True)
 def _warp_kernel(images, H, image_index, out, valid):
     m, n_rows, n_cols = out.shape
-    _, vr, vc = images.shape
     for t in prange(m * n_rows):
         s = t // n_rows
         r = t - s * n_rows
-        img = image_index[s]
+        img = images[image_index[s]]
         h = H[s]
         for c in range(n_cols):
-            x = h[0, 0] * c + h[0, 1] * r + h[0, 2]
-            y = h[1, 0] * c + h[1, 1] * r + h[1, 2]
-            z = h[2, 0] * c + h[2, 1] * r + h[2, 2]
-            if z == 0.0:
-                out[s, r, c] = 0.0
-                valid[s, r, c] = False
-                continue
-            x /= z
-            y /= z
-            if x < 0.0 or y < 0.0 or x > vc - 1 or y > vr - 1:
-                out[s, r, c] = 0.0
-                valid[s, r, c] = False
-                continue
-            i0 = min(int(x), vc - 2) if vc > 1 else 0
-            j0 = min(int(y), vr - 2) if vr > 1 else 0
-            fx = x - i0
-            fy = y - j0
-            a = images[img, j0, i0] * (1 - fx) + images[img, j0, min(i0 + 1, vc - 1)] * fx
-            b = images[img, min(j0 + 1, vr - 1), i0] * (1 - fx) + images[img, min(j0 + 1, vr - 1), min(i0 + 1, vc - 1)] * fx
-            out[s, r, c] = a * (1 - fy) + b * fy
-            valid[s, r, c] = True
+            p, on = _warped_value(img, h, r, c)
+            out[s, r, c] = np.float32(p * on)
+            valid[s, r, c] = on > 0.0
 
 
 def warp_projections(virtual_images: np.ndarray, homographies: np.ndarray, image_index, n_rows: int,
@@ -305,6 +339,8 @@ def warp_projections(virtual_images: np.ndarray, homographies: np.ndarray, image
     idx = np.ascontiguousarray(np.broadcast_to(np.asarray(image_index, dtype=np.int64), (H.shape[0],)))
     if idx.size and (idx.min() < 0 or idx.max() >= imgs.shape[0]):
         raise ValueError("image_index out of range")
+    if imgs.shape[1] < 2 or imgs.shape[2] < 2:
+        raise ValueError(f"virtual images must be at least 2 x 2 pixels, got {imgs.shape[1:]}")
     out = np.empty((H.shape[0], n_rows, n_cols), dtype=np.float32)
     valid = np.empty(out.shape, dtype=np.bool_)
     _warp_kernel(imgs, H, idx, out, valid)
@@ -316,22 +352,30 @@ N_SUMS = 7  # n, sum p, sum p^2, sum p b, sum b, sum b^2, sum p b_res; then one 
 
 
 @njit(parallel=True, fastmath=True, cache=True)
-def _warp_score_kernel(images, H, image_index, target_index, measured, residual, basis, mask, out):
+def _warp_score_kernel(images, H, image_index, target_index, measured, residual, basis, weight, out):
     """For each sample s: warp virtual image image_index[s] with H[s] onto the detector and
-    accumulate, over pixels valid in ``mask[target_index[s]]`` and on the virtual detector,
-    the sums listed at N_SUMS followed by sum p * basis[t, k], without storing the image.
-    The fixed sums live in scalars (registers); the homography advances incrementally along
-    each row."""
+    accumulate, over pixels valid in ``weight[target_index[s]]`` (1.0 valid, 0.0 not) and on
+    the virtual detector, the sums listed at N_SUMS followed by sum p * basis[t, k], without
+    storing more than one row of it.
+
+    Branch-free on purpose: every pixel is interpolated (:func:`_warped_value`) and multiplied
+    by its 0/1 weight, so LLVM vectorises the pixel loop; skipping invalid pixels with a
+    branch, as before, took twice as long on 2 cores. The sums are float64 scalars
+    (registers), the first basis image's (the mean: published NCC, L2) among them. Further
+    basis images get a second pass that stores each warped row and takes one dot product per
+    image: a loop over them, or a store, inside the first pass stops its vectorisation.
+    """
     m = H.shape[0]
-    _, vr, vc = images.shape
     _, n_rows, n_cols = measured.shape
     n_basis = basis.shape[1]
-    x_max = vc - 1.0
-    y_max = vr - 1.0
     for s in prange(m):
-        img = image_index[s]
+        img = images[image_index[s]]
         t = target_index[s]
         h = H[s]
+        wt = weight[t]
+        meas = measured[t]
+        res = residual[t]
+        bas = basis[t]
         n = 0.0
         sp = 0.0
         spp = 0.0
@@ -339,39 +383,35 @@ def _warp_score_kernel(images, H, image_index, target_index, measured, residual,
         sb = 0.0
         sbb = 0.0
         spr = 0.0
-        sq = np.zeros(n_basis)
+        sq0 = 0.0
         for r in range(n_rows):
-            xn = h[0, 1] * r + h[0, 2]
-            yn = h[1, 1] * r + h[1, 2]
-            zn = h[2, 1] * r + h[2, 2]
             for c in range(n_cols):
-                if c > 0:
-                    xn += h[0, 0]
-                    yn += h[1, 0]
-                    zn += h[2, 0]
-                if not mask[t, r, c] or zn == 0.0:
-                    continue
-                inv = 1.0 / zn
-                x = xn * inv
-                y = yn * inv
-                if x < 0.0 or y < 0.0 or x > x_max or y > y_max:
-                    continue
-                i0 = min(int(x), vc - 2)
-                j0 = min(int(y), vr - 2)
-                fx = x - i0
-                fy = y - j0
-                p = ((images[img, j0, i0] * (1 - fx) + images[img, j0, i0 + 1] * fx) * (1 - fy)
-                     + (images[img, j0 + 1, i0] * (1 - fx) + images[img, j0 + 1, i0 + 1] * fx) * fy)
-                b = measured[t, r, c]
-                n += 1.0
+                p, on = _warped_value(img, h, r, c)
+                w = np.float64(wt[r, c]) * on
+                p *= w
+                b = np.float64(meas[r, c])
+                bw = b * w
+                n += w
                 sp += p
                 spp += p * p
                 spb += p * b
-                sb += b
-                sbb += b * b
-                spr += p * residual[t, r, c]
-                for k in range(n_basis):
-                    sq[k] += p * basis[t, k, r, c]
+                sb += bw
+                sbb += bw * b
+                spr += p * res[r, c]
+                sq0 += p * bas[0, r, c]
+        sq = np.zeros(n_basis)
+        sq[0] = sq0
+        if n_basis > 1:  # a smooth background beyond the mean: a second pass, row by row
+            row = np.empty(n_cols)
+            for r in range(n_rows):
+                for c in range(n_cols):
+                    p, on = _warped_value(img, h, r, c)
+                    row[c] = p * np.float64(wt[r, c]) * on
+                for k in range(1, n_basis):
+                    acc = 0.0
+                    for c in range(n_cols):
+                        acc += row[c] * bas[k, r, c]
+                    sq[k] += acc
         out[s, 0] = n
         out[s, 1] = sp
         out[s, 2] = spp
@@ -523,8 +563,8 @@ def _score_samples(vol, grid, nom_c, src_params, sample_params, image_index, mea
     ``src_params`` (c * n_src, 9): one ray-cast per row onto a virtual detector enlarged by
     ``margin_px`` (rows, cols) on each side; ``sample_params`` (c, S, 9) are rendered from the
     ray-cast ``image_index`` (c * S,) by exact detector homographies and scored in one kernel.
-    Returns the distances, the ray-cast images, the homographies and the samples' valid pixel
-    counts (c, S).
+    Returns the distances, the ray-cast images, the homographies, the samples' valid pixel
+    counts (c, S) and the virtual detectors' geometry.
     """
     from .projector import forward_project
 
@@ -535,6 +575,16 @@ def _score_samples(vol, grid, nom_c, src_params, sample_params, image_index, mea
     virtual = _repeat_views(nom_c, n_src).perturbed(src_params).with_detector(
         (nom_c.n_rows + 2 * mr) * f, (nom_c.n_cols + 2 * mc) * f, nom_c.row_pitch_mm / f, nom_c.col_pitch_mm / f)
     images = forward_project(vol, grid, virtual)
+    dist, H, n_valid = _score_warped(images, virtual, nom_c, sample_params, image_index, measured_c, mask_c, config)
+    return dist, images, H, n_valid, virtual
+
+
+def _score_warped(images, virtual, nom_c, sample_params, image_index, measured_c, mask_c, config):
+    """Distances (c, S) of samples ``sample_params`` (c, S, 9) rendered by homography from the
+    ray-casts ``images`` on the ``virtual`` detectors (``image_index`` (c * S,) picks each
+    sample's; it must share that ray-cast's source position), the homographies and the valid
+    pixel counts (c, S)."""
+    c, S = sample_params.shape[:2]
     samples = _repeat_views(nom_c, S).perturbed(sample_params.reshape(-1, 9))
     H = np.ascontiguousarray(detector_homographies(virtual.subset(image_index), samples))
     target_index = np.repeat(np.arange(c), S)
@@ -542,10 +592,10 @@ def _score_samples(vol, grid, nom_c, src_params, sample_params, image_index, mea
     residual = _project_out(measured_c, basis, mask_c)
     sums = np.empty((c * S, N_SUMS + basis.shape[1]), np.float64)
     _warp_score_kernel(images, H, image_index, target_index, measured_c, residual.astype(np.float32),
-                       basis.astype(np.float32), mask_c, sums)
+                       basis.astype(np.float32), mask_c.astype(np.float32), sums)
     res2 = np.repeat((residual.reshape(c, -1).astype(np.float64) ** 2).sum(axis=1), S)
     metric = "l2" if config.weighting == "l2" else "ncc"
-    return sample_distances(sums, metric, res2).reshape(c, S), images, H, sums[:, 0].reshape(c, S)
+    return sample_distances(sums, metric, res2).reshape(c, S), H, sums[:, 0].reshape(c, S)
 
 
 def _ranking(dist, params, n_valid, config, fraction, best_dist=None):
@@ -599,7 +649,7 @@ def _shift_search(measured, nominal, params, vol, grid, config, mask_all):
             sample_params[:, :, 3:5] += offsets
             image_index = np.repeat(np.arange(c), S)
             mask_c = np.ascontiguousarray(mask_all[idx])
-            dist, images, H, n_valid = _score_samples(vol, grid, nominal.subset(idx), out[idx], sample_params,
+            dist, images, H, n_valid, _ = _score_samples(vol, grid, nominal.subset(idx), out[idx], sample_params,
                                                       image_index, measured[idx], mask_c, config, margin)
             centre = S // 2  # the zero offset
             fraction = _best_fit_fraction(images, H, image_index, S, dist, measured[idx], mask_c, config)
@@ -610,6 +660,7 @@ def _shift_search(measured, nominal, params, vol, grid, config, mask_all):
     return out
 
 
+@blas_single_threaded
 def estimate_views(measured: np.ndarray, nominal: ConeGeometry, params0: np.ndarray, volume: np.ndarray,
                    grid: VolumeGrid, config: LLEConfig = LLEConfig(), valid_mask=None,
                    progress=None) -> tuple[np.ndarray, dict]:
@@ -663,8 +714,8 @@ def estimate_views(measured: np.ndarray, nominal: ConeGeometry, params0: np.ndar
             sample_params = g[:, None, :] + delta
             image_index = (np.arange(c)[:, None] * n_src + a).reshape(-1)
             mask_c = np.ascontiguousarray(mask_all[idx])
-            data_dist, images, H, n_valid = _score_samples(vol, grid, nom_c, src_params, sample_params, image_index,
-                                                           measured[idx], mask_c, config, margin)
+            data_dist, images, H, n_valid, virtual = _score_samples(
+                vol, grid, nom_c, src_params, sample_params, image_index, measured[idx], mask_c, config, margin)
             fraction = _best_fit_fraction(images, H, image_index, S, data_dist, measured[idx], mask_c, config)
             dist = _ranking(data_dist, sample_params, n_valid, config, fraction)
             if fraction is not None:
@@ -688,8 +739,12 @@ def estimate_views(measured: np.ndarray, nominal: ConeGeometry, params0: np.ndar
             best = np.argmin(dist, axis=1)  # by posterior with a prior
             d_best = data_dist[rows, best]
             if config.safeguard:
-                p_new = forward_project(vol, grid, nom_c.perturbed(g_new))
-                d_new = _distances(p_new, measured[idx], mask_c, metric, config.background)
+                if n_src == 1:  # the samples' common source: the ray-cast renders g_new by homography too
+                    d_new = _score_warped(images, virtual, nom_c, g_new[:, None, :], np.arange(c), measured[idx],
+                                          mask_c, config)[0][:, 0]
+                else:
+                    p_new = forward_project(vol, grid, nom_c.perturbed(g_new))
+                    d_new = _distances(p_new, measured[idx], mask_c, metric, config.background)
                 if config.prior_sigma is None:
                     worse = ~(d_new <= d_best)
                 else:  # compare posteriors, on the same data reference
@@ -953,7 +1008,7 @@ class EstimationVolume(NamedTuple):
 
 
 def reconstruct_for_estimation(line_integrals, geom, grid, mask, sirt_iterations: int, fdk_kwargs=None,
-                               fdk_shape_yx=None, correction=None) -> EstimationVolume:
+                               fdk_shape_yx=None, correction=None, measure_fdk: bool = True) -> EstimationVolume:
     """The volume the views are registered against: FDK, then ``sirt_iterations`` of masked SIRT.
 
     FDK of a truncated scan does not reproject to its own data (the extrapolated rows leave
@@ -971,7 +1026,8 @@ def reconstruct_for_estimation(line_integrals, geom, grid, mask, sirt_iterations
     the cost of fine SIRT; on the 360-view scan of :data:`SCHEDULES` it registered the views
     worse than the FDK alone). Returns an :class:`EstimationVolume`; its ``fdk_ncc`` measures how
     consistent the geometry is, which SIRT cannot inflate by fitting an underdetermined
-    (few-view) problem.
+    (few-view) problem. It costs a reprojection: without SIRT and with ``measure_fdk`` False it
+    is skipped (NaN).
     """
     from .reconstruction import fdk, resample, sirt
 
@@ -985,6 +1041,8 @@ def reconstruct_for_estimation(line_integrals, geom, grid, mask, sirt_iterations
     if correction is not None:
         delta, delta_grid = correction
         return EstimationVolume(vol + resample(delta, delta_grid, grid), float("nan"), vol)
+    if sirt_iterations <= 0 and not measure_fdk:
+        return EstimationVolume(vol, float("nan"), vol)
     corr_fdk = projection_consistency(vol, grid, geom, line_integrals, mask)[1]
     out = vol
     if sirt_iterations > 0:
@@ -1076,6 +1134,7 @@ def _level(li, mask, nominal, grid, factor):
     return li_b, mask_b, nominal.binned(factor), grid.binned(factor)
 
 
+@blas_single_threaded
 def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGrid, *,
               method: str = "ncc-lle-exact", n_iter: int = 2, valid_mask=None, schedule: str = "accurate",
               coarse_binning: int | None = None, fine_binning: int | None = None, fine_volume: str | None = None,
@@ -1185,7 +1244,7 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
         correction = (rec_c.volume - rec_c.fdk, grid_c) if fine_volume == "fdk+coarse-sirt" else None
         vol = reconstruct_for_estimation(li_f, nom_f.perturbed(params), grid_f, mask_f,
                                          sirt_iterations if fine_volume == "sirt" else 0, fdk_kwargs,
-                                         inner_f, correction=correction).volume
+                                         inner_f, correction=correction, measure_fdk=False).volume
         params, fine_info = estimate(li_f, nom_f, params, vol, grid_f, narrowed(fine_cfg, it), mask_f)
         params = remove_gauge(nominal.perturbed(params), nominal, points).params_relative_to(nominal)
         params = hold_magnification(nominal, params, points)
