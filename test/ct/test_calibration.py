@@ -130,6 +130,45 @@ def test_homography_requires_same_source_and_reports_off_detector_pixels():
         detector_homographies(virtual, big.replace(source_mm=[[121.0, 0.0, 0.0]]))
 
 
+@pytest.mark.parametrize("background", [(0, 0), (2, 1)])
+def test_fused_warp_and_score_sums_equal_those_of_the_stored_warps(background):
+    """The scoring kernel (branch-free, never stores a warped image) accumulates the same sums
+    as the warped images themselves, over the mask and only where the ray hits the virtual
+    detector (some of these detectors hang over its edge)."""
+    from robot_ct_ros.ct.calibration import N_SUMS, _project_out, _warp_score_kernel, background_basis
+
+    rng = np.random.default_rng(11)
+    source = np.array([120.0, 0.0, 0.0])
+    virtual = _view(source, [-200.0, 0.0, 0.0], [0, 1, 0], [0, 0, 1], 30, 40, 0.1)
+    nominal = _view(source, [-200.0, 0.0, 0.0], [0, 1, 0], [0, 0, 1], 24, 36, 0.11)
+    n_targets, S = 2, 5
+    params = np.zeros((n_targets * S, 9))
+    params[:, 3:6] = rng.uniform(-0.6, 0.6, size=(n_targets * S, 3))
+    params[:, 6:9] = np.deg2rad(rng.uniform(-2.0, 2.0, size=(n_targets * S, 3)))
+    moved = nominal.subset(np.zeros(n_targets * S, int)).perturbed(params)
+    H = np.ascontiguousarray(detector_homographies(virtual.subset(np.zeros(n_targets * S, int)), moved))
+    images = np.stack([_ray_image(virtual), rng.random((30, 40)).astype(np.float32)])
+    image_index = rng.integers(0, 2, size=n_targets * S)
+    target_index = np.repeat(np.arange(n_targets), S)
+    measured = rng.random((n_targets, 24, 36)).astype(np.float32)
+    mask = rng.random((n_targets, 24, 36)) > 0.2
+    basis = background_basis(mask, *background)
+    residual = _project_out(measured, basis, mask)
+    sums = np.empty((n_targets * S, N_SUMS + basis.shape[1]))
+    _warp_score_kernel(images, H, image_index, target_index, measured, residual.astype(np.float32),
+                       basis.astype(np.float32), mask.astype(np.float32), sums)
+
+    warped, on = warp_projections(images, H, image_index, 24, 36)
+    assert (~on).any() and on.any()
+    use = (mask[target_index] & on).astype(np.float64)
+    p = warped.astype(np.float64) * use
+    b = measured[target_index].astype(np.float64)
+    expected = np.stack([use.sum((1, 2)), p.sum((1, 2)), (p * p).sum((1, 2)), (p * b).sum((1, 2)),
+                         (b * use).sum((1, 2)), (b * b * use).sum((1, 2)), (p * residual[target_index]).sum((1, 2))]
+                        + [(p * basis[target_index, k]).sum((1, 2)) for k in range(basis.shape[1])], axis=1)
+    np.testing.assert_allclose(sums, expected, rtol=1e-5, atol=1e-6 * np.abs(expected).max())
+
+
 def test_ncc_exact_falls_back_to_best_neighbour_when_no_finite_maximiser():
     rng = np.random.default_rng(5)
     for _ in range(50):  # find random data whose NCC maximiser lies on the wrong side of sum(w) = 1
