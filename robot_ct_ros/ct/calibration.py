@@ -803,8 +803,8 @@ class IterationRecord:
     (LLE with a prior) the median fraction of each view's pixels whose residual counted as
     independent at the last level (:func:`effective_pixel_fraction`): near 1 where the volume
     explains the data up to photon noise, near 0 where model error dominates and the estimate
-    leans on the prior (ncc-lle-exact on bench/bench_calibration.py: 0.28, 0.67, 0.72 over three
-    iterations on the mouse scan, 0.005 on the battery scan, 0.02 to 0.05 on the carotid scan)."""
+    leans on the prior (ncc-lle-exact on bench/bench_calibration.py: 0.33, 0.73, 0.77 over three
+    iterations on the mouse scan, 0.006 on the battery scan, 0.02 to 0.03 on the carotid scan)."""
 
     iteration: int
     projection_rmse: float
