@@ -321,8 +321,8 @@ def _warp_kernel(images, H, image_index, out, valid):
         h = H[s]
         for c in range(n_cols):
             p, on = _warped_value(img, h, r, c)
-            out[s, r, c] = np.float32(p * on)
             valid[s, r, c] = on > 0.0
+            out[s, r, c] = np.float32(p) if on > 0.0 else np.float32(0.0)
 
 
 def warp_projections(virtual_images: np.ndarray, homographies: np.ndarray, image_index, n_rows: int,
@@ -356,7 +356,8 @@ def _warp_score_kernel(images, H, image_index, target_index, measured, residual,
     """For each sample s: warp virtual image image_index[s] with H[s] onto the detector and
     accumulate, over pixels valid in ``weight[target_index[s]]`` (1.0 valid, 0.0 not) and on
     the virtual detector, the sums listed at N_SUMS followed by sum p * basis[t, k], without
-    storing more than one row of it.
+    storing more than one row of it. Every input must be finite, excluded pixels too (they are
+    multiplied by 0, and 0 * nan is nan).
 
     Branch-free on purpose: every pixel is interpolated (:func:`_warped_value`) and multiplied
     by its 0/1 weight, so LLVM vectorises the pixel loop; skipping invalid pixels with a
@@ -590,6 +591,8 @@ def _score_warped(images, virtual, nom_c, sample_params, image_index, measured_c
     target_index = np.repeat(np.arange(c), S)
     basis = background_basis(mask_c, *config.background)
     residual = _project_out(measured_c, basis, mask_c)
+    # the kernel weights every pixel by 0 or 1: NaN or inf in an excluded one must not reach it
+    measured_c = np.where(mask_c, measured_c, np.float32(0.0))
     sums = np.empty((c * S, N_SUMS + basis.shape[1]), np.float64)
     _warp_score_kernel(images, H, image_index, target_index, measured_c, residual.astype(np.float32),
                        basis.astype(np.float32), mask_c.astype(np.float32), sums)

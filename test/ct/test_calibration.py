@@ -294,6 +294,27 @@ def test_shift_search_captures_a_large_detector_shift_that_the_local_search_miss
     assert errs[0] > 3.0 and errs[6] < 0.5, errs
 
 
+@pytest.mark.parametrize("weighting,source_positions", [("l2", "star"), ("l2", "fixed"), ("ncc", "fixed")])
+def test_nan_and_inf_pixels_change_nothing_but_their_own_exclusion(weighting, source_positions):
+    """Dead pixels reported as NaN or inf are excluded like masked ones: the estimate equals the
+    one with those pixels zeroed and marked invalid (the scoring kernel reads every pixel and
+    weights it 0 or 1, so a NaN must never reach it)."""
+    nominal, true, grid, measured = _small_scan(n_views=6)
+    volume = voxelize(mouse_phantom(body_width_mm=9.0, length_mm=10.0), grid)
+    rng = np.random.default_rng(3)
+    bad = rng.random(measured.shape) < 0.05
+    broken = measured.copy()
+    broken[bad] = np.where(rng.random(bad.sum()) < 0.5, np.nan, np.inf)
+    config = LLEConfig(weighting=weighting, levels=2, n_samples=48, source_positions=source_positions,
+                       shift_search_px=2, prior_sigma=(0.3,) * 6 + (0.005,) * 3)
+    got, _ = estimate_views(broken, nominal, np.zeros((6, 9)), volume, grid, config)
+    want, _ = estimate_views(np.where(bad, 0.0, measured), nominal, np.zeros((6, 9)), volume, grid, config,
+                             valid_mask=~bad)
+    assert np.isfinite(got).all()
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
+    assert np.abs(want).max() > 0.01  # the views did move
+
+
 def test_hold_magnification_restores_the_nominal_object_scale():
     nominal, _, grid, _ = _small_scan(n_views=12)
     pts = roi_points(grid)
