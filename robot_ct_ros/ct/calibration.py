@@ -34,7 +34,8 @@ blas_single_threaded = threadpool_limits.wrap(limits=1, user_api="blas")
 """Decorator: BLAS (numpy's matrix products) on one thread while the function runs. The
 estimators alternate numba kernels, which use every core, with small BLAS products; BLAS's
 idle threads keep spinning after each call and took the cores from the kernels that
-followed (bench/bench_calibration_speed.py, 2 cores: 68 s with them, 62 s without)."""
+followed (calibrate on the scan of bench/bench_calibration_speed.py, 2 cores: 68 s with them,
+62 s without)."""
 
 
 def _masked(measured, neighbours, mask):
@@ -117,12 +118,12 @@ def effective_pixel_fraction(measured, predicted, mask, basis=None, highpass_px:
     The residual of ``measured`` (n, rows, cols) against the best-gain fit of ``predicted``
     (after projecting out ``basis``, :func:`background_basis`; the mean by default) is noise
     plus model error. Geometry is located by edges, so only the residual at their scale
-    matters: a Gaussian of about ``highpass_px`` pixels (masked, normalised; :func:`_smooth_images`)
-    takes the smooth part out (what FDK of a truncated scan leaves at low frequencies hides no edge). Photon noise
-    stays white; model error at the edges' scale (edges of the object outside the ROI that the
-    volume lacks, a blurred or misplaced reconstruction) is correlated and would otherwise count
-    its information once per pixel. With that residual's lag-one correlation ρ along rows and
-    along columns, the fraction is ((1 - ρ_u) / (1 + ρ_u)) ((1 - ρ_v) / (1 + ρ_v)), the effective
+    matters: a Gaussian of about ``highpass_px`` pixels (masked, normalised;
+    :func:`_smooth_images`) takes the smooth part out (what FDK of a truncated scan leaves at
+    low frequencies hides no edge). Photon noise stays white; model error at the edges' scale
+    (edges of the object outside the ROI that the volume lacks, a blurred or misplaced
+    reconstruction) is correlated and would otherwise count its information once per pixel.
+    With that residual's lag-one correlation ρ along rows and along columns, the fraction is ((1 - ρ_u) / (1 + ρ_u)) ((1 - ρ_v) / (1 + ρ_v)), the effective
     sample size of a first-order autoregressive field: about 1 for white residuals. The 16
     pixels were measured: on the 360-view mouse scan of bench/bench_calibration_speed.py the
     raw residual (0) made the prior hold the views back (0.90 px after 2 iterations, 0.64 px
@@ -653,7 +654,7 @@ def _shift_search(measured, nominal, params, vol, grid, config, mask_all):
             image_index = np.repeat(np.arange(c), S)
             mask_c = np.ascontiguousarray(mask_all[idx])
             dist, images, H, n_valid, _ = _score_samples(vol, grid, nominal.subset(idx), out[idx], sample_params,
-                                                      image_index, measured[idx], mask_c, config, margin)
+                                                         image_index, measured[idx], mask_c, config, margin)
             centre = S // 2  # the zero offset
             fraction = _best_fit_fraction(images, H, image_index, S, dist, measured[idx], mask_c, config)
             dist = _ranking(dist, sample_params, n_valid, config, fraction)
