@@ -123,8 +123,9 @@ def effective_pixel_fraction(measured, predicted, mask, basis=None, highpass_px:
     low frequencies hides no edge). Photon noise stays white; model error at the edges' scale
     (edges of the object outside the ROI that the volume lacks, a blurred or misplaced
     reconstruction) is correlated and would otherwise count its information once per pixel.
-    With that residual's lag-one correlation ρ along rows and along columns, the fraction is ((1 - ρ_u) / (1 + ρ_u)) ((1 - ρ_v) / (1 + ρ_v)), the effective
-    sample size of a first-order autoregressive field: about 1 for white residuals. The 16
+    With that residual's lag-one correlation ρ along rows and along columns, the fraction is
+    ((1 - ρ_u) / (1 + ρ_u)) ((1 - ρ_v) / (1 + ρ_v)), the effective sample size of a first-order
+    autoregressive field: about 1 for white residuals. The 16
     pixels were measured: on the 360-view mouse scan of bench/bench_calibration_speed.py the
     raw residual (0) made the prior hold the views back (0.90 px after 2 iterations, 0.64 px
     without prior), 8 pixels let the carotid scan of bench/bench_calibration.py drift (6.1 px
