@@ -586,15 +586,14 @@ def _score_warped(images, virtual, nom_c, sample_params, image_index, measured_c
     """Distances (c, S) of samples ``sample_params`` (c, S, 9) rendered by homography from the
     ray-casts ``images`` on the ``virtual`` detectors (``image_index`` (c * S,) picks each
     sample's; it must share that ray-cast's source position), the homographies and the valid
-    pixel counts (c, S)."""
+    pixel counts (c, S). ``measured_c`` must be finite outside ``mask_c`` too (the kernel
+    weights every pixel by 0 or 1, and 0 * nan is nan)."""
     c, S = sample_params.shape[:2]
     samples = _repeat_views(nom_c, S).perturbed(sample_params.reshape(-1, 9))
     H = np.ascontiguousarray(detector_homographies(virtual.subset(image_index), samples))
     target_index = np.repeat(np.arange(c), S)
     basis = background_basis(mask_c, *config.background)
     residual = _project_out(measured_c, basis, mask_c)
-    # the kernel weights every pixel by 0 or 1: NaN or inf in an excluded one must not reach it
-    measured_c = np.where(mask_c, measured_c, np.float32(0.0))
     sums = np.empty((c * S, N_SUMS + basis.shape[1]), np.float64)
     _warp_score_kernel(images, H, image_index, target_index, measured_c, residual.astype(np.float32),
                        basis.astype(np.float32), mask_c.astype(np.float32), sums)
@@ -690,6 +689,7 @@ def estimate_views(measured: np.ndarray, nominal: ConeGeometry, params0: np.ndar
     metric = "l2" if config.weighting == "l2" else "ncc"
     mask_all = _as_view_mask(valid_mask, measured.shape) & np.isfinite(measured)
     mask_all = mask_all & roi_support_mask(nominal, params, grid, config.roi_support_fraction)
+    measured = np.where(mask_all, measured, np.float32(0.0))  # dead pixels may be nan or inf: see _score_warped
     if config.shift_search_px > 0:
         params = _shift_search(measured, nominal, params, vol, grid, config, mask_all)
     rng = np.random.default_rng(config.seed)
