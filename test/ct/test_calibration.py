@@ -237,6 +237,28 @@ def test_calibrate_reduces_the_geometry_error(method):
     assert all(0.0 < h.independent_fraction <= 1.0 for h in result.history)  # the default prior is on
 
 
+def test_coarse_warm_up_passes_converge_the_first_iteration_and_stop_when_the_views_settle():
+    """Re-reconstructing the coarse volume between coarse passes of the first iteration starts
+    the finer level from a better volume; the passes stop once they move the views less than
+    ``coarse_tol_px``."""
+    nominal, true, grid, measured = _small_scan()
+    pts = roi_points(grid)
+    errors, said = {}, {}
+    for passes in (1, 3):
+        said[passes] = []
+        result = calibrate(measured, nominal, grid, method="ncc-lle-exact", n_iter=1, coarse_passes=passes,
+                           progress=said[passes].append)
+        errors[passes] = reprojection_error(result.geom, true, pts)["mean_px"]
+    assert errors[3] < 0.85 * errors[1], errors
+    moved = [float(line.split("moved ")[1].split()[0]) for line in said[3] if "coarse estimate" in line]
+    assert len(moved) >= 2 and moved[1] < moved[0]
+    assert len(moved) == 3 or moved[-1] < 0.1  # stopped early only because the views settled
+    single = [line for line in said[1] if "coarse estimate" in line]
+    assert len(single) == 1
+    with pytest.raises(ValueError, match="coarse_passes"):
+        calibrate(measured, nominal, grid, coarse_passes=0)
+
+
 def test_ncc_ignores_an_intensity_offset_that_misleads_l2():
     """Truncation and flat-field drift add a smooth offset to every interior projection."""
     nominal, true, grid, measured = _small_scan(body_width_mm=14.0, length_mm=30.0)
