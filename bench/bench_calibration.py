@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import inspect
 import json
 import os
 import platform
@@ -131,6 +132,9 @@ def run_method(method: str, sc, iterations: int, say):
     raise ValueError(f"unknown method {method!r}")
 
 
+_STOP_PX = inspect.signature(calibration.calibrate).parameters["stop_update_px"].default
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--views", type=int, default=90, help="views per scan (default 90)")
@@ -139,7 +143,7 @@ def main(argv=None) -> int:
                     help="binning of the 55 um pixels (default 4: 220 um, a scaled-down detector with twice the "
                          "seed system's field of view per pixel; 2 = the seed system's 110 um)")
     ap.add_argument("--vol", type=int, default=64, help="ROI grid voxels across (default 64; axial from the cone)")
-    ap.add_argument("--iterations", type=int, default=3, help="outer iterations per method (default 3)")
+    ap.add_argument("--iterations", type=int, default=3, help="outer iterations per method at most (default 3)")
     ap.add_argument("--scenarios", default="abc", help="subset of 'abc' (default abc)")
     ap.add_argument("--methods", default=",".join(ALL_METHODS), help="comma-separated subset of " + ", ".join(ALL_METHODS))
     ap.add_argument("--seed", type=int, default=0)
@@ -205,7 +209,8 @@ def main(argv=None) -> int:
     lines = ["# Calibration benchmark (bench/bench_calibration.py)", "",
              f"Simulated robotic interior scans (seed-system ROI trajectory, reduced detector): {args.views} views, "
              f"detector {args.det[0]}x{args.det[1]} at {args.binning * 55} um, photon-counting noise; ROI grid "
-             f"{args.vol} voxels across; {args.iterations} outer iteration(s) per method; seed {args.seed}. "
+             f"{args.vol} voxels across; at most {args.iterations} outer iteration(s) per method (fewer where one "
+             f"moved the views less than {_STOP_PX} px); seed {args.seed}. "
              f"GDC methods: Gauss-Newton variant, see baselines.py. Reprojection error: ROI "
              f"points, best global rigid motion (gauge) removed, pixels. SSIM against the FDK reconstruction with "
              f"the true geometry, each estimate moved into the true gauge first. Total {total / 60:.1f} min on {os.cpu_count()} CPU(s) "

@@ -15,7 +15,8 @@ iteration whose error is within 10 % of the best it reaches in the run; the rati
 times is the speed-to-accuracy ratio. GDC-LoG runs 6 iterations, as in the published comparison
 (design.md: it took 6 where NCC-LLE took 2): it keeps improving slowly, 1.44 / 1.33 / 1.27 /
 1.23 / 1.21 px after iterations 2 to 6 on this scan, so a shorter run would stop it before it
-reaches its own accuracy.
+reaches its own accuracy. Every iteration asked for runs (``stop_update_px=0``): the
+measurement is the whole trace.
 
     .venv/bin/python bench/bench_calibration_speed.py                 # about 10 min on 2 cores
     .venv/bin/python bench/bench_calibration_speed.py --views 120 --det 128 --vol 128 --no-rtk
@@ -56,7 +57,7 @@ def run(method: str, sc, iterations: int, schedule: str, say) -> dict:
         say(f"  {method} iteration {rec.iteration}: {t:6.1f} s, error {e['mean_px']:.3f} px (p95 {e['p95_px']:.3f})")
 
     res = calibration.calibrate(sc.li, sc.nominal, sc.grid, method=method, n_iter=iterations, valid_mask=sc.mask,
-                                schedule=schedule, on_iteration=on_iteration,
+                                schedule=schedule, on_iteration=on_iteration, stop_update_px=0.0,
                                 progress=lambda m: say(f"    {m}"))
     total = res.wall_s - sum(x["eval_s"] for x in trace)
     best = min(x["mean_px"] for x in trace)

@@ -109,10 +109,12 @@ def calibration_methods() -> tuple:
 
 
 def calibrate_bag(bag, out, *, method: str = "ncc-lle-exact", iterations: int = 2, voxel_mm=None, shape=None,
-                  schedule: str = "accurate", prior_sigma="default", say=_say) -> dict:
+                  schedule: str = "accurate", prior_sigma="default", stop_update_px: float | None = None,
+                  say=_say) -> dict:
     """Calibrate the per-view geometry of a scan bag offline and reconstruct it.
 
-    Runs :func:`robot_ct_ros.ct.calibration.calibrate` (method, iterations, schedule,
+    Runs :func:`robot_ct_ros.ct.calibration.calibrate` (method, at most ``iterations``
+    outer iterations, schedule, stop_update_px (None: calibrate's default),
     prior_sigma: ``"default"`` for calibration.DEFAULT_PRIOR_SIGMA, None for the data alone;
     ``"fdk"`` only reconstructs with the nominal geometry). Writes into ``out``: the
     corrected bag (``<bag name>_corrected``: every message of the input plus
@@ -139,9 +141,11 @@ def calibrate_bag(bag, out, *, method: str = "ncc-lle-exact", iterations: int = 
 
         prior = DEFAULT_PRIOR_SIGMA if isinstance(prior_sigma, str) and prior_sigma == "default" else prior_sigma
         report["prior_sigma"] = None if prior is None else [float(x) for x in prior]
+        stop = {} if stop_update_px is None else {"stop_update_px": float(stop_update_px)}
         result = calibrate(li, scan.geom, grid, method=method, n_iter=iterations, valid_mask=mask, schedule=schedule,
-                           prior_sigma=prior, progress=say)
+                           prior_sigma=prior, progress=say, **stop)
         geom, volume = result.geom, result.volume
+        report["iterations_run"] = len(result.history)
         # strict JSON: a quantity an iteration did not measure (NaN) is null
         history = [{k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in h.__dict__.items()}
                    for h in result.history]
@@ -314,7 +318,8 @@ def _cmd_reconstruct(args) -> int:
 
 def _cmd_calibrate(args) -> int:
     calibrate_bag(args.bag, args.out, method=args.method, iterations=args.iterations, voxel_mm=args.voxel_mm,
-                  shape=args.shape, schedule=args.schedule, prior_sigma=args.prior_sigma)
+                  shape=args.shape, schedule=args.schedule, prior_sigma=args.prior_sigma,
+                  stop_update_px=args.stop_update_px)
     return 0
 
 
@@ -361,7 +366,11 @@ def main(argv: list[str] | None = None) -> int:
         else:
             p.add_argument("--method", default="ncc-lle-exact",
                            help=f"one of {', '.join(calibration_methods())} (fdk: no correction)")
-            p.add_argument("--iterations", type=int, default=2, help="outer iterations (default 2)")
+            p.add_argument("--iterations", type=int, default=2,
+                           help="outer iterations at most (default 2; fewer when one moves the views < --stop-px)")
+            p.add_argument("--stop-px", type=float, default=None, dest="stop_update_px",
+                           help="stop when an iteration moves the views less than this (gauge-aligned mean px; "
+                                "default 0.05; 0: always --iterations)")
             from robot_ct_ros.ct.calibration import SCHEDULES
 
             p.add_argument("--schedule", choices=tuple(SCHEDULES), default="accurate",

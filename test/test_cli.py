@@ -60,11 +60,14 @@ def test_simulate_info_reconstruct_calibrate(tmp_path, capsys):
     assert "corrected geometry: yes" in capsys.readouterr().out
 
     mapped = tmp_path / "calib_prior"
-    assert main(["calibrate", str(bag), "--method", "ncc-lle", "--iterations", "1", "--prior-sigma", "0.2,0.25",
-                 "--out", str(mapped)]) == 0
+    assert main(["calibrate", str(bag), "--method", "ncc-lle", "--iterations", "3", "--prior-sigma", "0.2,0.25",
+                 "--stop-px", "1000", "--out", str(mapped)]) == 0
     report = json.loads((mapped / "report.json").read_text())
     np.testing.assert_allclose(report["prior_sigma"], [0.2] * 6 + [np.deg2rad(0.25)] * 3)
     assert 0.0 < report["history"][0]["independent_fraction"] <= 1.0
+    # every iteration moves the views less than 1000 px: one of at most three ran
+    assert report["iterations"] == 3 and report["iterations_run"] == len(report["history"]) == 1
+    assert report["history"][0]["update_px"] > 0.0
     data_alone = tmp_path / "calib_gdc"  # GDC has no independent-pixel fraction: NaN in the record
     assert main(["calibrate", str(bag), "--method", "gdc", "--iterations", "1", "--prior-sigma", "none",
                  "--out", str(data_alone)]) == 0

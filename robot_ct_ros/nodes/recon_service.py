@@ -15,7 +15,8 @@ Topics and services (contract names from robot_ct_ros.bag.format; relative names
               recon/report (std_msgs/String JSON, transient-local: where the results are and the
               figures), /diagnostics (1 Hz)
 Parameters (config/recon_service.yaml): method (a calibration method of robot_ct_ros.ct.calibration,
-or "fdk" for no correction), iterations, schedule (accurate or fast, calibration.SCHEDULES),
+or "fdk" for no correction), iterations (at most), stop_update_px (stop earlier when an iteration moves the
+views less than this, px), schedule (accurate or fast, calibration.SCHEDULES),
 prior_sigma_translation_m and prior_sigma_rotation_rad (the robots' per-view coordination error, the
 prior of the calibration's MAP estimate; 0 = the data alone), voxel_size_m (0: scan_info's, else pitch / magnification),
 roi_shape ([nx, ny, nz] voxels; zeros: scan_info's ROI or the field of view), output_dir, auto_run,
@@ -117,7 +118,9 @@ def truth_metrics(bag, geom_corrected, volume_corrected, grid) -> dict | None:
 def markdown_report(report: dict) -> str:
     lines = [f"# Reconstruction report: {report.get('scan_id') or report.get('bag')}", "",
              f"- views: {report.get('n_views')}, detector {report.get('detector')}",
-             f"- method: {report.get('method_used', report.get('method'))}, {report.get('iterations')} iteration(s), "
+             f"- method: {report.get('method_used', report.get('method'))}, "
+             + (f"{report['iterations_run']} of " if "iterations_run" in report else "")
+             + f"{report.get('iterations')} iteration(s), "
              f"{report.get('wall_s', 0.0):.1f} s",
              f"- grid: {report.get('grid', {}).get('shape_zyx')} voxels (z, y, x) of "
              f"{[round(float(v) * 1000, 2) for v in report.get('grid', {}).get('voxel_size_mm', [])]} um",
@@ -142,7 +145,8 @@ def markdown_report(report: dict) -> str:
 
 
 def run_correction(bag, out, *, method: str, iterations: int, voxel_mm=None, shape=None, evaluate_truth=True,
-                   schedule: str = "accurate", prior_sigma="default", say=print) -> dict:
+                   schedule: str = "accurate", prior_sigma="default", stop_update_px: float | None = None,
+                   say=print) -> dict:
     """``robot-ct calibrate`` of ``bag`` into ``out`` (cli.calibrate_bag), then the figures of this node.
 
     Returns the report (also in ``out/report.json`` and ``out/report.md``) with ``paths``, and the
@@ -154,7 +158,7 @@ def run_correction(bag, out, *, method: str, iterations: int, voxel_mm=None, sha
 
     out = Path(out)
     report = calibrate_bag(bag, out, method=method, iterations=iterations, voxel_mm=voxel_mm, shape=shape,
-                           schedule=schedule, prior_sigma=prior_sigma, say=say)
+                           schedule=schedule, prior_sigma=prior_sigma, stop_update_px=stop_update_px, say=say)
     corrected = read_scan(report["corrected_bag"])
     geom = corrected.geom_corrected if corrected.geom_corrected is not None else corrected.geom
     volume = np.load(out / "volume.npy")
@@ -178,6 +182,7 @@ class ReconServiceNode(Node):
         p = self.declare_parameter
         self.method = p("method", "ncc-lle-exact").value
         self.iterations = int(p("iterations", 2).value)
+        self.stop_update_px = float(p("stop_update_px", 0.05).value)
         self.schedule = p("schedule", "accurate").value
         self.prior_sigma = declare_prior_sigma(self)
         voxel = float(p("voxel_size_m", 0.0).value)
@@ -391,6 +396,7 @@ class ReconServiceNode(Node):
         try:
             report = run_correction(bag, out, method=self.method, iterations=self.iterations, voxel_mm=self.voxel_mm,
                                     shape=self.shape, schedule=self.schedule, prior_sigma=self.prior_sigma,
+                                    stop_update_px=self.stop_update_px,
                                     evaluate_truth=self.evaluate_truth, say=say)
             report["partial"] = partial
             report["scan_id"] = self.scan_id

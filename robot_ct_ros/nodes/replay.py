@@ -9,7 +9,7 @@ Parameters
   bag_path (bag directory or .mcap, damaged bags are recovered), rate_hz (frames per second;
   <= 0: do not republish), wait_for_subscribers (start republishing once /ct/projection has this
   many subscribers), method ("" = no offline job; "fdk" = reconstruct only; else a calibration
-  method, e.g. ncc-lle-exact), iterations, schedule (accurate or fast), prior_sigma_translation_m and
+  method, e.g. ncc-lle-exact), iterations (at most), stop_update_px, schedule (accurate or fast), prior_sigma_translation_m and
   prior_sigma_rotation_rad (the robots' per-view error, the calibration prior; 0 = none), output_dir
   (corrected bag, volume .npy/.tif and report.json, as ``robot-ct calibrate``).
 """
@@ -59,6 +59,7 @@ class ReplayNode(Node):
         self.wait_for_subscribers = int(self.declare_parameter("wait_for_subscribers", 0).value)
         self.method = self.declare_parameter("method", "").value
         self.iterations = int(self.declare_parameter("iterations", 2).value)
+        self.stop_update_px = float(self.declare_parameter("stop_update_px", 0.05).value)
         self.schedule = self.declare_parameter("schedule", "accurate").value
         self.prior_sigma = declare_prior_sigma(self)
         self.output_dir = Path(self.declare_parameter("output_dir", "replay_out").value)
@@ -128,7 +129,8 @@ class ReplayNode(Node):
         log = self.get_logger()
         try:
             report = calibrate_bag(self.bag_path, self.output_dir, method=self.method, iterations=self.iterations,
-                                   schedule=self.schedule, prior_sigma=self.prior_sigma, say=lambda s: log.info(s))
+                                   schedule=self.schedule, prior_sigma=self.prior_sigma,
+                                   stop_update_px=self.stop_update_px, say=lambda s: log.info(s))
         except Exception as exc:  # noqa: BLE001 - reported, the node keeps running
             self.error = f"{type(exc).__name__}: {exc}"
             log.error(f"offline calibration failed: {self.error}")

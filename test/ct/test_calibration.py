@@ -259,6 +259,30 @@ def test_coarse_warm_up_passes_converge_the_first_iteration_and_stop_when_the_vi
         calibrate(measured, nominal, grid, coarse_passes=0)
 
 
+def test_loop_stops_when_an_iteration_hardly_moves_the_views():
+    """``update_px`` is the gauge-aligned displacement of the ROI points' projections between the
+    geometries before and after the iteration; below ``stop_update_px`` the loop ends early."""
+    nominal, true, grid, measured = _small_scan()
+    pts = roi_points(grid)
+    seen, said = [], []
+    result = calibrate(measured, nominal, grid, method="ncc-lle-exact", n_iter=3, stop_update_px=0.0,
+                       on_iteration=lambda rec, params: seen.append(params))
+    assert len(result.history) == 3
+    before = [np.zeros_like(seen[0])] + seen[:-1]
+    for rec, p0, p1 in zip(result.history, before, seen):
+        expected = reprojection_error(nominal.perturbed(p1), nominal.perturbed(p0), pts)["mean_px"]
+        assert rec.update_px == pytest.approx(expected, rel=1e-9)
+    assert result.history[0].update_px > 0.5  # the first iteration undoes most of the ~1 px error
+    # a threshold above the first update: one iteration, and it says why
+    first = result.history[0].update_px
+    stopped = calibrate(measured, nominal, grid, method="ncc-lle-exact", n_iter=3, stop_update_px=2 * first,
+                        progress=said.append)
+    assert len(stopped.history) == 1
+    assert any(line.startswith("converged") for line in said)
+    with pytest.raises(ValueError, match="stop_update_px"):
+        calibrate(measured, nominal, grid, stop_update_px=-1.0)
+
+
 def test_ncc_ignores_an_intensity_offset_that_misleads_l2():
     """Truncation and flat-field drift add a smooth offset to every interior projection."""
     nominal, true, grid, measured = _small_scan(body_width_mm=14.0, length_mm=30.0)
