@@ -1135,17 +1135,17 @@ def hold_magnification(nominal: ConeGeometry, params: np.ndarray, points_mm, tol
 
 
 SCHEDULES = {
-    "accurate": {"coarse_binning": 2, "fine_binning": 1, "fine_volume": "sirt", "fine_source": "star", "fine_samples": 192,
-                 "coarse_passes": 3},
-    "fast": {"coarse_binning": 4, "fine_binning": 2, "fine_volume": "fdk", "fine_source": "fixed", "fine_samples": 96,
-             "coarse_passes": 1},
+    "accurate": {"coarse_binning": 2, "fine_binning": 1, "fine_volume": "sirt", "fine_source": "star",
+                 "fine_samples": 192, "coarse_passes": 3},
+    "fast": {"coarse_binning": 4, "fine_binning": 2, "fine_volume": "fdk", "fine_source": "fixed",
+             "fine_samples": 96, "coarse_passes": 1},
 }
 """Resolution schedules of :func:`calibrate`. ``accurate``: estimate on 2x2 binned data, then
 at full size against a full-size FDK + SIRT volume. ``fast`` (large scans): 4x4 binned
 (FDK + SIRT), then 2x2 binned against the FDK alone, the source held at the coarse estimate
 on the finer level (one ray-cast per view and level) and 96 samples per view there instead of
-192; the final volume is still the full-size FDK. ``coarse_passes``: see :func:`calibrate`. Measured on the truncated mouse scan of
-bench/bench_calibration_speed.py (360 views of 256 x 256): the FDK alone registered the views
+192; the final volume is still the full-size FDK (``coarse_passes``: see :func:`calibrate`).
+Measured on the truncated mouse scan of bench/bench_calibration_speed.py (360 views of 256 x 256): the FDK alone registered the views
 better than FDK plus the coarse SIRT correction (0.64 against 1.05 px after 2 iterations;
 views started 0.56 px off a true-geometry volume ended at 0.29 and 0.68 px), and 96 samples
 were as accurate as 192 (1.175 against 1.161 px) and 15 % faster. On the 90-view scans of
@@ -1171,7 +1171,8 @@ def _level(li, mask, nominal, grid, factor):
 def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGrid, *,
               method: str = "ncc-lle-exact", n_iter: int = 2, valid_mask=None, schedule: str = "accurate",
               coarse_binning: int | None = None, fine_binning: int | None = None, fine_volume: str | None = None,
-              coarse_passes: int | None = None, coarse_tol_px: float = 0.1, stop_update_px: float = 0.05, configs: tuple | None = None, gauge_points_mm=None, sirt_iterations: int = 15,
+              coarse_passes: int | None = None, coarse_tol_px: float = 0.1, stop_update_px: float = 0.05,
+              configs: tuple | None = None, gauge_points_mm=None, sirt_iterations: int = 15,
               truncated: bool | None = True,
               padding: float = 1.25, undo_inconsistent: bool = False, prior_sigma=DEFAULT_PRIOR_SIGMA,
               focus_modes: dict | None = None, fdk_kwargs: dict | None = None, progress=None, on_iteration=None) -> CalibrationResult:
@@ -1190,18 +1191,19 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
     the finer level. On scenario (a) of bench/bench_calibration.py three passes took the first
     iteration from 0.90 to 0.12 px and the third from 0.107 to 0.101 px, for 2.6 s more per
     scan; on the 360-view speed scan a second pass took two iterations from 0.664 to 0.621 px in
-    12 s more, where a third iteration reached 0.577 px in 19 s more, so ``fast`` keeps one. SIRT runs only on a ``truncated`` scan (True by default, the
-    interior scans this system takes; None: decided by :func:`truncation_level` >
-    :data:`TRUNCATED_ABOVE`; False: FDK volumes only). When the object fits in the field of
-    view FDK can be the better volume: 360 views of 256 x 256 started 0.56 px off a
-    true-geometry volume ended at 0.11 px against its FDK and 0.27 px against its SIRT volume;
-    but on the demo scan (120 views of 64 x 128, edge level 0.0002) SIRT still gave the better
-    result (0.16 against 0.22 px), so detection is not the default. The unobservable gauge (a global rigid motion of all views,
-    i.e. of the object) is then removed by aligning the estimate to the nominal geometry on
-    ``gauge_points_mm`` (default: points filling ``grid``), so the correction does not wander
-    between iterations, and the common magnification is held at the nominal one
-    (:func:`hold_magnification`). Optionally, the modes that conjugate views cannot tell
-    apart (``focus_modes``, e.g. :data:`CONJUGATE_MODES`) are then set by image sharpness
+    12 s more, where a third iteration reached 0.577 px in 19 s more, so ``fast`` keeps one.
+    SIRT runs only on a ``truncated`` scan (True by default, the interior scans this system
+    takes; None: decided by :func:`truncation_level` > :data:`TRUNCATED_ABOVE`; False: FDK
+    volumes only). When the object fits in the field of view FDK can be the better volume: 360
+    views of 256 x 256 started 0.56 px off a true-geometry volume ended at 0.11 px against its
+    FDK and 0.27 px against its SIRT volume; but on the demo scan (120 views of 64 x 128, edge
+    level 0.0002) SIRT still gave the better result (0.16 against 0.22 px), so detection is not
+    the default. The unobservable gauge (a global rigid motion of all views, i.e. of the object)
+    is then removed by aligning the estimate to the nominal geometry on ``gauge_points_mm``
+    (default: points filling ``grid``), so the correction does not wander between iterations,
+    and the common magnification is held at the nominal one (:func:`hold_magnification`).
+    Optionally, the modes that conjugate views cannot tell apart (``focus_modes``, e.g.
+    :data:`CONJUGATE_MODES`) are then set by image sharpness
     (:func:`focus_conjugate_modes`; off by default: it helped the mouse scan, 0.61 -> 0.28 px,
     and ruined the battery scan, 0.92 -> 1.7 px). With ``undo_inconsistent``, an iteration
     that lowers the data consistency (masked NCC of the FDK, coarse level) is undone and ends
@@ -1218,7 +1220,8 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
     that moved the views less than ``stop_update_px`` (:attr:`IterationRecord.update_px`; 0 = always
     ``n_iter``). The default is the estimator's own scatter (0.04 to 0.05 px on scenario (a)
     against a true-geometry volume): there an iteration that moved the views 0.064 px still cut
-    the error from 0.123 to 0.102 px, the next ones, moving them 0.042 and 0.035 px, by 0.001 px. ``progress(message)`` receives one line per step, ``on_iteration(record, params)`` the
+    the error from 0.123 to 0.102 px, the next ones, moving them 0.042 and 0.035 px, by 0.001 px.
+    ``progress(message)`` receives one line per step, ``on_iteration(record, params)`` the
     :class:`IterationRecord` and the (n, 9) parameters after each outer iteration.
     """
     from .reconstruction import fdk
