@@ -1,9 +1,11 @@
-"""robot-ct: the jobs that need no ROS plumbing (simulate, inspect, reconstruct, calibrate a scan bag).
+"""robot-ct: the jobs that need no ROS plumbing (simulate, inspect, reconstruct, calibrate a scan bag,
+compare calibration methods on it).
 
   robot-ct simulate --phantom carotid --views 360 --out scan_bag
   robot-ct info scan_bag
   robot-ct reconstruct scan_bag --out out/recon
   robot-ct calibrate scan_bag --method ncc-lle-exact --iterations 2 --out out/calib
+  robot-ct report scan_bag --methods none,ncc-lle-exact,gdc-log --out out/report
   robot-ct demo --out out/demo
 """
 
@@ -99,6 +101,81 @@ def reconstruct_bag(bag, out, *, geometry: str = "auto", voxel_mm=None, shape=No
     (out / "report.json").write_text(json.dumps(report, indent=2, default=_json_default))
     say(f"wrote {out}/volume.npy, volume.tif, report.json ({report['wall_s']:.1f} s)")
     return report
+
+
+REPORT_METHODS = ("none", "ncc-lle-exact", "gdc-log")
+"""Default columns of ``robot-ct report``: the nominal geometry, this system's method, and the
+strongest published baseline."""
+
+
+def report_bag(bag, out, *, methods=REPORT_METHODS, iterations: int = 2, voxel_mm=None, shape=None,
+               schedule: str = "accurate", prior_sigma="default", stop_update_px: float | None = None,
+               say=_say) -> dict:
+    """Compare calibration methods on one scan bag: figures like the NCC-LLE paper's and a table.
+
+    ``methods``: ``"none"`` (FDK with the nominal geometry) and any of calibration.METHODS, each
+    run on the same data with the same settings (:func:`calibrate_bag`'s). Added by themselves:
+    ``"bag corrected"`` when the bag holds /ct/geometry_corrected (e.g. from recon_service), and
+    ``"true geometry"`` when it holds /ct/geometry_true (simulated scans): then the table also
+    has the gauge-aligned reprojection error and the SSIM against the true-geometry
+    reconstruction, and a figure the per-view parameter error. Writes into ``out``
+    (:func:`robot_ct_ros.ct.report.write_report`, name ``report``): ``report_slices.png``,
+    ``report_rmse.png``, ``report_param_error.png`` (truth known), ``report.md``,
+    ``report.json``. Returns the table rows and the paths.
+    """
+    from robot_ct_ros.bag import read_scan
+    from robot_ct_ros.ct.calibration import DEFAULT_PRIOR_SIGMA, METHODS, calibrate, projection_consistency
+    from robot_ct_ros.ct.reconstruction import fdk
+    from robot_ct_ros.ct.report import markdown_table, write_report
+
+    methods = tuple(methods)
+    unknown = [m for m in methods if m not in ("none",) + METHODS]
+    if unknown or not methods:
+        raise ValueError(f"methods must be among none, {', '.join(METHODS)} (got {', '.join(unknown) or 'none'})")
+    t0 = time.perf_counter()
+    scan = read_scan(bag)
+    for w in scan.warnings:
+        say(f"warning: {w}")
+    li, mask = scan.to_line_integrals()
+    grid = _grid_for(scan, voxel_mm, shape)
+    prior = DEFAULT_PRIOR_SIGMA if isinstance(prior_sigma, str) and prior_sigma == "default" else prior_sigma
+    stop = {} if stop_update_px is None else {"stop_update_px": float(stop_update_px)}
+    say(f"{scan.n_views} views, detector {scan.geom.n_rows}x{scan.geom.n_cols}, grid {grid.shape_zyx[::-1]} of "
+        f"{grid.voxel_size_mm[0] * 1000:.1f} um; methods {', '.join(methods)}; at most {iterations} iteration(s), "
+        f"schedule {schedule}")
+
+    def reconstruct(geom):
+        return fdk(li, geom, grid, valid_mask=mask)
+
+    def timed_fdk(geom):
+        t = time.perf_counter()
+        return geom, reconstruct(geom), (), time.perf_counter() - t
+
+    results = {}
+    for method in methods:
+        if method == "none":
+            results[method] = timed_fdk(scan.geom)
+        else:
+            say(f"{method}:")
+            results[method] = calibrate(li, scan.geom, grid, method=method, n_iter=iterations, valid_mask=mask,
+                                        schedule=schedule, prior_sigma=prior, progress=lambda m: say(f"  {m}"), **stop)
+    if scan.geom_corrected is not None:
+        results["bag corrected"] = timed_fdk(scan.geom_corrected)
+    truth = None
+    if scan.geom_true is not None:
+        results["true geometry"] = timed_fdk(scan.geom_true)
+        truth = (scan.geom_true, results["true geometry"][1], None)
+    initial = projection_consistency(results["none"][1], grid, scan.geom, li, mask)[0] if "none" in results else None
+    name = Path(bag).name.removesuffix(".mcap")
+    paths = write_report(out, results, grid, truth, scan.geom, name="report", title=f"{name}: {scan.n_views} views",
+                         initial_rmse=initial, reconstruct=reconstruct if truth is not None else None,
+                         notes={"bag": str(bag), "iterations": iterations, "schedule": schedule,
+                                "prior_sigma": None if prior is None else [float(x) for x in prior],
+                                "grid": grid.to_dict(), "bag_warnings": list(scan.warnings)})
+    say("\n" + markdown_table(paths["rows"]))
+    say(f"wrote {', '.join(str(paths[k]) for k in ('slices', 'rmse', 'param_error', 'markdown', 'json') if k in paths)}"
+        f" ({time.perf_counter() - t0:.1f} s)")
+    return paths
 
 
 def calibration_methods() -> tuple:
@@ -316,6 +393,14 @@ def _cmd_reconstruct(args) -> int:
     return 0
 
 
+def _cmd_report(args) -> int:
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    report_bag(args.bag, args.out, methods=methods, iterations=args.iterations, voxel_mm=args.voxel_mm,
+               shape=args.shape, schedule=args.schedule, prior_sigma=args.prior_sigma,
+               stop_update_px=args.stop_update_px)
+    return 0
+
+
 def _cmd_calibrate(args) -> int:
     calibrate_bag(args.bag, args.out, method=args.method, iterations=args.iterations, voxel_mm=args.voxel_mm,
                   shape=args.shape, schedule=args.schedule, prior_sigma=args.prior_sigma,
@@ -354,7 +439,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
 
     for name, helptext in (("reconstruct", "FDK of a scan bag with its geometry"),
-                           ("calibrate", "correct the per-view geometry of a scan bag offline and reconstruct")):
+                           ("calibrate", "correct the per-view geometry of a scan bag offline and reconstruct"),
+                           ("report", "compare calibration methods on a scan bag: slice, RMSE and parameter-error "
+                                      "figures and a table")):
         p = sub.add_parser(name, help=helptext)
         p.add_argument("bag")
         p.add_argument("--out", required=True, help="output folder")
@@ -364,8 +451,14 @@ def main(argv: list[str] | None = None) -> int:
             p.add_argument("--geometry", choices=("auto", "nominal", "corrected"), default="auto",
                            help="auto: /ct/geometry_corrected when present")
         else:
-            p.add_argument("--method", default="ncc-lle-exact",
-                           help=f"one of {', '.join(calibration_methods())} (fdk: no correction)")
+            if name == "calibrate":
+                p.add_argument("--method", default="ncc-lle-exact",
+                               help=f"one of {', '.join(calibration_methods())} (fdk: no correction)")
+            else:
+                p.add_argument("--methods", default=",".join(REPORT_METHODS),
+                               help="comma-separated: none (nominal geometry) and calibration methods "
+                                    f"(default {','.join(REPORT_METHODS)}); the bag's corrected and true "
+                                    "geometries are added when it holds them")
             p.add_argument("--iterations", type=int, default=2,
                            help="outer iterations at most (default 2; fewer when one moves the views < --stop-px)")
             p.add_argument("--stop-px", type=float, default=None, dest="stop_update_px",
@@ -389,7 +482,7 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         return {"simulate": _cmd_simulate, "info": _cmd_info, "reconstruct": _cmd_reconstruct,
-                "calibrate": _cmd_calibrate}[args.command](args)
+                "calibrate": _cmd_calibrate, "report": _cmd_report}[args.command](args)
     except ScanBagError as exc:
         print(f"robot-ct {args.command}: {exc}", file=sys.stderr)
         return 2

@@ -81,6 +81,23 @@ def test_simulate_info_reconstruct_calibrate(tmp_path, capsys):
         main(["calibrate", str(bag), "--prior-sigma", "0.2", "--out", str(tmp_path / "never")])
     assert "MM,DEG" in capsys.readouterr().err and not (tmp_path / "never").exists()
 
+    # compare methods on the corrected bag: its own corrected and true geometries join the table
+    compared = tmp_path / "report"
+    assert main(["report", str(mapped / "scan_corrected"), "--methods", "none,ncc-lle", "--iterations", "1",
+                 "--prior-sigma", "0.2,0.25", "--out", str(compared)]) == 0
+    table = json.loads((compared / "report.json").read_text())
+    rows = {r["method"]: r for r in table["rows"]}
+    assert list(rows) == ["none", "ncc-lle", "bag corrected", "true geometry"]
+    assert rows["true geometry"]["reproj_mean_px"] == 0.0 and rows["none"]["reproj_mean_px"] > 0.0
+    # same data, settings and seeds as the calibrate run that wrote the bag's corrected geometry
+    assert rows["ncc-lle"]["reproj_mean_px"] == pytest.approx(rows["bag corrected"]["reproj_mean_px"], rel=1e-6)
+    assert rows["ncc-lle"]["iterations"] == 1 and rows["none"]["iterations"] == 0
+    for figure in ("report_slices.png", "report_rmse.png", "report_param_error.png", "report.md"):
+        assert (compared / figure).stat().st_size > 0
+    assert "| ncc-lle |" in (compared / "report.md").read_text()
+    assert main(["report", str(bag), "--methods", "none,ncc-lle-fast", "--out", str(tmp_path / "never2")]) == 2
+    assert "ncc-lle-fast" in capsys.readouterr().err and not (tmp_path / "never2").exists()
+
 
 def test_clear_errors(tmp_path, capsys):
     assert main(["info", str(tmp_path / "missing")]) == 2
