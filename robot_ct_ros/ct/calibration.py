@@ -1290,6 +1290,7 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
     for it in range(n_iter):
         t0 = time.perf_counter()
         start = params.copy()
+        rec_in = rec_c  # the consistency of the geometry entering the iteration (undo_inconsistent)
         for rep in range(coarse_passes if it == 0 and has_coarse else int(has_coarse)):
             if rep:  # a warm-up pass: the coarse volume again, with the geometry of the last pass
                 rec_c = reconstruct_for_estimation(li_c, nom_c.perturbed(params), grid_c, mask_c, sirt_iterations,
@@ -1330,8 +1331,8 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
         rec = IterationRecord(it + 1, rmse, corr, float(np.sqrt((step[:, :6] ** 2).mean())),
                               float(np.rad2deg(np.sqrt((step[:, 6:] ** 2).mean()))), time.perf_counter() - t0,
                               fractions[-1], float(moved_px))
-        if undo_inconsistent and not rec_next.fdk_ncc > rec_c.fdk_ncc:
-            say(f"iteration {it + 1}/{n_iter}: data consistency fell ({rec_c.fdk_ncc:.5f} -> {rec_next.fdk_ncc:.5f}); "
+        if undo_inconsistent and not rec_next.fdk_ncc > rec_in.fdk_ncc:
+            say(f"iteration {it + 1}/{n_iter}: data consistency fell ({rec_in.fdk_ncc:.5f} -> {rec_next.fdk_ncc:.5f}); "
                 f"undone, stopping")
             params = start
             break

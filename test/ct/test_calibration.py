@@ -259,6 +259,26 @@ def test_coarse_warm_up_passes_converge_the_first_iteration_and_stop_when_the_vi
         calibrate(measured, nominal, grid, coarse_passes=0)
 
 
+def test_undo_inconsistent_restores_the_geometry_and_compares_with_the_one_entering_the_iteration():
+    """Started at the true geometry with a deliberately poor estimator (2 neighbours of 8 samples
+    in a wide box), the iteration lowers the FDK's data consistency and is undone. The check
+    compares with the geometry that entered the iteration, also after coarse warm-up passes."""
+    nominal, true, grid, measured = _small_scan()
+    poor = LLEConfig(weighting="l2", n_samples=8, n_neighbours=2, half_width=(2.0,) * 6 + (0.04,) * 3, levels=1,
+                     safeguard=False, reg=1e-9)
+    before = {}
+    for passes in (1, 3):
+        said = []
+        result = calibrate(measured, true, grid, method="l2-lle", n_iter=2, configs=(poor, poor), coarse_passes=passes,
+                           coarse_tol_px=0.0, undo_inconsistent=True, progress=said.append)
+        undone = [line for line in said if "undone" in line]
+        assert len(undone) == 1 and len(result.history) == 0
+        assert np.array_equal(result.params, np.zeros_like(result.params))  # back at the entering geometry
+        assert sum("coarse estimate" in line for line in said) == passes
+        before[passes] = undone[0].split("fell (")[1].split(" ->")[0]
+    assert before[1] == before[3]
+
+
 def test_loop_stops_when_an_iteration_hardly_moves_the_views():
     """``update_px`` is the gauge-aligned displacement of the ROI points' projections between the
     geometries before and after the iteration; below ``stop_update_px`` the loop ends early."""
