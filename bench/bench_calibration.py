@@ -16,7 +16,7 @@ reprojection error of ROI points (mean, p95, px), SSIM against the true-geometry
 reconstruction, edge sharpness, cap thickness (c), outer iterations, wall time. Writes
 results.md, results.json and figures (report.py) into --out.
 
-    .venv/bin/python bench/bench_calibration.py                      # defaults: about 4 min on 2 cores
+    .venv/bin/python bench/bench_calibration.py                      # defaults: about 6 min on 2 cores
     .venv/bin/python bench/bench_calibration.py --views 60 --det 48x64 --vol 48 --scenarios a
 """
 
@@ -166,7 +166,7 @@ def main(argv=None) -> int:
     import numba
     say(f"bench_calibration: {len(args.scenarios)} scenario(s) x {len(methods)} method(s); {args.views} views, "
         f"detector {args.det[0]}x{args.det[1]}, grid {args.vol}, {args.iterations} iteration(s); "
-        f"{os.cpu_count()} CPU(s), numba threads {numba.get_num_threads()}. The defaults take about 4 min "
+        f"{os.cpu_count()} CPU(s), numba threads {numba.get_num_threads()}. The defaults take about 6 min "
         f"on a quiet 2-core machine.")
     scenarios = []
     for key in args.scenarios:

@@ -124,7 +124,7 @@ def report_bag(bag, out, *, methods=REPORT_METHODS, iterations: int = 2, voxel_m
     ``report.json``. Returns the table rows and the paths.
     """
     from robot_ct_ros.bag import read_scan
-    from robot_ct_ros.ct.calibration import DEFAULT_PRIOR_SIGMA, METHODS, calibrate, projection_consistency
+    from robot_ct_ros.ct.calibration import METHODS, calibrate, projection_consistency
     from robot_ct_ros.ct.reconstruction import fdk
     from robot_ct_ros.ct.report import markdown_table, write_report
 
@@ -138,8 +138,7 @@ def report_bag(bag, out, *, methods=REPORT_METHODS, iterations: int = 2, voxel_m
         say(f"warning: {w}")
     li, mask = scan.to_line_integrals()
     grid = _grid_for(scan, voxel_mm, shape)
-    prior = DEFAULT_PRIOR_SIGMA if isinstance(prior_sigma, str) and prior_sigma == "default" else prior_sigma
-    stop = {} if stop_update_px is None else {"stop_update_px": float(stop_update_px)}
+    kwargs = _calibrate_kwargs(prior_sigma, stop_update_px)
     say(f"{scan.n_views} views, detector {scan.geom.n_rows}x{scan.geom.n_cols}, grid {grid.shape_zyx[::-1]} of "
         f"{grid.voxel_size_mm[0] * 1000:.1f} um; methods {', '.join(methods)}; at most {iterations} iteration(s), "
         f"schedule {schedule}")
@@ -158,7 +157,7 @@ def report_bag(bag, out, *, methods=REPORT_METHODS, iterations: int = 2, voxel_m
         else:
             say(f"{method}:")
             results[method] = calibrate(li, scan.geom, grid, method=method, n_iter=iterations, valid_mask=mask,
-                                        schedule=schedule, prior_sigma=prior, progress=lambda m: say(f"  {m}"), **stop)
+                                        schedule=schedule, progress=lambda m: say(f"  {m}"), **kwargs)
     if scan.geom_corrected is not None:
         results["bag corrected"] = timed_fdk(scan.geom_corrected)
     truth = None
@@ -170,7 +169,7 @@ def report_bag(bag, out, *, methods=REPORT_METHODS, iterations: int = 2, voxel_m
     paths = write_report(out, results, grid, truth, scan.geom, name="report", title=f"{name}: {scan.n_views} views",
                          initial_rmse=initial, reconstruct=reconstruct if truth is not None else None,
                          notes={"bag": str(bag), "iterations": iterations, "schedule": schedule,
-                                "prior_sigma": None if prior is None else [float(x) for x in prior],
+                                "prior_sigma": _prior_json(kwargs["prior_sigma"]),
                                 "grid": grid.to_dict(), "bag_warnings": list(scan.warnings)})
     say("\n" + markdown_table(paths["rows"]))
     say(f"wrote {', '.join(str(paths[k]) for k in ('slices', 'rmse', 'param_error', 'markdown', 'json') if k in paths)}"
@@ -183,6 +182,19 @@ def calibration_methods() -> tuple:
     from robot_ct_ros.ct.calibration import METHODS
 
     return METHODS + ("fdk",)
+
+
+def _calibrate_kwargs(prior_sigma, stop_update_px) -> dict:
+    """calibrate()'s ``prior_sigma`` (``"default"``: calibration.DEFAULT_PRIOR_SIGMA) and, when
+    given, ``stop_update_px`` (None keeps calibrate's default)."""
+    from robot_ct_ros.ct.calibration import DEFAULT_PRIOR_SIGMA
+
+    prior = DEFAULT_PRIOR_SIGMA if isinstance(prior_sigma, str) and prior_sigma == "default" else prior_sigma
+    return {"prior_sigma": prior} | ({} if stop_update_px is None else {"stop_update_px": float(stop_update_px)})
+
+
+def _prior_json(prior):
+    return None if prior is None else [float(x) for x in prior]
 
 
 def calibrate_bag(bag, out, *, method: str = "ncc-lle-exact", iterations: int = 2, voxel_mm=None, shape=None,
@@ -214,13 +226,12 @@ def calibrate_bag(bag, out, *, method: str = "ncc-lle-exact", iterations: int = 
     report.update({"job": "calibrate", "method": method, "iterations": iterations, "schedule": schedule})
     geom, volume, history, notes = scan.geom, None, [], []
     if method != "fdk":
-        from robot_ct_ros.ct.calibration import DEFAULT_PRIOR_SIGMA, calibrate
+        from robot_ct_ros.ct.calibration import calibrate
 
-        prior = DEFAULT_PRIOR_SIGMA if isinstance(prior_sigma, str) and prior_sigma == "default" else prior_sigma
-        report["prior_sigma"] = None if prior is None else [float(x) for x in prior]
-        stop = {} if stop_update_px is None else {"stop_update_px": float(stop_update_px)}
+        kwargs = _calibrate_kwargs(prior_sigma, stop_update_px)
+        report["prior_sigma"] = _prior_json(kwargs["prior_sigma"])
         result = calibrate(li, scan.geom, grid, method=method, n_iter=iterations, valid_mask=mask, schedule=schedule,
-                           prior_sigma=prior, progress=say, **stop)
+                           progress=say, **kwargs)
         geom, volume = result.geom, result.volume
         report["iterations_run"] = len(result.history)
         # strict JSON: a quantity an iteration did not measure (NaN) is null

@@ -1159,6 +1159,13 @@ FINE_VOLUMES = ("sirt", "fdk+coarse-sirt", "fdk")
 resampled, or its FDK alone."""
 
 
+def _moved_px(geom: ConeGeometry, params: np.ndarray, before: np.ndarray, points_mm) -> float:
+    """How far ``params`` moved the views from ``before`` (both relative to ``geom``): the mean
+    gauge-aligned displacement of the points' projections, in pixels of ``geom``'s detector."""
+    return float(reprojection_error(geom.perturbed(params), geom.perturbed(before), points_mm,
+                                    align_gauge=True)["mean_px"])
+
+
 def _level(li, mask, nominal, grid, factor):
     """Data, mask, nominal geometry and grid binned ``factor`` times (the inputs themselves at 1)."""
     if factor <= 1:
@@ -1291,7 +1298,8 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
         t0 = time.perf_counter()
         start = params.copy()
         rec_in = rec_c  # the consistency of the geometry entering the iteration (undo_inconsistent)
-        for rep in range(coarse_passes if it == 0 and has_coarse else int(has_coarse)):
+        n_passes = (coarse_passes if it == 0 else 1) if has_coarse else 0
+        for rep in range(n_passes):
             if rep:  # a warm-up pass: the coarse volume again, with the geometry of the last pass
                 rec_c = reconstruct_for_estimation(li_c, nom_c.perturbed(params), grid_c, mask_c, sirt_iterations,
                                                    fdk_kwargs, inner_c)
@@ -1300,8 +1308,7 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
             if rep and isinstance(cfg, LLEConfig):  # fresh samples
                 cfg = replace(cfg, seed=cfg.seed + 104729 * rep)
             params, _ = estimate(li_c, nom_c, params, rec_c.volume, grid_c, cfg, mask_c)
-            moved_px = reprojection_error(nom_c.perturbed(params), nom_c.perturbed(before), points,
-                                          align_gauge=True)["mean_px"]
+            moved_px = _moved_px(nom_c, params, before, points)
             say(f"iteration {it + 1}/{n_iter}: coarse estimate {rep + 1} done, views moved {moved_px:.3f} coarse px "
                 f"({time.perf_counter() - t0:.1f} s)")
             if moved_px < coarse_tol_px:
@@ -1318,8 +1325,7 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
                                                   fdk_kwargs=fdk_kwargs)
             say(f"iteration {it + 1}/{n_iter}: sharpness focus of {len(focus['modes'])} conjugate modes, entropy "
                 f"{focus['entropy_before']:.6f} -> {focus['entropy_after']:.6f}")
-        moved_px = reprojection_error(nominal.perturbed(params), nominal.perturbed(start), points,
-                                      align_gauge=True)["mean_px"]
+        moved_px = _moved_px(nominal, params, start, points)
         last = it + 1 == n_iter or moved_px < stop_update_px
         # the next iteration's coarse volume (and the consistency check): not after the last
         rec_next = (reconstruct_for_estimation(li_c, nom_c.perturbed(params), grid_c, mask_c, sirt_iterations,
@@ -1330,7 +1336,7 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
         fractions = fine_info.get("independent_fraction") or [float("nan")]
         rec = IterationRecord(it + 1, rmse, corr, float(np.sqrt((step[:, :6] ** 2).mean())),
                               float(np.rad2deg(np.sqrt((step[:, 6:] ** 2).mean()))), time.perf_counter() - t0,
-                              fractions[-1], float(moved_px))
+                              fractions[-1], moved_px)
         if undo_inconsistent and not rec_next.fdk_ncc > rec_in.fdk_ncc:
             say(f"iteration {it + 1}/{n_iter}: data consistency fell ({rec_in.fdk_ncc:.5f} -> {rec_next.fdk_ncc:.5f}); "
                 f"undone, stopping")
