@@ -131,7 +131,8 @@ def report_bag(bag, out, *, methods=REPORT_METHODS, iterations: int = 2, voxel_m
     methods = tuple(methods)
     unknown = [m for m in methods if m not in ("none",) + METHODS]
     if unknown or not methods:
-        raise ValueError(f"methods must be among none, {', '.join(METHODS)} (got {', '.join(unknown) or 'none'})")
+        raise ValueError(f"methods must be among none, {', '.join(METHODS)}; "
+                         + (f"unknown: {', '.join(unknown)}" if unknown else "none given"))
     t0 = time.perf_counter()
     scan = read_scan(bag)
     for w in scan.warnings:
