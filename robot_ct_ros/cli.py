@@ -103,6 +103,19 @@ def reconstruct_bag(bag, out, *, geometry: str = "auto", voxel_mm=None, shape=No
     return report
 
 
+def _calibrate_kwargs(prior_sigma, stop_update_px) -> dict:
+    """calibrate()'s ``prior_sigma`` (``"default"``: calibration.DEFAULT_PRIOR_SIGMA) and, when
+    given, ``stop_update_px`` (None keeps calibrate's default)."""
+    from robot_ct_ros.ct.calibration import DEFAULT_PRIOR_SIGMA
+
+    prior = DEFAULT_PRIOR_SIGMA if isinstance(prior_sigma, str) and prior_sigma == "default" else prior_sigma
+    return {"prior_sigma": prior} | ({} if stop_update_px is None else {"stop_update_px": float(stop_update_px)})
+
+
+def _prior_json(prior):
+    return None if prior is None else [float(x) for x in prior]
+
+
 REPORT_METHODS = ("none", "ncc-lle-exact", "gdc-log")
 """Default columns of ``robot-ct report``: the nominal geometry, this system's method, and the
 strongest published baseline."""
@@ -183,19 +196,6 @@ def calibration_methods() -> tuple:
     from robot_ct_ros.ct.calibration import METHODS
 
     return METHODS + ("fdk",)
-
-
-def _calibrate_kwargs(prior_sigma, stop_update_px) -> dict:
-    """calibrate()'s ``prior_sigma`` (``"default"``: calibration.DEFAULT_PRIOR_SIGMA) and, when
-    given, ``stop_update_px`` (None keeps calibrate's default)."""
-    from robot_ct_ros.ct.calibration import DEFAULT_PRIOR_SIGMA
-
-    prior = DEFAULT_PRIOR_SIGMA if isinstance(prior_sigma, str) and prior_sigma == "default" else prior_sigma
-    return {"prior_sigma": prior} | ({} if stop_update_px is None else {"stop_update_px": float(stop_update_px)})
-
-
-def _prior_json(prior):
-    return None if prior is None else [float(x) for x in prior]
 
 
 def calibrate_bag(bag, out, *, method: str = "ncc-lle-exact", iterations: int = 2, voxel_mm=None, shape=None,
