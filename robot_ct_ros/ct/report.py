@@ -73,7 +73,8 @@ def summarize(results: dict, grid: VolumeGrid, truth=None, points_mm=None, recon
     default to :func:`metrics.roi_points` of ``grid``. With ``reconstruct(geom) -> volume``
     the SSIM compares the reconstruction with each estimate moved into the true gauge
     (:func:`metrics.remove_gauge`): calibration cannot know where the object is, only its
-    shape, and a voxel of global offset would otherwise dominate the SSIM.
+    shape, and a voxel of global offset would otherwise dominate the SSIM. A row whose
+    geometry is the true one keeps its own volume.
     """
     true_geom, true_vol, phantom = (tuple(truth) + (None,) * 3)[:3] if truth is not None else (None, None, None)
     pts = roi_points(grid) if points_mm is None else np.asarray(points_mm, float)
@@ -90,7 +91,8 @@ def summarize(results: dict, grid: VolumeGrid, truth=None, points_mm=None, recon
             row["reproj_mean_px"], row["reproj_p95_px"] = err["mean_px"], err["p95_px"]
         if true_vol is not None:
             aligned = volume
-            if reconstruct is not None and true_geom is not None:
+            if reconstruct is not None and true_geom is not None and not geom.allclose(true_geom, atol=1e-9):
+                # (the true geometry itself needs no move, and no second reconstruction)
                 aligned = reconstruct(remove_gauge(geom, true_geom, pts))
             row["ssim"] = _finite_or_none(ssim(aligned, true_vol))
         if cap is not None:

@@ -101,3 +101,21 @@ def test_ssim_is_taken_in_the_true_gauge_when_a_reconstruction_is_given(inputs):
     plain = summarize(results, grid, (true, truth_vol, None), pts)[0]["ssim"]
     aligned = summarize(results, grid, (true, truth_vol, None), pts, reconstruct=reconstruct)[0]["ssim"]
     assert len(calls) == 1 and aligned == pytest.approx(1.0) and plain < 0.9, (plain, aligned)
+
+
+def test_the_true_geometry_row_is_not_reconstructed_again(inputs):
+    """The true geometry needs no move into the true gauge: its row keeps its volume, and
+    ``reconstruct`` runs only for the rows that differ from it."""
+    from robot_ct_ros.ct.report import summarize
+
+    phantom, grid, truth_vol, nominal, true, _ = inputs
+    calls = []
+
+    def reconstruct(geom):
+        calls.append(geom)
+        return truth_vol
+
+    results = {"true geometry": (true, truth_vol, (), 0.0), "none": (nominal, truth_vol, (), 0.0)}
+    rows = summarize(results, grid, (true, truth_vol, None), reconstruct=reconstruct)
+    assert len(calls) == 1 and not calls[0].allclose(true)
+    assert rows[0]["ssim"] == pytest.approx(1.0)
