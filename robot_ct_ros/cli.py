@@ -103,13 +103,24 @@ def reconstruct_bag(bag, out, *, geometry: str = "auto", voxel_mm=None, shape=No
     return report
 
 
-def _calibrate_kwargs(prior_sigma, stop_update_px) -> dict:
-    """calibrate()'s ``prior_sigma`` (``"default"``: calibration.DEFAULT_PRIOR_SIGMA) and, when
-    given, ``stop_update_px`` (None keeps calibrate's default)."""
+def _calibrate_kwargs(prior_sigma, stop_update_px, drift_order=None) -> dict:
+    """calibrate()'s ``prior_sigma`` (``"default"``: calibration.DEFAULT_PRIOR_SIGMA) and
+    ``drift_order`` (None: off) and, when given, ``stop_update_px`` (None keeps calibrate's
+    default)."""
     from robot_ct_ros.ct.calibration import DEFAULT_PRIOR_SIGMA
 
     prior = DEFAULT_PRIOR_SIGMA if isinstance(prior_sigma, str) and prior_sigma == "default" else prior_sigma
-    return {"prior_sigma": prior} | ({} if stop_update_px is None else {"stop_update_px": float(stop_update_px)})
+    return ({"prior_sigma": prior, "drift_order": None if drift_order is None else int(drift_order)}
+            | ({} if stop_update_px is None else {"stop_update_px": float(stop_update_px)}))
+
+
+def _drift_times(scan, kwargs):
+    """The frames' stamps (s) as the drift model's time axis, when it is on: a pause in the scan
+    is then a gap in time, not one view's step."""
+    if kwargs.get("drift_order") is None:
+        return None
+    t = (np.asarray(scan.stamps_ns, np.int64) - int(scan.stamps_ns[0])).astype(np.float64) * 1e-9
+    return t if np.ptp(t) > 0 else None  # no usable stamps: the view index
 
 
 def _prior_json(prior):
@@ -123,7 +134,7 @@ strongest published baseline."""
 
 def report_bag(bag, out, *, methods=REPORT_METHODS, iterations: int = 2, voxel_mm=None, shape=None,
                schedule: str = "accurate", prior_sigma="default", stop_update_px: float | None = None,
-               say=_say) -> dict:
+               drift_order: int | None = None, say=_say) -> dict:
     """Compare calibration methods on one scan bag: figures like the NCC-LLE paper's and a table.
 
     ``methods``: ``"none"`` (FDK with the nominal geometry) and any of calibration.METHODS, each
@@ -152,7 +163,7 @@ def report_bag(bag, out, *, methods=REPORT_METHODS, iterations: int = 2, voxel_m
         say(f"warning: {w}")
     li, mask = scan.to_line_integrals()
     grid = _grid_for(scan, voxel_mm, shape)
-    kwargs = _calibrate_kwargs(prior_sigma, stop_update_px)
+    kwargs = _calibrate_kwargs(prior_sigma, stop_update_px, drift_order)
     say(f"{scan.n_views} views, detector {scan.geom.n_rows}x{scan.geom.n_cols}, grid {grid.shape_zyx[::-1]} of "
         f"{grid.voxel_size_mm[0] * 1000:.1f} um; methods {', '.join(methods)}; at most {iterations} iteration(s), "
         f"schedule {schedule}")
@@ -171,7 +182,8 @@ def report_bag(bag, out, *, methods=REPORT_METHODS, iterations: int = 2, voxel_m
         else:
             say(f"{method}:")
             results[method] = calibrate(li, scan.geom, grid, method=method, n_iter=iterations, valid_mask=mask,
-                                        schedule=schedule, progress=lambda m: say(f"  {m}"), **kwargs)
+                                        schedule=schedule, progress=lambda m: say(f"  {m}"),
+                                        drift_times=_drift_times(scan, kwargs), **kwargs)
     if scan.geom_corrected is not None:
         results["bag corrected"] = timed_fdk(scan.geom_corrected)
     truth = None
@@ -184,6 +196,7 @@ def report_bag(bag, out, *, methods=REPORT_METHODS, iterations: int = 2, voxel_m
                          initial_rmse=initial, reconstruct=reconstruct if truth is not None else None,
                          notes={"bag": str(bag), "iterations": iterations, "schedule": schedule,
                                 "prior_sigma": _prior_json(kwargs["prior_sigma"]),
+                                "drift_order": kwargs["drift_order"],
                                 "grid": grid.to_dict(), "bag_warnings": list(scan.warnings)})
     say("\n" + markdown_table(paths["rows"]))
     say(f"wrote {', '.join(str(paths[k]) for k in ('slices', 'rmse', 'param_error', 'markdown', 'json') if k in paths)}"
@@ -200,12 +213,13 @@ def calibration_methods() -> tuple:
 
 def calibrate_bag(bag, out, *, method: str = "ncc-lle-exact", iterations: int = 2, voxel_mm=None, shape=None,
                   schedule: str = "accurate", prior_sigma="default", stop_update_px: float | None = None,
-                  say=_say) -> dict:
+                  drift_order: int | None = None, say=_say) -> dict:
     """Calibrate the per-view geometry of a scan bag offline and reconstruct it.
 
     Runs :func:`robot_ct_ros.ct.calibration.calibrate` (method, at most ``iterations``
     outer iterations, schedule, stop_update_px (None: calibrate's default),
     prior_sigma: ``"default"`` for calibration.DEFAULT_PRIOR_SIGMA, None for the data alone;
+    drift_order: None for independent per-view errors, a degree for a slowly drifting geometry;
     ``"fdk"`` only reconstructs with the nominal geometry). Writes into ``out``: the
     corrected bag (``<bag name>_corrected``: every message of the input plus
     /ct/geometry_corrected), ``volume.npy``/``.tif``/``_grid.json`` and ``report.json``.
@@ -229,10 +243,11 @@ def calibrate_bag(bag, out, *, method: str = "ncc-lle-exact", iterations: int = 
     if method != "fdk":
         from robot_ct_ros.ct.calibration import calibrate
 
-        kwargs = _calibrate_kwargs(prior_sigma, stop_update_px)
+        kwargs = _calibrate_kwargs(prior_sigma, stop_update_px, drift_order)
         report["prior_sigma"] = _prior_json(kwargs["prior_sigma"])
+        report["drift_order"] = kwargs["drift_order"]
         result = calibrate(li, scan.geom, grid, method=method, n_iter=iterations, valid_mask=mask, schedule=schedule,
-                           progress=say, **kwargs)
+                           progress=say, drift_times=_drift_times(scan, kwargs), **kwargs)
         geom, volume = result.geom, result.volume
         report["iterations_run"] = len(result.history)
         # strict JSON: a quantity an iteration did not measure (NaN) is null
@@ -373,6 +388,16 @@ def _cmd_info(args) -> int:
     return 0
 
 
+def _drift_order(text: str):
+    try:
+        order = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"drift order must be a whole number, got {text!r}") from None
+    if order < 0:
+        raise argparse.ArgumentTypeError("drift order must be >= 0")
+    return order
+
+
 def _prior_sigma(text: str):
     """``MM,DEG`` -> the 9 prior standard deviations (mm x6, rad x3); ``none`` -> None;
     ``default`` -> calibration.DEFAULT_PRIOR_SIGMA."""
@@ -409,14 +434,14 @@ def _cmd_report(args) -> int:
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     report_bag(args.bag, args.out, methods=methods, iterations=args.iterations, voxel_mm=args.voxel_mm,
                shape=args.shape, schedule=args.schedule, prior_sigma=args.prior_sigma,
-               stop_update_px=args.stop_update_px)
+               stop_update_px=args.stop_update_px, drift_order=args.drift_order)
     return 0
 
 
 def _cmd_calibrate(args) -> int:
     calibrate_bag(args.bag, args.out, method=args.method, iterations=args.iterations, voxel_mm=args.voxel_mm,
                   shape=args.shape, schedule=args.schedule, prior_sigma=args.prior_sigma,
-                  stop_update_px=args.stop_update_px)
+                  stop_update_px=args.stop_update_px, drift_order=args.drift_order)
     return 0
 
 
@@ -484,6 +509,10 @@ def main(argv: list[str] | None = None) -> int:
             p.add_argument("--prior-sigma", type=_prior_sigma, default="default", metavar="MM,DEG",
                            help="the robots' per-view coordination error (translations in mm, rotations in deg), "
                                 "the prior of the MAP estimate; 'none': the data alone (default 0.3,0.3)")
+            p.add_argument("--drift-order", type=_drift_order, default=None, metavar="DEGREE",
+                           help="the geometry drifts slowly (e.g. a detector warming up): fit every parameter "
+                                "with a polynomial of this degree in acquisition order after each iteration "
+                                "(default: off, independent per-view errors; 3 suits a smooth drift)")
 
     args = parser.parse_args(argv)
     if args.command == "demo":

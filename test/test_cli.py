@@ -64,22 +64,34 @@ def test_simulate_info_reconstruct_calibrate(tmp_path, capsys):
                  "--stop-px", "1000", "--out", str(mapped)]) == 0
     report = json.loads((mapped / "report.json").read_text())
     np.testing.assert_allclose(report["prior_sigma"], [0.2] * 6 + [np.deg2rad(0.25)] * 3)
+    assert report["drift_order"] is None  # independent per-view errors unless asked
     assert 0.0 < report["history"][0]["independent_fraction"] <= 1.0
     # every iteration moves the views less than 1000 px: one of at most three ran
     assert report["iterations"] == 3 and report["iterations_run"] == len(report["history"]) == 1
     assert report["history"][0]["update_px"] > 0.0
     data_alone = tmp_path / "calib_gdc"  # GDC has no independent-pixel fraction: NaN in the record
     assert main(["calibrate", str(bag), "--method", "gdc", "--iterations", "1", "--prior-sigma", "none",
-                 "--out", str(data_alone)]) == 0
+                 "--drift-order", "2", "--out", str(data_alone)]) == 0
 
     def no_nan(token):
         raise AssertionError(f"report.json is not strict JSON: {token}")
 
     report = json.loads((data_alone / "report.json").read_text(), parse_constant=no_nan)
     assert report["prior_sigma"] is None and report["history"][0]["independent_fraction"] is None
+    assert report["drift_order"] == 2
+    from robot_ct_ros.bag import read_scan
+    from robot_ct_ros.ct.calibration import fit_drift
+
+    drifted = read_scan(data_alone / "scan_corrected")  # a drift model: the correction is a polynomial in time
+    params = drifted.geom_corrected.params_relative_to(drifted.geom)
+    assert np.abs(params).max() > 1e-4
+    np.testing.assert_allclose(fit_drift(params, 2), params, atol=1e-6)
     with pytest.raises(SystemExit):
         main(["calibrate", str(bag), "--prior-sigma", "0.2", "--out", str(tmp_path / "never")])
     assert "MM,DEG" in capsys.readouterr().err and not (tmp_path / "never").exists()
+    with pytest.raises(SystemExit):
+        main(["calibrate", str(bag), "--drift-order", "-1", "--out", str(tmp_path / "never")])
+    assert "drift order must be >= 0" in capsys.readouterr().err and not (tmp_path / "never").exists()
 
     # compare methods on the corrected bag: its own corrected and true geometries join the table
     compared = tmp_path / "report"

@@ -100,3 +100,11 @@ def declare_prior_sigma(node):
     t_m = float(node.declare_parameter("prior_sigma_translation_m", DEFAULT_PRIOR_SIGMA[0] * 1e-3).value)
     r_rad = float(node.declare_parameter("prior_sigma_rotation_rad", DEFAULT_PRIOR_SIGMA[6]).value)
     return prior_sigma_from(t_m * 1e3, float(np.rad2deg(r_rad)))
+
+
+def declare_drift_order(node):
+    """Declare ``drift_order`` (integer; -1, the default, = off: independent per-view errors; a
+    degree >= 0: the geometry drifts slowly, :func:`calibration.fit_drift`) and return it as
+    :func:`calibration.calibrate`'s ``drift_order`` (None when off)."""
+    order = int(node.declare_parameter("drift_order", -1).value)
+    return order if order >= 0 else None

@@ -9,7 +9,8 @@ Parameters
   bag_path (bag directory or .mcap, damaged bags are recovered), rate_hz (frames per second;
   <= 0: do not republish), wait_for_subscribers (start republishing once /ct/projection has this
   many subscribers), method ("" = no offline job; "fdk" = reconstruct only; else a calibration
-  method, e.g. ncc-lle-exact), iterations (at most), stop_update_px, schedule (accurate or fast), prior_sigma_translation_m and
+  method, e.g. ncc-lle-exact), iterations (at most), stop_update_px, schedule (accurate or fast), drift_order
+  (-1 = off; a degree for a slowly drifting geometry), prior_sigma_translation_m and
   prior_sigma_rotation_rad (the robots' per-view error, the calibration prior; 0 = none), output_dir
   (corrected bag, volume .npy/.tif and report.json, as ``robot-ct calibrate``).
 """
@@ -26,7 +27,7 @@ from std_msgs.msg import String
 
 from robot_ct_ros.bag import format as fmt
 from robot_ct_ros.bag.reader import read_raw_messages
-from robot_ct_ros.nodes.common import declare_prior_sigma, run_node
+from robot_ct_ros.nodes.common import declare_drift_order, declare_prior_sigma, run_node
 from robot_ct_ros.nodes.recorder import LATCHED, message_class
 
 STREAM = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
@@ -62,6 +63,7 @@ class ReplayNode(Node):
         self.stop_update_px = float(self.declare_parameter("stop_update_px", 0.05).value)
         self.schedule = self.declare_parameter("schedule", "accurate").value
         self.prior_sigma = declare_prior_sigma(self)
+        self.drift_order = declare_drift_order(self)
         self.output_dir = Path(self.declare_parameter("output_dir", "replay_out").value)
         if not self.bag_path:
             raise ValueError("parameter bag_path is required")
@@ -130,7 +132,8 @@ class ReplayNode(Node):
         try:
             report = calibrate_bag(self.bag_path, self.output_dir, method=self.method, iterations=self.iterations,
                                    schedule=self.schedule, prior_sigma=self.prior_sigma,
-                                   stop_update_px=self.stop_update_px, say=lambda s: log.info(s))
+                                   stop_update_px=self.stop_update_px, drift_order=self.drift_order,
+                                   say=lambda s: log.info(s))
         except Exception as exc:  # noqa: BLE001 - reported, the node keeps running
             self.error = f"{type(exc).__name__}: {exc}"
             log.error(f"offline calibration failed: {self.error}")
