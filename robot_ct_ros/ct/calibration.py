@@ -1258,9 +1258,10 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
     where they start), and a polynomial must fit the seen half with the rest. On that scan
     ncc-lle-exact went from 1.02 px (SSIM 0.825) to 0.69 px (SSIM 0.966) with degree 3 and no
     prior (0.79 px with the default prior, which pulls every view towards nominal; degree 2:
-    0.71, 5: 0.70 px). Not to zero: started at the true geometry, the loop leaves it on that
-    scan (0.74 px after one iteration with the model, 1.65 px without), so the data term itself
-    is biased there (the steel can outside the ROI). The returned volume is the full-size FDK with the final
+    0.71, 5: 0.70 px). Not to zero: what is left is along the cell's axis, which the jelly roll
+    in the field of view hardly shows, and started at the true geometry the loop leaves it on
+    that scan (0.74 px after one iteration with the model, 1.65 px without), so the data term
+    is biased there too (the steel can outside the ROI). The returned volume is the full-size FDK with the final
     geometry. The loop runs ``n_iter`` outer iterations, or fewer: it stops after an iteration
     that moved the views less than ``stop_update_px`` (:attr:`IterationRecord.update_px`; 0 = always
     ``n_iter``). The default is the estimator's own scatter (0.04 to 0.05 px on scenario (a)
