@@ -279,16 +279,18 @@ def calibrate_bag(bag, out, *, method: str = "ncc-lle-exact", iterations: int = 
 
 def simulate_bag(out, *, phantom: str = "carotid", views: int = 360, rows: int = 272, cols: int = 636,
                  binning: int = 2, sigma_mm: float = 0.1, sigma_deg: float = 0.1, seed: int = 0,
-                 photons: float | None = None, fov_mm: float | None = None, sim_voxel_mm: float | None = None,
-                 chunk_views: int = 8,
+                 drift_mm: float = 0.0, drift_deg: float = 0.0, photons: float | None = None,
+                 fov_mm: float | None = None, sim_voxel_mm: float | None = None, chunk_views: int = 8,
                  progress: bool = True, say=_say) -> Path:
     """Simulate a seed-system robotic ROI scan of a phantom and record it as a scan bag at ``out``.
 
     The nominal geometry (/ct/geometry) is :func:`robotic_roi_scan`; the frames are
     simulated along it perturbed by independent per-view robot errors (``sigma_mm`` on the
-    6 translations, ``sigma_deg`` on the 3 rotations), which the bag keeps on
-    /ct/geometry_true. Frames are photon counts (``photons`` per binned pixel per frame
-    unattenuated; default: 4,000 behind 13 cm of water) with flat field and dead pixels.
+    6 translations, ``sigma_deg`` on the 3 rotations) plus, optionally, a detector that drifts
+    linearly by ``drift_mm`` (its 3 translations) and ``drift_deg`` (its 3 rotations) over the
+    scan; the bag keeps the true geometry on /ct/geometry_true. Frames are photon counts
+    (``photons`` per binned pixel per frame unattenuated; default: 4,000 behind 13 cm of
+    water) with flat field and dead pixels.
     """
     from tqdm import tqdm
 
@@ -303,7 +305,10 @@ def simulate_bag(out, *, phantom: str = "carotid", views: int = 360, rows: int =
         fov_mm = 0.999 * 2 * fov_radius_mm(0.5 * cols * pitch, system.sod_mm, system.sdd_mm)
     nominal = robotic_roi_scan(system, n_views=views, binning=binning, n_rows=rows, n_cols=cols,
                                fov_diameter_mm=fov_mm)
-    errors = sim.robot_coordination(sigma_mm, sigma_deg, seed=seed).sample(views)
+    model = sim.robot_coordination(sigma_mm, sigma_deg, seed=seed)
+    if drift_mm or drift_deg:
+        model = model + sim.detector_drift(drift_mm / max(views - 1, 1), drift_deg / max(views - 1, 1), kind="linear")
+    errors = model.sample(views)
     true = nominal.perturbed(errors)
     factories = {"mouse": sim.mouse_phantom, "battery": sim.battery_phantom, "carotid": sim.carotid_plaque_phantom}
     ph = factories[phantom](seed=seed)
@@ -314,7 +319,9 @@ def simulate_bag(out, *, phantom: str = "carotid", views: int = 360, rows: int =
     roi = VolumeGrid.centered((max(1, round(axial / voxel)), max(1, round(fov_mm / voxel)),
                                max(1, round(fov_mm / voxel))), voxel)
     say(f"{phantom} phantom, {views} views, detector {rows}x{cols} at {pitch * 1000:.0f} um (binning {binning}), "
-        f"FOV {fov_mm:.2f} mm, robot errors {sigma_mm} mm / {sigma_deg} deg, seed {seed}")
+        f"FOV {fov_mm:.2f} mm, robot errors {sigma_mm} mm / {sigma_deg} deg"
+        + (f", detector drift {drift_mm} mm / {drift_deg} deg over the scan" if drift_mm or drift_deg else "")
+        + f", seed {seed}")
     gproj = sim.raw_geometry(true, binning)
     if sim_voxel_mm is None:  # half the reconstruction voxel, coarser when the ROI would need > 200^3 voxels
         sim_voxel_mm = max(0.5 * voxel, float(np.prod(roi.extent_mm)) ** (1 / 3) / 200)
@@ -327,6 +334,7 @@ def simulate_bag(out, *, phantom: str = "carotid", views: int = 360, rows: int =
                          roi_size_mm=roi.extent_mm, voxel_size_mm=roi.voxel_size_mm, phantom=phantom,
                          notes={"simulated": True, "seed": seed, "photons_per_pixel": det.photons_per_pixel,
                                 "robot_error_sigma_mm": sigma_mm, "robot_error_sigma_deg": sigma_deg,
+                                "detector_drift_mm": drift_mm, "detector_drift_deg": drift_deg,
                                 "generator": "robot-ct simulate"})
     stamps = default_stamps(views)
     t0 = int(stamps[0]) - 1_000_000
@@ -353,6 +361,7 @@ def simulate_bag(out, *, phantom: str = "carotid", views: int = 360, rows: int =
 def _cmd_simulate(args) -> int:
     simulate_bag(args.out, phantom=args.phantom, views=args.views, rows=args.rows, cols=args.cols,
                  binning=args.binning, sigma_mm=args.sigma_mm, sigma_deg=args.sigma_deg, seed=args.seed,
+                 drift_mm=args.drift_mm, drift_deg=args.drift_deg,
                  photons=args.photons, fov_mm=args.fov_mm, sim_voxel_mm=args.sim_voxel_mm, progress=not args.quiet)
     return 0
 
@@ -462,6 +471,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--binning", type=int, default=2, help="readout binning of the 55 um pixels (default 2)")
     p.add_argument("--sigma-mm", type=float, default=0.1, help="robot error per view, translations (mm)")
     p.add_argument("--sigma-deg", type=float, default=0.1, help="robot error per view, detector rotations (deg)")
+    p.add_argument("--drift-mm", type=float, default=0.0,
+                   help="detector drift over the whole scan, linear, each of its translations (mm; default 0)")
+    p.add_argument("--drift-deg", type=float, default=0.0,
+                   help="detector drift over the whole scan, linear, each of its rotations (deg; default 0)")
     p.add_argument("--photons", type=float, default=None,
                    help="unattenuated counts per binned pixel per frame (default: 4,000 behind 13 cm of water)")
     p.add_argument("--fov-mm", type=float, default=None, help="field-of-view diameter (default: the centred detector's)")
@@ -511,7 +524,7 @@ def main(argv: list[str] | None = None) -> int:
                                 "the prior of the MAP estimate; 'none': the data alone (default 0.3,0.3)")
             p.add_argument("--drift-order", type=_drift_order, default=None, metavar="DEGREE",
                            help="the geometry drifts slowly (e.g. a detector warming up): fit every parameter "
-                                "with a polynomial of this degree in acquisition order after each iteration "
+                                "with a polynomial of this degree in time (the frames' stamps) after each iteration "
                                 "(default: off, independent per-view errors; 3 suits a smooth drift)")
 
     args = parser.parse_args(argv)

@@ -132,3 +132,31 @@ def test_info_reports_an_unusable_scan(tmp_path, capsys):
     assert main(["info", str(tmp_path / "noinfo")]) == 1
     out = capsys.readouterr().out
     assert "NOT A USABLE SCAN" in out and "no /ct/scan_info" in out and "/ct/projection" in out
+
+
+def test_simulate_a_drifting_detector_and_calibrate_it_as_a_drift(tmp_path):
+    """``simulate --drift-mm/--drift-deg`` adds a linear detector drift to the robots' errors;
+    ``calibrate --drift-order`` returns a correction that is a polynomial in the frames' time."""
+    from robot_ct_ros.bag import read_scan
+    from robot_ct_ros.ct.calibration import fit_drift
+
+    bag = tmp_path / "drift"
+    assert main(["simulate", "--phantom", "mouse", "--views", "24", "--rows", "32", "--cols", "48", "--binning", "2",
+                 "--sigma-mm", "0", "--sigma-deg", "0", "--drift-mm", "0.3", "--drift-deg", "0.1", "--quiet",
+                 "--out", str(bag)]) == 0
+    scan = read_scan(bag)
+    true = scan.geom_true.params_relative_to(scan.geom)
+    ramp = np.linspace(0.0, 1.0, 24)[:, None]
+    np.testing.assert_allclose(true[:, :3], 0.0, atol=1e-9)  # the source stays
+    np.testing.assert_allclose(true[:, 3:6], 0.3 * ramp * np.ones(3), atol=1e-6)
+    np.testing.assert_allclose(true[:, 6:], np.deg2rad(0.1) * ramp * np.ones(3), atol=1e-8)
+    assert scan.info["notes"]["detector_drift_mm"] == 0.3
+
+    out = tmp_path / "calib"
+    assert main(["calibrate", str(bag), "--method", "ncc-lle-exact", "--iterations", "1", "--drift-order", "1",
+                 "--prior-sigma", "none", "--out", str(out)]) == 0
+    corrected = read_scan(out / "drift_corrected")
+    params = corrected.geom_corrected.params_relative_to(corrected.geom)
+    t = (corrected.stamps_ns - corrected.stamps_ns[0]).astype(float)
+    np.testing.assert_allclose(fit_drift(params, 1, t), params, atol=1e-6)
+    assert json.loads((out / "report.json").read_text())["drift_order"] == 1
