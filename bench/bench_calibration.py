@@ -12,8 +12,8 @@ detector; photon-counting noise, flat field and dead pixels from DetectorModel):
 
 Methods: none (nominal geometry), l2-lle, ncc-lle, ncc-lle-exact, gdc, gdc-log (all through
 calibration.calibrate, one alternating loop), true geometry; on the drift scenario (b) also
-ncc-lle-exact with the drift model (calibrate(drift_order=3), no per-view prior). Per method: gauge-aligned
-reprojection error of ROI points (mean, p95, px), SSIM against the true-geometry
+ncc-lle-exact with the drift model (calibrate(drift_order=3), no per-view prior). Per method:
+gauge-aligned reprojection error of ROI points (mean, p95, px), SSIM against the true-geometry
 reconstruction, edge sharpness, cap thickness (c), outer iterations, wall time. Writes
 results.md, results.json and figures (report.py) into --out.
 

@@ -1208,8 +1208,8 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
               configs: tuple | None = None, gauge_points_mm=None, sirt_iterations: int = 15,
               truncated: bool | None = True,
               padding: float = 1.25, undo_inconsistent: bool = False, prior_sigma=DEFAULT_PRIOR_SIGMA,
-              drift_order: int | None = None, drift_times=None, focus_modes: dict | None = None, fdk_kwargs: dict | None = None,
-              progress=None, on_iteration=None) -> CalibrationResult:
+              drift_order: int | None = None, drift_times=None, focus_modes: dict | None = None,
+              fdk_kwargs: dict | None = None, progress=None, on_iteration=None) -> CalibrationResult:
     """Alternate reconstruction and per-view LLE geometry estimation (design.md §2).
 
     Each outer iteration reconstructs with the current geometry
@@ -1252,21 +1252,17 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
     carry their own. ``drift_order`` (None = off, the default: the robots' errors are
     independent from view to view) makes the geometry a slow drift: after each outer iteration
     every parameter is replaced by its least-squares polynomial of that degree in time
-    (``drift_times`` (n,), e.g. the frames' stamps; default the view index; :func:`fit_drift`). Where the errors really drift this restores part of what the
-    data cannot see: the detector drift of scenario (b) of bench/bench_calibration.py is half
-    made of modes that conjugate views cannot tell apart (per view, the estimate leaves them
-    where they start), and a polynomial must fit the seen half with the rest. On that scan
-    ncc-lle-exact went from 1.02 px (SSIM 0.825) to 0.69 px (SSIM 0.966) with degree 3 and no
-    prior (0.79 px with the default prior, which pulls every view towards nominal; degree 2:
-    0.71, 5: 0.70 px). Not to zero: what is left is along the cell's axis, which the jelly roll
-    in the field of view hardly shows, and started at the true geometry the loop leaves it on
-    that scan (0.74 px after one iteration with the model, 1.65 px without), so the data term
-    is biased there too (the steel can outside the ROI). Where that bias dominates the model
-    does not help: on a 9 mm cell seen through a 7.9 mm field of view the drift alone went from
-    1.60 px to 1.46 px per view and to 1.68 px as a drift (README). The returned volume is the full-size FDK with the final
-    geometry. The loop runs ``n_iter`` outer iterations, or fewer: it stops after an iteration
-    that moved the views less than ``stop_update_px`` (:attr:`IterationRecord.update_px`; 0 = always
-    ``n_iter``). The default is the estimator's own scatter (0.04 to 0.05 px on scenario (a)
+    (``drift_times`` (n,), e.g. the frames' stamps; default the view index; :func:`fit_drift`).
+    Where the errors drift, the polynomial must fit the half of them that the data show
+    together with the half that conjugate views cannot tell apart, which per-view estimates
+    leave where they start: on scenario (b) of bench/bench_calibration.py ncc-lle-exact went
+    from 1.02 px (SSIM 0.825) to 0.69 px (SSIM 0.966) with degree 3 and no prior (0.79 px
+    with the default prior, which pulls every view towards nominal). Where truncation biases
+    the data term it does not help (a 9 mm cell through a 7.9 mm field of view: 1.60 px
+    nominal, 1.46 px per view, 1.68 px as a drift; README). The returned volume is the
+    full-size FDK with the final geometry. The loop runs ``n_iter`` outer iterations, or
+    fewer: it stops after an iteration that moved the views less than ``stop_update_px``
+    (:attr:`IterationRecord.update_px`; 0 = always ``n_iter``). The default is the estimator's own scatter (0.04 to 0.05 px on scenario (a)
     against a true-geometry volume): there an iteration that moved the views 0.064 px still cut
     the error from 0.123 to 0.102 px, the next ones, moving them 0.042 and 0.035 px, by 0.001 px.
     ``progress(message)`` receives one line per step, ``on_iteration(record, params)`` the
