@@ -1262,9 +1262,10 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
     nominal, 1.46 px per view, 1.68 px as a drift; README). The returned volume is the
     full-size FDK with the final geometry. The loop runs ``n_iter`` outer iterations, or
     fewer: it stops after an iteration that moved the views less than ``stop_update_px``
-    (:attr:`IterationRecord.update_px`; 0 = always ``n_iter``). The default is the estimator's own scatter (0.04 to 0.05 px on scenario (a)
-    against a true-geometry volume): there an iteration that moved the views 0.064 px still cut
-    the error from 0.123 to 0.102 px, the next ones, moving them 0.042 and 0.035 px, by 0.001 px.
+    (:attr:`IterationRecord.update_px`; 0 = always ``n_iter``). The default is the estimator's
+    own scatter (0.04 to 0.05 px on scenario (a) against a true-geometry volume): there an
+    iteration that moved the views 0.064 px still cut the error from 0.123 to 0.102 px, the
+    next ones, moving them 0.042 and 0.035 px, by 0.001 px.
     ``progress(message)`` receives one line per step, ``on_iteration(record, params)`` the
     :class:`IterationRecord` and the (n, 9) parameters after each outer iteration.
     """
