@@ -202,8 +202,7 @@ def main(argv=None) -> int:
                              reconstruct=lambda g: fdk(sc.li, g, sc.grid, valid_mask=sc.mask))
         rows = paths["rows"]
         say("\n" + markdown_table(rows))
-        warned = {m: list(r.warnings) for m, r in results.items() if getattr(r, "warnings", ())}
-        scenarios.append({"key": key, "title": title, "rows": rows, "via": via, "calibration_warnings": warned,
+        scenarios.append({"key": key, "title": title, "rows": rows, "via": via,
                           "true_cap_um": None if cap is None else 1000 * cap.thickness_mm,
                           "initial_projection_rmse": initial,
                           "figures": [os.path.basename(str(paths[k])) for k in ("slices", "rmse", "param_error")
@@ -233,9 +232,7 @@ def main(argv=None) -> int:
         if s["true_cap_um"] is not None:
             lines += [f"True cap thickness {s['true_cap_um']:.0f} um (FWHM of the cap ridge; voxel "
                       f"{s['grid']['voxel_size_mm'][0] * 1000:.1f} um).", ""]
-        lines += [markdown_table(s["rows"])]
-        lines += [f"Warning ({m}): {w}" + "  " for m, ws in s["calibration_warnings"].items() for w in ws]
-        lines += [f"![{f}]({f})" for f in s["figures"]] + [""]
+        lines += [markdown_table(s["rows"])] + [f"![{f}]({f})" for f in s["figures"]] + [""]
     with open(os.path.join(out, "results.md"), "w") as f:
         f.write("\n".join(lines) + "\n")
     say(f"wrote {out}/results.md, results.json and figures; total {total / 60:.1f} min")
