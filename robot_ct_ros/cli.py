@@ -197,8 +197,6 @@ def report_bag(bag, out, *, methods=REPORT_METHODS, iterations: int = 2, voxel_m
                          notes={"bag": str(bag), "iterations": iterations, "schedule": schedule,
                                 "prior_sigma": _prior_json(kwargs["prior_sigma"]),
                                 "drift_order": kwargs["drift_order"],
-                                "calibration_warnings": {m: list(r.warnings) for m, r in results.items()
-                                                         if getattr(r, "warnings", ())},
                                 "grid": grid.to_dict(), "bag_warnings": list(scan.warnings)})
     say("\n" + markdown_table(paths["rows"]))
     say(f"wrote {', '.join(str(paths[k]) for k in ('slices', 'rmse', 'param_error', 'markdown', 'json') if k in paths)}"
@@ -252,7 +250,6 @@ def calibrate_bag(bag, out, *, method: str = "ncc-lle-exact", iterations: int = 
                            progress=say, drift_times=_drift_times(scan, kwargs), **kwargs)
         geom, volume = result.geom, result.volume
         report["iterations_run"] = len(result.history)
-        report["calibration_warnings"] = list(result.warnings)
         # strict JSON: a quantity an iteration did not measure (NaN) is null
         history = [{k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in h.__dict__.items()}
                    for h in result.history]

@@ -832,19 +832,6 @@ class CalibrationResult:
     volume: np.ndarray            # reconstruction with the final geometry
     history: tuple                # IterationRecord per outer iteration
     wall_s: float
-    warnings: tuple = ()          # e.g. the data consistency fell (CONSISTENCY_DROP)
-
-
-CONSISTENCY_DROP = 0.02
-"""An outer iteration after which the projection NCC of the estimation volume
-(:attr:`IterationRecord.projection_ncc`) fell by more than this fraction of what the previous
-iteration left unexplained (1 - NCC) draws a warning: the estimate may be following model
-error (strong truncation, the object outside the ROI) rather than the data. Advisory only (an
-iteration is not undone: see ``undo_inconsistent``). Set after looking at the NCCs that
-bench/bench_calibration.py's table logged, and checked on that table alone: it warns for
-exactly the three runs that took the carotid scan well past its nominal error (ncc-lle,
-ncc-lle-exact: 4.4 and 4.8 %; gdc: 3.4 %), and for none of the others (at most 0.9 %: l2-lle
-on the carotid scan, which stayed at its nominal error)."""
 
 
 def bin_masked(line_integrals: np.ndarray, valid_mask: np.ndarray, factor: int) -> tuple[np.ndarray, np.ndarray]:
@@ -1205,17 +1192,6 @@ def _moved_px(geom: ConeGeometry, params: np.ndarray, before: np.ndarray, points
                                     align_gauge=True)["mean_px"])
 
 
-def consistency_warning(previous: IterationRecord, record: IterationRecord) -> str | None:
-    """The warning for an outer iteration whose projection NCC fell by more than
-    :data:`CONSISTENCY_DROP` of what the previous one left unexplained, else None."""
-    before, after = previous.projection_ncc, record.projection_ncc
-    if not before - after > CONSISTENCY_DROP * (1.0 - before):
-        return None
-    return (f"iteration {record.iteration}: the data consistency fell (projection NCC {before:.5f} -> {after:.5f}); "
-            f"the estimate may be following model error (strong truncation) rather than the data: compare it "
-            f"with the nominal geometry (robot-ct report)")
-
-
 def _level(li, mask, nominal, grid, factor):
     """Data, mask, nominal geometry and grid binned ``factor`` times (the inputs themselves at 1)."""
     if factor <= 1:
@@ -1353,7 +1329,7 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
         if fine_volume == "fdk+coarse-sirt":  # no coarse level to take the correction from
             fine_volume = "sirt"
     params = np.zeros((nominal.n_views, 9))
-    history, warnings = [], []
+    history = []
     # the coarse level's reconstruction with the geometry entering each iteration: its volume
     # for the coarse estimate, its FDK's NCC for undo_inconsistent, its SIRT correction for a
     # fine level without SIRT
@@ -1409,10 +1385,6 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
             params = start
             break
         rec_c = rec_next
-        warning = consistency_warning(history[-1], rec) if history else None
-        if warning:
-            warnings.append(warning)
-            say(f"warning: {warning}")
         history.append(rec)
         if on_iteration is not None:
             on_iteration(rec, params.copy())
@@ -1426,5 +1398,4 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
             break
     geom = nominal.perturbed(params)
     volume = fdk(li, geom, grid, valid_mask=mask, **fdk_kwargs)
-    return CalibrationResult(method, params, geom, volume, tuple(history), time.perf_counter() - t_start,
-                             tuple(warnings))
+    return CalibrationResult(method, params, geom, volume, tuple(history), time.perf_counter() - t_start)

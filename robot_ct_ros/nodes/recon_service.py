@@ -132,7 +132,6 @@ def markdown_report(report: dict) -> str:
         lines.append(f"- last iteration: projection NCC {last['projection_ncc']:.4f}; independent pixels "
                      f"{last['independent_fraction']:.3f} (near 0: the data explain little of the projections and "
                      f"the correction leans on the prior of {prior[0]:.3g} mm / {np.rad2deg(prior[6]):.3g} deg)")
-    lines += [f"- warning: {w}" for w in report.get("calibration_warnings", [])]
     t = report.get("truth")
     if t:
         n, c = t["reprojection_error_nominal_px"], t["reprojection_error_corrected_px"]
