@@ -103,24 +103,22 @@ def reconstruct_bag(bag, out, *, geometry: str = "auto", voxel_mm=None, shape=No
     return report
 
 
-def _calibrate_kwargs(prior_sigma, stop_update_px, drift_order=None) -> dict:
-    """calibrate()'s ``prior_sigma`` (``"default"``: calibration.DEFAULT_PRIOR_SIGMA) and
-    ``drift_order`` (None: off) and, when given, ``stop_update_px`` (None keeps calibrate's
-    default)."""
+def _calibrate_kwargs(scan, prior_sigma, stop_update_px, drift_order=None) -> dict:
+    """calibrate()'s ``prior_sigma`` (``"default"``: calibration.DEFAULT_PRIOR_SIGMA),
+    ``drift_order`` (None: off) with ``drift_times``, and, when given, ``stop_update_px`` (None
+    keeps calibrate's default). The drift model's time axis is the frames' stamps (s): a pause
+    in the scan is then a gap in time, not one view's step (the view index without usable
+    stamps)."""
     from robot_ct_ros.ct.calibration import DEFAULT_PRIOR_SIGMA
 
     prior = DEFAULT_PRIOR_SIGMA if isinstance(prior_sigma, str) and prior_sigma == "default" else prior_sigma
-    return ({"prior_sigma": prior, "drift_order": None if drift_order is None else int(drift_order)}
+    times = None
+    if drift_order is not None:
+        t = (np.asarray(scan.stamps_ns, np.int64) - int(scan.stamps_ns[0])).astype(np.float64) * 1e-9
+        times = t if np.ptp(t) > 0 else None
+    return ({"prior_sigma": prior, "drift_order": None if drift_order is None else int(drift_order),
+             "drift_times": times}
             | ({} if stop_update_px is None else {"stop_update_px": float(stop_update_px)}))
-
-
-def _drift_times(scan, kwargs):
-    """The frames' stamps (s) as the drift model's time axis, when it is on: a pause in the scan
-    is then a gap in time, not one view's step."""
-    if kwargs.get("drift_order") is None:
-        return None
-    t = (np.asarray(scan.stamps_ns, np.int64) - int(scan.stamps_ns[0])).astype(np.float64) * 1e-9
-    return t if np.ptp(t) > 0 else None  # no usable stamps: the view index
 
 
 def _prior_json(prior):
@@ -163,7 +161,7 @@ def report_bag(bag, out, *, methods=REPORT_METHODS, iterations: int = 2, voxel_m
         say(f"warning: {w}")
     li, mask = scan.to_line_integrals()
     grid = _grid_for(scan, voxel_mm, shape)
-    kwargs = _calibrate_kwargs(prior_sigma, stop_update_px, drift_order)
+    kwargs = _calibrate_kwargs(scan, prior_sigma, stop_update_px, drift_order)
     say(f"{scan.n_views} views, detector {scan.geom.n_rows}x{scan.geom.n_cols}, grid {grid.shape_zyx[::-1]} of "
         f"{grid.voxel_size_mm[0] * 1000:.1f} um; methods {', '.join(methods)}; at most {iterations} iteration(s), "
         f"schedule {schedule}")
@@ -182,8 +180,7 @@ def report_bag(bag, out, *, methods=REPORT_METHODS, iterations: int = 2, voxel_m
         else:
             say(f"{method}:")
             results[method] = calibrate(li, scan.geom, grid, method=method, n_iter=iterations, valid_mask=mask,
-                                        schedule=schedule, progress=lambda m: say(f"  {m}"),
-                                        drift_times=_drift_times(scan, kwargs), **kwargs)
+                                        schedule=schedule, progress=lambda m: say(f"  {m}"), **kwargs)
     if scan.geom_corrected is not None:
         results["bag corrected"] = timed_fdk(scan.geom_corrected)
     truth = None
@@ -243,11 +240,11 @@ def calibrate_bag(bag, out, *, method: str = "ncc-lle-exact", iterations: int = 
     if method != "fdk":
         from robot_ct_ros.ct.calibration import calibrate
 
-        kwargs = _calibrate_kwargs(prior_sigma, stop_update_px, drift_order)
+        kwargs = _calibrate_kwargs(scan, prior_sigma, stop_update_px, drift_order)
         report["prior_sigma"] = _prior_json(kwargs["prior_sigma"])
         report["drift_order"] = kwargs["drift_order"]
         result = calibrate(li, scan.geom, grid, method=method, n_iter=iterations, valid_mask=mask, schedule=schedule,
-                           progress=say, drift_times=_drift_times(scan, kwargs), **kwargs)
+                           progress=say, **kwargs)
         geom, volume = result.geom, result.volume
         report["iterations_run"] = len(result.history)
         # strict JSON: a quantity an iteration did not measure (NaN) is null

@@ -1172,8 +1172,9 @@ at full size against a full-size FDK + SIRT volume. ``fast`` (large scans): 4x4 
 on the finer level (one ray-cast per view and level) and 96 samples per view there instead of
 192; the final volume is still the full-size FDK (``coarse_passes``: see :func:`calibrate`).
 Measured on the truncated mouse scan of bench/bench_calibration_speed.py (360 views of
-256 x 256): the FDK alone registered the views better than FDK plus the coarse SIRT correction (0.64 against 1.05 px after 2 iterations;
-views started 0.56 px off a true-geometry volume ended at 0.29 and 0.68 px), and 96 samples
+256 x 256): the FDK alone registered the views better than FDK plus the coarse SIRT correction
+(0.64 against 1.05 px after 2 iterations; views started 0.56 px off a true-geometry volume
+ended at 0.29 and 0.68 px), and 96 samples
 were as accurate as 192 (1.175 against 1.161 px) and 15 % faster. On the 90-view scans of
 bench/bench_calibration.py the fine SIRT is what makes the accurate schedule accurate
 (0.14 px; 1.69 px with FDK)."""
