@@ -192,16 +192,17 @@ from robot_ct_ros.ct.simulation import mouse_phantom, robot_coordination, voxeli
 from robot_ct_ros.ct.trajectory import circular_scan  # noqa: E402
 
 
-def _small_scan(n_views=30, n_det=48, body_width_mm=9.0, length_mm=10.0, seed=1):
-    """A small circular scan of a mouse phantom with ~0.3 mm / 0.3 deg robot errors per view.
-    Projections come from a 2x finer voxelisation than the reconstruction grid."""
+def _small_scan(n_views=30, n_det=48, body_width_mm=9.0, length_mm=10.0, seed=1, error_model=None):
+    """A small circular scan of a mouse phantom with ~0.3 mm / 0.3 deg robot errors per view
+    (or ``error_model``'s). Projections come from a 2x finer voxelisation than the reconstruction
+    grid."""
     nominal = circular_scan(n_views, 60.0, 150.0, n_det, n_det, 32.0 / n_det, 32.0 / n_det)
     grid = VolumeGrid.centered((32, 32, 32), 12.0 / 32)
     phantom = mouse_phantom(body_width_mm=body_width_mm, length_mm=length_mm)
     lo, hi = phantom.bounds_mm()
     size = np.minimum(hi - lo, 40.0)
     fine = VolumeGrid.centered(tuple(np.ceil(size[::-1] / 0.1875).astype(int)), 0.1875, 0.5 * (lo + hi))
-    errors = robot_coordination(0.3, 0.3, seed=seed).sample(n_views)
+    errors = (error_model or robot_coordination(0.3, 0.3, seed=seed)).sample(n_views)
     true = nominal.perturbed(errors)
     measured = forward_project(voxelize(phantom, fine), fine, true)
     return nominal, true, grid, measured
@@ -334,14 +335,8 @@ def test_drift_model_beats_per_view_estimates_on_a_drifting_truncated_scan():
     from robot_ct_ros.ct.simulation import detector_drift
 
     n_views = 30
-    nominal = circular_scan(n_views, 60.0, 150.0, 48, 48, 32.0 / 48, 32.0 / 48)
-    grid = VolumeGrid.centered((32, 32, 32), 12.0 / 32)
-    phantom = mouse_phantom(body_width_mm=20.0, length_mm=10.0)  # wider than the field of view
-    lo, hi = phantom.bounds_mm()
-    size = np.minimum(hi - lo, 40.0)
-    fine = VolumeGrid.centered(tuple(np.ceil(size[::-1] / 0.1875).astype(int)), 0.1875, 0.5 * (lo + hi))
-    true = nominal.perturbed(detector_drift(0.9 / n_views, 0.3 / n_views, kind="linear", seed=1).sample(n_views))
-    measured = forward_project(voxelize(phantom, fine), fine, true)
+    nominal, true, grid, measured = _small_scan(  # a body wider than the field of view
+        n_views, body_width_mm=20.0, error_model=detector_drift(0.9 / n_views, 0.3 / n_views, kind="linear", seed=1))
     pts = roi_points(grid)
     errors = {}
     for order in (None, 3):
