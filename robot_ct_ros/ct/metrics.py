@@ -250,20 +250,36 @@ def edge_rise_distance_mm(volume, grid: VolumeGrid, p0_mm, p1_mm, lo: float = 0.
     return float(abs(crossing(hi, +1) - crossing(lo, -1)))
 
 
-def cap_thickness_mm(volume, grid: VolumeGrid, cap, step_mm: float = 0.005, n_lines: int = 9,
-                     min_prominence: float = 0.25) -> float:
+def cap_thickness_mm(volume, grid: VolumeGrid, cap, step_mm: float = 0.005, n_lines: int | None = None,
+                     min_prominence: float = 0.25, min_snr: float = 3.0, n_blocks: int = 8,
+                     search_voxels: float = 2.0) -> float:
     """Fibrous-cap thickness measured in a reconstruction: FWHM of the cap ridge.
 
     ``cap`` is the phantom's :class:`~robot_ct_ros.ct.simulation.CapGeometry`. The profile is
     sampled along ``cap.direction`` from inside the lumen to inside the lipid core, averaged
-    over ``n_lines`` lines spread along the vessel axis (within the core's half length). The
-    ridge is bounded by the half-maximum crossings towards the lumen and towards the core,
-    each against its own plateau (the two tissues differ). ``cap`` may also be the phantom.
-    A cap thinner than the system resolution reads as about the resolution (FWHM of the PSF).
-    NaN when there is no ridge to measure: its rise above the higher plateau must be at least
-    ``min_prominence`` of its rise above the lower one (a plain edge between lumen and core, or
-    a cap blurred into it, would otherwise read as a thickness: 60 µm for a sharp edge on a
-    115 µm grid, a few µm in blurred reconstructions).
+    over ``n_lines`` lines spread along the vessel axis (within ±0.6 of the core's half
+    length; default: one per voxel along the axis; those whose cap point lies outside the
+    grid are dropped). The ridge's peak is searched within ``search_voxels`` voxels of the
+    true cap: the reconstruction must be in the phantom's frame (e.g. gauge-aligned); a
+    blurred cap stays where it was, but further out structured artefacts of a misaligned
+    geometry, which like the vessel do not vary along its axis, can read as narrow ridges. A
+    maximum on the window's edge is no ridge. The ridge is bounded by the half-maximum
+    crossings towards the lumen and towards the core, each against its own plateau (the two
+    tissues differ). ``cap`` may also be the phantom. A cap thinner than the system
+    resolution reads as about the resolution (FWHM of the PSF).
+
+    NaN when there is no ridge to measure:
+
+    * its rise above the higher plateau must be at least ``min_prominence`` of its rise above
+      the lower one (a plain edge between lumen and core, or a cap blurred into it, would
+      otherwise read as a thickness: 60 µm for a sharp edge on a 115 µm grid, a few µm in
+      blurred reconstructions);
+    * that rise must be ``min_snr`` standard errors above zero, the standard error from its
+      scatter over ``n_blocks`` groups of neighbouring lines (each measured at the averaged
+      profile's peak): in a noisy fine-voxel reconstruction of a blurred cap, the highest
+      noise bump would otherwise read as a ridge of about the noise grain. Lines within a
+      group share noise (they are closer than the noise's correlation length), so the groups,
+      not the lines, are the independent samples. ``min_snr=0`` skips the test.
     """
     cap = getattr(cap, "cap", cap)
     if cap is None:
@@ -272,16 +288,40 @@ def cap_thickness_mm(volume, grid: VolumeGrid, cap, step_mm: float = 0.005, n_li
     axis = np.asarray(cap.axis, np.float64)
     r = np.arange(-0.6, cap.thickness_mm + 0.5 * cap.core_depth_mm + 1e-9, step_mm)
     start = np.asarray(cap.lumen_point_mm)
-    offs = np.linspace(-0.6, 0.6, n_lines) * cap.half_length_mm
+    span = 0.6 * cap.half_length_mm
+    if n_lines is None:
+        n_lines = 1 + 2 * int(span / float(np.abs(axis) @ np.asarray(grid.voxel_size_mm)))
+    offs = np.linspace(-span, span, n_lines)
     pts = start[None, None, :] + r[None, :, None] * d + offs[:, None, None] * axis
-    prof = sample_volume(volume, grid, pts).mean(axis=0)
-    inner = prof[r < -0.3].mean()                      # lumen plateau
-    outer = prof[r > cap.thickness_mm + 0.25 * cap.core_depth_mm].mean()  # core plateau
-    search = (r > -0.3) & (r < cap.thickness_mm + 0.25 * cap.core_depth_mm)
-    k = np.flatnonzero(search)[np.argmax(prof[search])]
+    at_cap = start + 0.5 * cap.thickness_mm * d + offs[:, None] * axis
+    idx = (at_cap - np.asarray(grid.origin_mm)) / np.asarray(grid.voxel_size_mm)
+    inside = np.all((idx >= 0) & (idx <= np.asarray(grid.shape_zyx[::-1]) - 1), axis=1)
+    if not inside.any():
+        raise ValueError("no measurement line of the cap lies inside the grid")
+    lines = sample_volume(volume, grid, pts[inside])  # (lines inside the grid, len(r))
+    n_lines = len(lines)
+    prof = lines.mean(axis=0)
+    in_lumen = r < -0.3
+    in_core = r > cap.thickness_mm + 0.25 * cap.core_depth_mm
+    inner = prof[in_lumen].mean()  # lumen plateau
+    outer = prof[in_core].mean()   # core plateau
+    reach = search_voxels * float(np.abs(d) @ np.asarray(grid.voxel_size_mm))  # voxels along d
+    search = ~in_lumen & ~in_core & (r >= -reach) & (r <= cap.thickness_mm + reach)
+    window = np.flatnonzero(search)
+    k = window[np.argmax(prof[window])]
     peak = prof[k]
+    if k in (window[0], window[-1]):
+        return float("nan")  # the profile still rises out of the window: no ridge at the cap
     if not peak - max(inner, outer) >= min_prominence * (peak - min(inner, outer)) or peak <= max(inner, outer):
         return float("nan")
+    if min_snr > 0:
+        blocks = [b for b in np.array_split(np.arange(n_lines), min(n_blocks, n_lines)) if b.size]
+        if len(blocks) < 2:
+            raise ValueError("the noise test needs at least 2 lines (n_lines) and 2 blocks (n_blocks)")
+        rise = np.array([lines[b, k].mean() - max(lines[b][:, in_lumen].mean(), lines[b][:, in_core].mean())
+                         for b in blocks])
+        if not rise.mean() >= min_snr * rise.std(ddof=1) / np.sqrt(len(blocks)):
+            return float("nan")
     half_in, half_out = 0.5 * (peak + inner), 0.5 * (peak + outer)
     i = k
     while i > 0 and prof[i] > half_in:

@@ -65,7 +65,8 @@ def _finite_or_none(x):
     return x if math.isfinite(x) else None
 
 
-def summarize(results: dict, grid: VolumeGrid, truth=None, points_mm=None, reconstruct=None) -> list[dict]:
+def summarize(results: dict, grid: VolumeGrid, truth=None, points_mm=None, reconstruct=None,
+              reconstruct_cap=None) -> list[dict]:
     """One row per method: the metrics of the table (None where a metric does not apply).
 
     ``truth`` = (true geometry, volume reconstructed with it, phantom or None); without it only
@@ -75,6 +76,11 @@ def summarize(results: dict, grid: VolumeGrid, truth=None, points_mm=None, recon
     (:func:`metrics.remove_gauge`): calibration cannot know where the object is, only its
     shape, and a voxel of global offset would otherwise dominate the SSIM. A row whose
     geometry is the true one keeps its own volume.
+
+    The cap thickness (a plaque phantom) is measured in that gauge-aligned reconstruction, or,
+    with ``reconstruct_cap(geom) -> (volume, grid)``, in a reconstruction made for it alone
+    from the gauge-aligned geometry: typically a fine grid around the cap from the unbinned
+    detector, as a cap thinner than the calibration's binned pixels needs.
     """
     true_geom, true_vol, phantom = (tuple(truth) + (None,) * 3)[:3] if truth is not None else (None, None, None)
     pts = roi_points(grid) if points_mm is None else np.asarray(points_mm, float)
@@ -89,14 +95,17 @@ def summarize(results: dict, grid: VolumeGrid, truth=None, points_mm=None, recon
         if true_geom is not None:
             err = reprojection_error(geom, true_geom, pts)
             row["reproj_mean_px"], row["reproj_p95_px"] = err["mean_px"], err["p95_px"]
+        aligned_geom, aligned = geom, volume
+        if true_geom is not None and not geom.allclose(true_geom, atol=1e-9):
+            # (the true geometry itself needs no move, and no second reconstruction)
+            aligned_geom = remove_gauge(geom, true_geom, pts)
+            if reconstruct is not None:
+                aligned = reconstruct(aligned_geom)
         if true_vol is not None:
-            aligned = volume
-            if reconstruct is not None and true_geom is not None and not geom.allclose(true_geom, atol=1e-9):
-                # (the true geometry itself needs no move, and no second reconstruction)
-                aligned = reconstruct(remove_gauge(geom, true_geom, pts))
             row["ssim"] = _finite_or_none(ssim(aligned, true_vol))
         if cap is not None:
-            row["cap_um"] = _finite_or_none(1000.0 * cap_thickness_mm(volume, grid, cap))
+            cap_vol, cap_grid = (aligned, grid) if reconstruct_cap is None else reconstruct_cap(aligned_geom)
+            row["cap_um"] = _finite_or_none(1000.0 * cap_thickness_mm(cap_vol, cap_grid, cap))
         rows.append(row)
     return rows
 
@@ -254,7 +263,8 @@ def _clean(obj):
 
 def write_report(out_dir, results: dict, grid: VolumeGrid, truth=None, nominal: ConeGeometry | None = None, *,
                  name: str = "report", title: str = "", points_mm=None, slice_center_mm=None, zoom: float = 0.6,
-                 initial_rmse: float | None = None, notes: dict | None = None, reconstruct=None) -> dict:
+                 initial_rmse: float | None = None, notes: dict | None = None, reconstruct=None,
+                 reconstruct_cap=None) -> dict:
     """Write the figures and the table of one scan's calibration results; returns their paths.
 
     ``results`` maps method name to a :class:`~robot_ct_ros.ct.calibration.CalibrationResult`
@@ -262,14 +272,14 @@ def write_report(out_dir, results: dict, grid: VolumeGrid, truth=None, nominal: 
     ``truth`` = (true geometry, reconstruction with it, phantom or None). ``nominal``: if
     given and no "none" entry exists, the nominal geometry is added to the parameter-error
     plot as "none". ``initial_rmse`` is plotted at iteration 0. ``notes`` go into the JSON.
-    ``reconstruct``: see :func:`summarize`.
+    ``reconstruct``, ``reconstruct_cap``: see :func:`summarize`.
     Returned dict: paths under keys "slices", "rmse", "param_error" (truth known),
     "markdown", "json", and the table "rows".
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     pts = roi_points(grid) if points_mm is None else np.asarray(points_mm, float)
-    rows = summarize(results, grid, truth, pts, reconstruct=reconstruct)
+    rows = summarize(results, grid, truth, pts, reconstruct=reconstruct, reconstruct_cap=reconstruct_cap)
     true_geom, true_vol = (truth[0], truth[1]) if truth is not None else (None, None)
     paths = {"rows": rows}
     paths["slices"] = plot_slices(out / f"{name}_slices.png", results, grid, center_mm=slice_center_mm, zoom=zoom,

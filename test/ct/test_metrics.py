@@ -144,3 +144,45 @@ def test_cap_thickness_is_nan_without_a_ridge():
     depth = (pts - cap.lumen_point_mm) @ np.asarray(cap.direction)
     assert np.isnan(cap_thickness_mm((depth > 0.02).astype(np.float32), grid, cap))
     assert np.isnan(cap_thickness_mm(depth.astype(np.float32), grid, cap))  # a ramp has no ridge either
+
+
+def _fine_cap_volume(thickness_mm=0.06):
+    ph = carotid_plaque_phantom(cap_thickness_mm=thickness_mm)
+    cap = ph.cap
+    centre = cap.lumen_point_mm + 0.5 * thickness_mm * np.asarray(cap.direction)
+    grid = VolumeGrid.centered((40, 200, 20), (0.02, 0.01, 0.05), centre)  # 10 um along the cap
+    return cap, grid, voxelize(ph, grid, supersample=3)
+
+
+def test_cap_thickness_needs_a_ridge_above_the_noise():
+    """Independent noise per slice: a faint cap under strong noise is NaN by the noise test
+    (while its highest bump would read as some width without it); under weak noise it measures."""
+    from scipy.ndimage import gaussian_filter
+    cap, grid, vol = _fine_cap_volume()
+    rng = np.random.default_rng(0)
+    noise = gaussian_filter(rng.normal(size=vol.shape), (0, 1, 1)).astype(np.float32)
+    noise /= noise.std()
+    contrast = 0.008  # cap against the core
+    assert cap_thickness_mm(vol + 0.1 * contrast * noise, grid, cap) == pytest.approx(0.06, abs=0.01)
+    loud = vol + 10 * contrast * noise
+    assert np.isnan(cap_thickness_mm(loud, grid, cap))
+    assert np.isfinite(cap_thickness_mm(loud, grid, cap, min_snr=0.0))
+
+
+def test_cap_thickness_looks_for_the_ridge_at_the_cap_only():
+    """A ridge 0.2 mm (20 voxels) off the cap is no cap (search_voxels=2), unless the search reaches it."""
+    cap, grid, vol = _fine_cap_volume()
+    d_axis = 1  # cap.direction is -y: along the grid's y axis
+    assert np.asarray(cap.direction)[1] == pytest.approx(-1.0)
+    moved = np.roll(vol, -20, axis=d_axis)  # 0.2 mm along -y: deeper than the cap, into the core
+    assert np.isnan(cap_thickness_mm(moved, grid, cap))
+    assert cap_thickness_mm(moved, grid, cap, search_voxels=26) == pytest.approx(0.06, abs=0.01)
+
+
+def test_cap_thickness_drops_lines_outside_the_grid_and_needs_one():
+    cap, grid, vol = _fine_cap_volume()
+    # the grid spans ±1 mm along the vessel, the lines ±1.8 mm: the outer ones are dropped
+    assert cap_thickness_mm(vol, grid, cap) == pytest.approx(0.06, abs=0.01)
+    away = VolumeGrid(grid.shape_zyx, grid.voxel_size_mm, np.asarray(grid.origin_mm) + [0.0, 0.0, 10.0])
+    with pytest.raises(ValueError, match="inside the grid"):
+        cap_thickness_mm(vol, away, cap)

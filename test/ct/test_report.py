@@ -119,3 +119,36 @@ def test_the_true_geometry_row_is_not_reconstructed_again(inputs):
     rows = summarize(results, grid, (true, truth_vol, None), reconstruct=reconstruct)
     assert len(calls) == 1 and not calls[0].allclose(true)
     assert rows[0]["ssim"] == pytest.approx(1.0)
+
+
+def test_the_cap_is_measured_in_the_true_gauge_and_in_reconstruct_cap_when_given(inputs):
+    """The cap row uses the gauge-aligned reconstruction, and ``reconstruct_cap`` (a fine
+    grid of its own) gets the gauge-aligned geometry: a rigidly moved truth measures as the truth."""
+    from robot_ct_ros.ct.metrics import rigidly_moved
+    from robot_ct_ros.ct.report import summarize
+
+    phantom, grid, truth_vol, nominal, true, _ = inputs
+    pts = roi_points(grid)
+    moved = rigidly_moved(true, [0.0, 0.0, 0.0], [0.0, 0.3, 0.0], pts.mean(axis=0))
+    shifted = np.roll(truth_vol, 10, axis=1)  # the cap 0.3 mm away: no ridge where it should be
+    sharp = 1000 * cap_thickness_mm(truth_vol, grid, phantom.cap)
+    assert np.isnan(cap_thickness_mm(shifted, grid, phantom.cap))
+
+    def reconstruct(geom):
+        return truth_vol if np.allclose(geom.source_mm, true.source_mm, atol=1e-5) else shifted
+
+    results = {"gauge only": (moved, shifted, (), 1.0)}
+    truth = (true, truth_vol, phantom)
+    assert summarize(results, grid, truth, pts)[0]["cap_um"] is None
+    assert summarize(results, grid, truth, pts, reconstruct=reconstruct)[0]["cap_um"] == pytest.approx(sharp)
+    fine = VolumeGrid.centered((8, 110, 40), (0.015, 0.015, 0.5), (0.0, -2.53, 0.0))  # holds the whole profile
+    fine_vol = voxelize(phantom, fine)
+    seen = []
+
+    def reconstruct_cap(geom):
+        seen.append(geom)
+        return (fine_vol, fine) if np.allclose(geom.source_mm, true.source_mm, atol=1e-5) else (shifted, grid)
+
+    row = summarize(results, grid, truth, pts, reconstruct=reconstruct, reconstruct_cap=reconstruct_cap)[0]
+    assert len(seen) == 1 and row["cap_um"] == pytest.approx(1000 * cap_thickness_mm(fine_vol, fine, phantom.cap))
+    assert row["cap_um"] == pytest.approx(60.0, abs=15.0)
