@@ -118,7 +118,7 @@ def make_scenario(key: str, views: int, det: tuple[int, int], vol: int, binning:
                            li=scan.line_integrals, mask=scan.valid_mask, fov_mm=fov, pitch_mm=pitch)
 
 
-CAP_STRIP_ROWS = 192       # unbinned detector rows around the cap: ±2.6 mm along the vessel at the ROI
+CAP_STRIP_ROWS = 192       # unbinned detector rows around the cap: ±2 mm along the vessel at the ROI
 CAP_VOXEL_MM = 0.020       # about the unbinned pixel at the ROI (55 um / 2.67)
 CAP_SIM_VOXEL_MM = 0.0125  # phantom voxels of the strip's simulation near the cap
 
