@@ -77,8 +77,9 @@ def summarize(results: dict, grid: VolumeGrid, truth=None, points_mm=None, recon
     shape, and a voxel of global offset would otherwise dominate the SSIM. A row whose
     geometry is the true one keeps its own volume.
 
-    The cap thickness (a plaque phantom) is measured in that gauge-aligned reconstruction, or,
-    with ``reconstruct_cap(geom) -> (volume, grid)``, in a reconstruction made for it alone
+    The cap thickness (a plaque phantom) is measured in that gauge-aligned reconstruction
+    (without ``reconstruct``, in the volume as given), or, with
+    ``reconstruct_cap(geom) -> (volume, grid)``, in a reconstruction made for it alone
     from the gauge-aligned geometry: typically a fine grid around the cap from the unbinned
     detector, as a cap thinner than the calibration's binned pixels needs.
     """
