@@ -40,7 +40,7 @@ from robot_ct_ros.ct import calibration  # noqa: E402
 from robot_ct_ros.ct import simulation as sim  # noqa: E402
 from robot_ct_ros.ct.geometry import VolumeGrid  # noqa: E402
 from robot_ct_ros.ct.reconstruction import fdk  # noqa: E402
-from robot_ct_ros.ct.report import markdown_table, write_report  # noqa: E402
+from robot_ct_ros.ct.report import markdown_table, plot_cap_slabs, write_report  # noqa: E402
 from robot_ct_ros.ct.trajectory import SeedSystem, fov_radius_mm, robotic_roi_scan  # noqa: E402
 
 DRIFT_METHOD = "ncc-lle-exact + drift(3)"
@@ -57,7 +57,8 @@ SCENARIOS = {
 
 
 SIM_BINNING = 2  # the scans are simulated on 110 um pixels, then binned to the readout's
-PHOTONS_PER_MM2 = 4000.0 / 0.110 ** 2  # flat-field photons per mm^2 behind 130 mm of water: 4000 per 110 um pixel
+PHOTONS_PER_MM2 = 4000.0 / (SIM_BINNING * SeedSystem.raw_pixel_mm) ** 2
+"""Flat-field photons per mm^2 behind 130 mm of water: 4000 per simulated (110 um) pixel."""
 
 
 def _det(text: str) -> tuple[int, int]:
@@ -133,7 +134,8 @@ class CapStrip:
     ``CAP_STRIP_ROWS`` unbinned rows across the full detector width, with the binned scan's
     photons per area (its own Poisson noise, dead pixels and chip gaps) and the phantom on
     ``CAP_SIM_VOXEL_MM`` voxels near the cap. Calling it with a (gauge-aligned) binned
-    geometry returns the fine reconstruction and its grid, and keeps the volume for the figure.
+    geometry returns the fine reconstruction and its grid, and keeps the volume (``volumes``,
+    by ``label``) for the figure (report.plot_cap_slabs).
     """
 
     def __init__(self, sc, photons_per_mm2: float, seed: int, say):
@@ -158,34 +160,6 @@ class CapStrip:
     def crop(self, geom):
         """The unbinned strip of ``geom``'s detector: same detector centre and frame."""
         return geom.with_detector(CAP_STRIP_ROWS, self.cols, self.raw_mm, self.raw_mm)
-
-    def figure(self, path, cap):
-        """Axial slabs (mean along the vessel over the fine grid's 3 mm, as the cap measurement
-        averages; one 20 um slice is noise) of every method's fine reconstruction, one grey
-        window (the true geometry's), the cap's profile line in red."""
-        import matplotlib
-        matplotlib.use("Agg", force=True)
-        import matplotlib.pyplot as plt
-        slabs = {m: v.mean(axis=0) for m, v in self.volumes.items()}
-        ref = slabs.get("true geometry", next(iter(slabs.values())))
-        lo, hi = np.percentile(ref, [1, 99])
-        x, y = self.grid.axes_mm()[:2]
-        ext = (x[0], x[-1], y[-1], y[0])
-        p0 = np.asarray(cap.lumen_point_mm) - 0.6 * np.asarray(cap.direction)
-        p1 = np.asarray(cap.lumen_point_mm) + (cap.thickness_mm + 0.5 * cap.core_depth_mm) * np.asarray(cap.direction)
-        fig, axes = plt.subplots(1, len(slabs), figsize=(2.3 * len(slabs) + 0.4, 2.9), squeeze=False)
-        for ax, (m, img) in zip(axes[0], slabs.items()):
-            ax.imshow(img, cmap="gray", vmin=lo, vmax=hi, extent=ext, interpolation="nearest")
-            ax.plot([p0[0], p1[0]], [p0[1], p1[1]], "r-", lw=0.6)
-            ax.set_title(m, fontsize=9)
-            ax.set_xticks([])
-            ax.set_yticks([])
-        fig.suptitle(f"cap, unbinned strip, {CAP_VOXEL_MM * 1000:.0f} um voxels, axial mean over "
-                     f"{self.grid.extent_mm[2]:.0f} mm of vessel", fontsize=10)
-        fig.tight_layout()
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-        return path
 
     def __call__(self, geom, label=None):
         vol = fdk(self.li, self.crop(geom), self.grid, valid_mask=self.mask)
@@ -279,7 +253,11 @@ def main(argv=None) -> int:
                              reconstruct_cap=reconstruct_cap)
         rows = paths["rows"]
         if strip is not None:
-            paths["cap"] = strip.figure(os.path.join(out, f"scenario_{key}_cap.png"), cap)
+            paths["cap"] = plot_cap_slabs(
+                os.path.join(out, f"scenario_{key}_cap.png"), strip.volumes, strip.grid, cap,
+                reference=strip.volumes.get("true geometry"),
+                title=f"cap, unbinned strip, {CAP_VOXEL_MM * 1000:.0f} um voxels, axial mean over "
+                      f"{strip.grid.extent_mm[2]:.0f} mm of vessel")
         say("\n" + markdown_table(rows))
         scenarios.append({"key": key, "title": title, "rows": rows, "via": via,
                           "true_cap_um": None if cap is None else 1000 * cap.thickness_mm,

@@ -295,7 +295,7 @@ def cap_thickness_mm(volume, grid: VolumeGrid, cap, step_mm: float = 0.005, n_li
     pts = start[None, None, :] + r[None, :, None] * d + offs[:, None, None] * axis
     at_cap = start + 0.5 * cap.thickness_mm * d + offs[:, None] * axis
     idx = (at_cap - np.asarray(grid.origin_mm)) / np.asarray(grid.voxel_size_mm)
-    inside = np.all((idx >= 0) & (idx <= np.asarray(grid.shape_zyx[::-1]) - 1), axis=1)
+    inside = np.all((idx >= 0) & (idx <= np.asarray(grid.shape_xyz) - 1), axis=1)
     if not inside.any():
         raise ValueError("no measurement line of the cap lies inside the grid")
     lines = sample_volume(volume, grid, pts[inside])  # (lines inside the grid, len(r))

@@ -177,6 +177,31 @@ def plot_slices(path, results: dict, grid: VolumeGrid, *, center_mm=None, zoom: 
     return _save(fig, path)
 
 
+def plot_cap_slabs(path, volumes: dict, grid: VolumeGrid, cap, *, reference=None, title: str = "") -> Path:
+    """Axial slabs around a fibrous cap, one per method: each volume averaged along z (the
+    vessel axis of :class:`~robot_ct_ros.ct.simulation.CapGeometry`), as
+    :func:`metrics.cap_thickness_mm` averages its lines (a single fine slice is mostly noise);
+    one grey window (``reference``'s, default the first); the measured profile line in red."""
+    plt = _plt()
+    slabs = {m: np.asarray(v, np.float32).mean(axis=0) for m, v in volumes.items()}
+    ref = next(iter(slabs.values())) if reference is None else np.asarray(reference, np.float32).mean(axis=0)
+    lo, hi = np.percentile(ref, [1, 99])
+    x, y = grid.axes_mm()[:2]
+    d = np.asarray(cap.direction)
+    p0 = np.asarray(cap.lumen_point_mm) - 0.6 * d
+    p1 = np.asarray(cap.lumen_point_mm) + (cap.thickness_mm + 0.5 * cap.core_depth_mm) * d
+    fig, axes = plt.subplots(1, len(slabs), figsize=(2.3 * len(slabs) + 0.4, 2.9), squeeze=False)
+    for ax, (m, img) in zip(axes[0], slabs.items()):
+        ax.imshow(img, cmap="gray", vmin=lo, vmax=hi, extent=(x[0], x[-1], y[-1], y[0]), interpolation="nearest")
+        ax.plot([p0[0], p1[0]], [p0[1], p1[1]], "r-", lw=0.6)
+        ax.set_title(m, fontsize=9)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    if title:
+        fig.suptitle(title, fontsize=10)
+    return _save(fig, path)
+
+
 def _save(fig, path) -> Path:
     """Lay out, write (110 dpi PNG) and close a figure."""
     fig.tight_layout()

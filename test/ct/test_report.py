@@ -152,3 +152,13 @@ def test_the_cap_is_measured_in_the_true_gauge_and_in_reconstruct_cap_when_given
     row = summarize(results, grid, truth, pts, reconstruct=reconstruct, reconstruct_cap=reconstruct_cap)[0]
     assert len(seen) == 1 and row["cap_um"] == pytest.approx(1000 * cap_thickness_mm(fine_vol, fine, phantom.cap))
     assert row["cap_um"] == pytest.approx(60.0, abs=15.0)
+
+
+def test_cap_slab_figure(tmp_path, inputs):
+    from robot_ct_ros.ct.report import plot_cap_slabs
+
+    phantom, grid, truth_vol, *_ = inputs
+    path = plot_cap_slabs(tmp_path / "cap.png", {"a": truth_vol, "b": truth_vol[::-1]}, grid, phantom.cap,
+                          reference=truth_vol, title="cap")
+    data = path.read_bytes()
+    assert data.startswith(PNG) and len(data) > 1000
