@@ -28,7 +28,7 @@ bench: $(STAMP)
 	$(PY) bench/bench_fdk.py
 
 bench-calibration: $(STAMP)
-	$(PY) bench/bench_calibration.py --out docs/results
+	$(PY) bench/bench_calibration.py --repeats 3 --out docs/results
 
 bench-calibration-speed: $(STAMP)
 	$(PY) bench/bench_calibration_speed.py --json docs/results/speed.json

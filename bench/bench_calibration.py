@@ -15,9 +15,11 @@ calibration.calibrate, one alternating loop), true geometry; on the drift scenar
 ncc-lle-exact with the drift model (calibrate(drift_order=3), no per-view prior). Per method:
 gauge-aligned reprojection error of ROI points (mean, p95, px), SSIM against the true-geometry
 reconstruction, edge sharpness, cap thickness (c, on a full-resolution strip: CapStrip), outer
-iterations, wall time. Writes results.md, results.json and figures (report.py) into --out.
+iterations, wall time; with --repeats N each LLE method again with N - 1 more sampling seeds on
+the same scan (calibrate(seed=); their scatter below each table). Writes results.md,
+results.json and figures (report.py) into --out.
 
-    .venv/bin/python bench/bench_calibration.py                      # defaults: about 6 min on 2 cores
+    .venv/bin/python bench/bench_calibration.py                      # defaults: about 6.5 min on 2 cores (13 with --repeats 3)
     .venv/bin/python bench/bench_calibration.py --views 60 --det 48x64 --vol 48 --scenarios a
 """
 
@@ -40,7 +42,7 @@ from robot_ct_ros.ct import calibration  # noqa: E402
 from robot_ct_ros.ct import simulation as sim  # noqa: E402
 from robot_ct_ros.ct.geometry import VolumeGrid  # noqa: E402
 from robot_ct_ros.ct.reconstruction import fdk  # noqa: E402
-from robot_ct_ros.ct.report import markdown_table, plot_cap_slabs, write_report  # noqa: E402
+from robot_ct_ros.ct.report import markdown_table, plot_cap_slabs, summarize, write_report  # noqa: E402
 from robot_ct_ros.ct.trajectory import SeedSystem, fov_radius_mm, robotic_roi_scan  # noqa: E402
 
 DRIFT_METHOD = "ncc-lle-exact + drift(3)"
@@ -168,7 +170,12 @@ class CapStrip:
         return vol, self.grid
 
 
-def run_method(method: str, sc, iterations: int, say):
+SAMPLED_METHODS = tuple(calibration.LLE_METHODS) + (DRIFT_METHOD,)
+"""The methods that draw random samples (calibrate(seed=)); the baselines draw nothing."""
+REPEAT_SEED_STEP = 1000  # --repeats: sampling seeds 0, 1000, 2000, ... (the levels use seed and seed + 1)
+
+
+def run_method(method: str, sc, iterations: int, say, seed: int = 0):
     t0 = time.perf_counter()
     if method == "none":
         v = fdk(sc.li, sc.nominal, sc.grid, valid_mask=sc.mask)
@@ -179,12 +186,50 @@ def run_method(method: str, sc, iterations: int, say):
     prog = (lambda m: say(f"    {m}"))
     if method == DRIFT_METHOD:
         return calibration.calibrate(sc.li, sc.nominal, sc.grid, method="ncc-lle-exact", n_iter=iterations,
-                                     valid_mask=sc.mask, drift_order=3, prior_sigma=None,
+                                     valid_mask=sc.mask, drift_order=3, prior_sigma=None, seed=seed,
                                      progress=prog), "calibration.calibrate(drift_order=3, prior_sigma=None)"
     if method in calibration.METHODS:
         return calibration.calibrate(sc.li, sc.nominal, sc.grid, method=method, n_iter=iterations,
-                                     valid_mask=sc.mask, progress=prog), "calibration.calibrate"
+                                     valid_mask=sc.mask, seed=seed, progress=prog), "calibration.calibrate"
     raise ValueError(f"unknown method {method!r}")
+
+
+def sampling_scatter(sc, results: dict, rows: list, truth_vol, repeats: int, iterations: int, say) -> dict:
+    """Each sampling method of ``results`` again with ``repeats - 1`` more sampling seeds on the
+    same scan: {method: [{"seed", "reproj_mean_px", "reproj_p95_px", "ssim"}, ...]}, the
+    table's own run (seed 0) first. Same metrics as the table (report.summarize), without the cap."""
+    out = {}
+    for row in rows:
+        method = row["method"]
+        if method not in SAMPLED_METHODS or repeats < 2:
+            continue
+        runs = [{"seed": 0, **{k: row[k] for k in ("reproj_mean_px", "reproj_p95_px", "ssim")}}]
+        for r in range(1, repeats):
+            seed = r * REPEAT_SEED_STEP
+            res, _ = run_method(method, sc, iterations, lambda m: None, seed=seed)
+            again = summarize({method: res}, sc.grid, (sc.true, truth_vol, None),
+                              reconstruct=lambda g: fdk(sc.li, g, sc.grid, valid_mask=sc.mask))[0]
+            runs.append({"seed": seed, **{k: again[k] for k in ("reproj_mean_px", "reproj_p95_px", "ssim")}})
+            say(f"  {method}, sampling seed {seed}: {again['reproj_mean_px']:.3f} px, SSIM {again['ssim']:.4f} "
+                f"({res.wall_s:.1f} s)")
+        out[method] = runs
+    return out
+
+
+def scatter_lines(scatter: dict) -> list:
+    """Markdown lines for :func:`sampling_scatter`'s result (none when it is empty)."""
+    if not scatter:
+        return []
+    seeds = [r["seed"] for r in next(iter(scatter.values()))]
+    lines = [f"Sampling scatter: each LLE method again on the same scan with the sampling seeds "
+             f"{', '.join(str(x) for x in seeds)} (the table's run is seed 0):", "",
+             "| method | error mean (px), per seed | mean ± sd | SSIM, per seed |", "| --- | --- | --- | --- |"]
+    for method, runs in scatter.items():
+        e = np.array([r["reproj_mean_px"] for r in runs], float)
+        errors = " / ".join(f"{x:.3f}" for x in e)
+        ssims = " / ".join("-" if r["ssim"] is None else f"{r['ssim']:.4f}" for r in runs)
+        lines.append(f"| {method} | {errors} | {e.mean():.3f} ± {e.std(ddof=1):#.2g} | {ssims} |")
+    return lines + [""]
 
 
 _STOP_PX = inspect.signature(calibration.calibrate).parameters["stop_update_px"].default
@@ -201,7 +246,10 @@ def main(argv=None) -> int:
     ap.add_argument("--iterations", type=int, default=3, help="outer iterations per method at most (default 3)")
     ap.add_argument("--scenarios", default="abc", help="subset of 'abc' (default abc)")
     ap.add_argument("--methods", default=",".join(ALL_METHODS), help="comma-separated subset of " + ", ".join(ALL_METHODS))
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seed", type=int, default=0, help="scenario seed: phantom, errors, noise (default 0)")
+    ap.add_argument("--repeats", type=int, default=1,
+                    help="run each sampling method (LLE) with this many sampling seeds on the same scan and "
+                         "report their scatter below each table (default 1: the table's run only)")
     ap.add_argument("--out", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "docs", "results"))
     args = ap.parse_args(argv)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
@@ -211,6 +259,8 @@ def main(argv=None) -> int:
     for s in args.scenarios:
         if s not in SCENARIOS:
             ap.error(f"unknown scenario {s!r}")
+    if args.repeats < 1:
+        ap.error("--repeats must be >= 1")
     out = os.path.abspath(args.out)
     os.makedirs(out, exist_ok=True)
     t_all = time.perf_counter()
@@ -259,7 +309,8 @@ def main(argv=None) -> int:
                 title=f"cap, unbinned strip, {CAP_VOXEL_MM * 1000:.0f} um voxels, axial mean over "
                       f"{strip.grid.extent_mm[2]:.0f} mm of vessel")
         say("\n" + markdown_table(rows))
-        scenarios.append({"key": key, "title": title, "rows": rows, "via": via,
+        scatter = sampling_scatter(sc, results, rows, truth_vol, args.repeats, args.iterations, say)
+        scenarios.append({"key": key, "title": title, "rows": rows, "via": via, "sampling_scatter": scatter,
                           "true_cap_um": None if cap is None else 1000 * cap.thickness_mm,
                           "initial_projection_rmse": initial,
                           "figures": [os.path.basename(str(paths[k])) for k in ("slices", "cap", "rmse", "param_error")
@@ -269,7 +320,7 @@ def main(argv=None) -> int:
                                              "rotation_deg": float(np.rad2deg(np.sqrt((sc.errors[:, 6:] ** 2).mean())))}})
     total = time.perf_counter() - t_all
     settings = {"views": args.views, "detector": list(args.det), "binning": args.binning, "vol": args.vol,
-                "iterations": args.iterations, "seed": args.seed, "methods": methods, 
+                "iterations": args.iterations, "seed": args.seed, "repeats": args.repeats, "methods": methods,
                 "total_wall_s": total, "cpus": os.cpu_count(), "machine": platform.platform(),
                 "load_at_end": os.getloadavg()}
     with open(os.path.join(out, "results.json"), "w") as f:
@@ -292,7 +343,8 @@ def main(argv=None) -> int:
                       f"({CAP_STRIP_ROWS} rows of {SeedSystem().raw_pixel_mm * 1000:.0f} um) with each method's "
                       f"gauge-aligned geometry (bench_calibration.CapStrip); '-': no ridge 3 standard errors above "
                       f"its surroundings at the cap (metrics.cap_thickness_mm).", ""]
-        lines += [markdown_table(s["rows"])] + [f"![{f}]({f})" for f in s["figures"]] + [""]
+        lines += [markdown_table(s["rows"])] + scatter_lines(s["sampling_scatter"]) \
+            + [f"![{f}]({f})" for f in s["figures"]] + [""]
     with open(os.path.join(out, "results.md"), "w") as f:
         f.write("\n".join(lines) + "\n")
     say(f"wrote {out}/results.md, results.json and figures; total {total / 60:.1f} min")

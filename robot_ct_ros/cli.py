@@ -103,10 +103,10 @@ def reconstruct_bag(bag, out, *, geometry: str = "auto", voxel_mm=None, shape=No
     return report
 
 
-def _calibrate_kwargs(scan, prior_sigma, stop_update_px, drift_order=None) -> dict:
+def _calibrate_kwargs(scan, prior_sigma, stop_update_px, drift_order=None, seed: int = 0) -> dict:
     """calibrate()'s ``prior_sigma`` (``"default"``: calibration.DEFAULT_PRIOR_SIGMA),
-    ``drift_order`` (None: off) with ``drift_times``, and, when given, ``stop_update_px`` (None
-    keeps calibrate's default). The drift model's time axis is the frames' stamps (s): a pause
+    ``drift_order`` (None: off) with ``drift_times``, ``seed``, and, when given,
+    ``stop_update_px`` (None keeps calibrate's default). The drift model's time axis is the frames' stamps (s): a pause
     in the scan is then a gap in time, not one view's step (the view index without usable
     stamps)."""
     from robot_ct_ros.ct.calibration import DEFAULT_PRIOR_SIGMA
@@ -117,7 +117,7 @@ def _calibrate_kwargs(scan, prior_sigma, stop_update_px, drift_order=None) -> di
         t = (np.asarray(scan.stamps_ns, np.int64) - int(scan.stamps_ns[0])).astype(np.float64) * 1e-9
         times = t if np.ptp(t) > 0 else None
     return ({"prior_sigma": prior, "drift_order": None if drift_order is None else int(drift_order),
-             "drift_times": times}
+             "drift_times": times, "seed": int(seed)}
             | ({} if stop_update_px is None else {"stop_update_px": float(stop_update_px)}))
 
 
@@ -132,7 +132,7 @@ strongest published baseline."""
 
 def report_bag(bag, out, *, methods=REPORT_METHODS, iterations: int = 2, voxel_mm=None, shape=None,
                schedule: str = "accurate", prior_sigma="default", stop_update_px: float | None = None,
-               drift_order: int | None = None, say=_say) -> dict:
+               drift_order: int | None = None, seed: int = 0, say=_say) -> dict:
     """Compare calibration methods on one scan bag: figures like the NCC-LLE paper's and a table.
 
     ``methods``: ``"none"`` (FDK with the nominal geometry) and any of calibration.METHODS, each
@@ -161,7 +161,7 @@ def report_bag(bag, out, *, methods=REPORT_METHODS, iterations: int = 2, voxel_m
         say(f"warning: {w}")
     li, mask = scan.to_line_integrals()
     grid = _grid_for(scan, voxel_mm, shape)
-    kwargs = _calibrate_kwargs(scan, prior_sigma, stop_update_px, drift_order)
+    kwargs = _calibrate_kwargs(scan, prior_sigma, stop_update_px, drift_order, seed)
     say(f"{scan.n_views} views, detector {scan.geom.n_rows}x{scan.geom.n_cols}, grid {grid.shape_zyx[::-1]} of "
         f"{grid.voxel_size_mm[0] * 1000:.1f} um; methods {', '.join(methods)}; at most {iterations} iteration(s), "
         f"schedule {schedule}")
@@ -193,7 +193,7 @@ def report_bag(bag, out, *, methods=REPORT_METHODS, iterations: int = 2, voxel_m
                          initial_rmse=initial, reconstruct=reconstruct if truth is not None else None,
                          notes={"bag": str(bag), "iterations": iterations, "schedule": schedule,
                                 "prior_sigma": _prior_json(kwargs["prior_sigma"]),
-                                "drift_order": kwargs["drift_order"],
+                                "drift_order": kwargs["drift_order"], "seed": kwargs["seed"],
                                 "grid": grid.to_dict(), "bag_warnings": list(scan.warnings)})
     say("\n" + markdown_table(paths["rows"]))
     say(f"wrote {', '.join(str(paths[k]) for k in ('slices', 'rmse', 'param_error', 'markdown', 'json') if k in paths)}"
@@ -210,14 +210,14 @@ def calibration_methods() -> tuple:
 
 def calibrate_bag(bag, out, *, method: str = "ncc-lle-exact", iterations: int = 2, voxel_mm=None, shape=None,
                   schedule: str = "accurate", prior_sigma="default", stop_update_px: float | None = None,
-                  drift_order: int | None = None, say=_say) -> dict:
+                  drift_order: int | None = None, seed: int = 0, say=_say) -> dict:
     """Calibrate the per-view geometry of a scan bag offline and reconstruct it.
 
     Runs :func:`robot_ct_ros.ct.calibration.calibrate` (method, at most ``iterations``
     outer iterations, schedule, stop_update_px (None: calibrate's default),
     prior_sigma: ``"default"`` for calibration.DEFAULT_PRIOR_SIGMA, None for the data alone;
     drift_order: None for independent per-view errors, a degree for a slowly drifting geometry;
-    ``"fdk"`` only reconstructs with the nominal geometry). Writes into ``out``: the
+    seed: the LLE methods' sampling seed; ``"fdk"`` only reconstructs with the nominal geometry). Writes into ``out``: the
     corrected bag (``<bag name>_corrected``: every message of the input plus
     /ct/geometry_corrected), ``volume.npy``/``.tif``/``_grid.json`` and ``report.json``.
     """
@@ -240,9 +240,10 @@ def calibrate_bag(bag, out, *, method: str = "ncc-lle-exact", iterations: int = 
     if method != "fdk":
         from robot_ct_ros.ct.calibration import calibrate
 
-        kwargs = _calibrate_kwargs(scan, prior_sigma, stop_update_px, drift_order)
+        kwargs = _calibrate_kwargs(scan, prior_sigma, stop_update_px, drift_order, seed)
         report["prior_sigma"] = _prior_json(kwargs["prior_sigma"])
         report["drift_order"] = kwargs["drift_order"]
+        report["seed"] = kwargs["seed"]
         result = calibrate(li, scan.geom, grid, method=method, n_iter=iterations, valid_mask=mask, schedule=schedule,
                            progress=say, **kwargs)
         geom, volume = result.geom, result.volume
@@ -440,14 +441,14 @@ def _cmd_report(args) -> int:
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     report_bag(args.bag, args.out, methods=methods, iterations=args.iterations, voxel_mm=args.voxel_mm,
                shape=args.shape, schedule=args.schedule, prior_sigma=args.prior_sigma,
-               stop_update_px=args.stop_update_px, drift_order=args.drift_order)
+               stop_update_px=args.stop_update_px, drift_order=args.drift_order, seed=args.seed)
     return 0
 
 
 def _cmd_calibrate(args) -> int:
     calibrate_bag(args.bag, args.out, method=args.method, iterations=args.iterations, voxel_mm=args.voxel_mm,
                   shape=args.shape, schedule=args.schedule, prior_sigma=args.prior_sigma,
-                  stop_update_px=args.stop_update_px, drift_order=args.drift_order)
+                  stop_update_px=args.stop_update_px, drift_order=args.drift_order, seed=args.seed)
     return 0
 
 
@@ -523,6 +524,9 @@ def main(argv: list[str] | None = None) -> int:
                            help="the geometry drifts slowly (e.g. a detector warming up): fit every parameter "
                                 "with a polynomial of this degree in time (the frames' stamps) after each iteration "
                                 "(default: off, independent per-view errors; 3 suits a smooth drift)")
+            p.add_argument("--seed", type=int, default=0,
+                           help="the LLE methods' sampling seed (default 0): another seed is another estimate of "
+                                "the same scan, and their spread the estimate's own scatter")
 
     args = parser.parse_args(argv)
     if args.command == "demo":

@@ -61,9 +61,10 @@ def test_simulate_info_reconstruct_calibrate(tmp_path, capsys):
 
     mapped = tmp_path / "calib_prior"
     assert main(["calibrate", str(bag), "--method", "ncc-lle", "--iterations", "3", "--prior-sigma", "0.2,0.25",
-                 "--stop-px", "1000", "--out", str(mapped)]) == 0
+                 "--stop-px", "1000", "--seed", "3", "--out", str(mapped)]) == 0
     report = json.loads((mapped / "report.json").read_text())
     np.testing.assert_allclose(report["prior_sigma"], [0.2] * 6 + [np.deg2rad(0.25)] * 3)
+    assert report["seed"] == 3
     assert report["drift_order"] is None  # independent per-view errors unless asked
     assert 0.0 < report["history"][0]["independent_fraction"] <= 1.0
     # every iteration moves the views less than 1000 px: one of at most three ran
@@ -96,13 +97,18 @@ def test_simulate_info_reconstruct_calibrate(tmp_path, capsys):
     # compare methods on the corrected bag: its own corrected and true geometries join the table
     compared = tmp_path / "report"
     assert main(["report", str(mapped / "scan_corrected"), "--methods", "none,ncc-lle", "--iterations", "1",
-                 "--prior-sigma", "0.2,0.25", "--out", str(compared)]) == 0
+                 "--prior-sigma", "0.2,0.25", "--seed", "3", "--out", str(compared)]) == 0
     table = json.loads((compared / "report.json").read_text())
     rows = {r["method"]: r for r in table["rows"]}
     assert list(rows) == ["none", "ncc-lle", "bag corrected", "true geometry"]
     assert rows["true geometry"]["reproj_mean_px"] == 0.0 and rows["none"]["reproj_mean_px"] > 0.0
-    # same data, settings and seeds as the calibrate run that wrote the bag's corrected geometry
+    # same data, settings and seed as the calibrate run that wrote the bag's corrected geometry
     assert rows["ncc-lle"]["reproj_mean_px"] == pytest.approx(rows["bag corrected"]["reproj_mean_px"], rel=1e-6)
+    # the seed reaches the estimate: another one samples another correction
+    assert main(["report", str(mapped / "scan_corrected"), "--methods", "ncc-lle", "--iterations", "1",
+                 "--prior-sigma", "0.2,0.25", "--out", str(tmp_path / "seed0")]) == 0
+    seed0 = {r["method"]: r for r in json.loads((tmp_path / "seed0" / "report.json").read_text())["rows"]}
+    assert seed0["ncc-lle"]["reproj_mean_px"] != pytest.approx(rows["ncc-lle"]["reproj_mean_px"], rel=1e-6)
     assert rows["ncc-lle"]["iterations"] == 1 and rows["none"]["iterations"] == 0
     for figure in ("report_slices.png", "report_rmse.png", "report_param_error.png", "report.md"):
         assert (compared / figure).stat().st_size > 0

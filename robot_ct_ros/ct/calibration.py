@@ -1210,7 +1210,8 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
               truncated: bool | None = True,
               padding: float = 1.25, undo_inconsistent: bool = False, prior_sigma=DEFAULT_PRIOR_SIGMA,
               drift_order: int | None = None, drift_times=None, focus_modes: dict | None = None,
-              fdk_kwargs: dict | None = None, progress=None, on_iteration=None) -> CalibrationResult:
+              fdk_kwargs: dict | None = None, seed: int = 0, progress=None,
+              on_iteration=None) -> CalibrationResult:
     """Alternate reconstruction and per-view LLE geometry estimation (design.md §2).
 
     Each outer iteration reconstructs with the current geometry
@@ -1267,6 +1268,9 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
     own scatter (0.04 to 0.05 px on scenario (a) against a true-geometry volume): there an
     iteration that moved the views 0.064 px still cut the error from 0.123 to 0.102 px, the
     next ones, moving them 0.042 and 0.035 px, by 0.001 px.
+    ``seed`` starts the LLE methods' random sampling (:func:`default_lle_configs`; explicit
+    ``configs`` carry their own, the baselines draw nothing): another seed is another estimate
+    of the same scan, which is how bench/bench_calibration.py --repeats measures the scatter.
     ``progress(message)`` receives one line per step, ``on_iteration(record, params)`` the
     :class:`IterationRecord` and the (n, 9) parameters after each outer iteration.
     """
@@ -1307,7 +1311,7 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
     if method in LLE_METHODS:
         estimate, narrowed = estimate_views, _narrowed
         if configs is None:
-            coarse_cfg, fine_cfg = default_lle_configs(LLE_METHODS[method], prior_sigma=prior_sigma)
+            coarse_cfg, fine_cfg = default_lle_configs(LLE_METHODS[method], seed=seed, prior_sigma=prior_sigma)
             fine_cfg = replace(fine_cfg, source_positions=plan["fine_source"], n_samples=plan["fine_samples"])
         else:
             coarse_cfg, fine_cfg = configs

@@ -630,6 +630,15 @@ def test_prior_keeps_views_whose_data_the_volume_cannot_explain_near_nominal():
         LLEConfig(prior_sigma=(0.3,) * 8)
 
 
+def test_seed_reproduces_an_lle_estimate_and_another_seed_samples_anew():
+    nominal, _, grid, measured = _small_scan(n_views=12)
+    runs = {(method, seed): calibrate(measured, nominal, grid, method=method, n_iter=1, seed=seed).params
+            for method in ("ncc-lle-exact", "gdc") for seed in (0, 7)}
+    np.testing.assert_array_equal(runs["ncc-lle-exact", 0], calibrate(measured, nominal, grid, n_iter=1).params)
+    assert np.abs(runs["ncc-lle-exact", 7] - runs["ncc-lle-exact", 0]).max() > 1e-4
+    np.testing.assert_array_equal(runs["gdc", 7], runs["gdc", 0])  # the baselines draw no samples
+
+
 def test_without_prior_the_loop_reports_no_independent_fraction():
     nominal, _, grid, measured = _small_scan(n_views=12)
     result = calibrate(measured, nominal, grid, method="ncc-lle-exact", n_iter=1, prior_sigma=None)
