@@ -73,12 +73,14 @@ def _det(text: str) -> tuple[int, int]:
 
 
 def make_scenario(key: str, views: int, det: tuple[int, int], vol: int, binning: int, seed: int, say,
-                  sim_oversample: int = 2, phantom_scale: float = 1.0):
+                  sim_oversample: int = 2, phantom_scale: float = 1.0, n_axial: int | None = None):
     """Nominal and true geometry, simulated scan, ROI grid, phantom and truth reconstruction.
 
-    The field of view is simulated on a grid ``sim_oversample`` times finer than the
-    reconstruction's. ``phantom_scale`` scales the mouse and the battery (a larger detector
-    at the same pixel size needs a larger object for the same truncation)."""
+    The ROI grid has ``vol`` voxels across and ``n_axial`` along the axis (default: 90 % of
+    what the central ray's cone covers, at most ``vol``). The field of view is simulated on a
+    grid ``sim_oversample`` times finer than the reconstruction's. ``phantom_scale`` scales the
+    mouse and the battery (a larger detector at the same pixel size needs a larger object for
+    the same truncation)."""
     system = SeedSystem()
     rows, cols = det
     pitch = system.raw_pixel_mm * binning
@@ -104,7 +106,7 @@ def make_scenario(key: str, views: int, det: tuple[int, int], vol: int, binning:
     voxel = pitch / system.magnification
     axial = rows * pitch / system.magnification
     nxy = vol
-    nz = max(8, min(vol, int(0.9 * axial / voxel)))
+    nz = max(8, min(vol, int(0.9 * axial / voxel))) if n_axial is None else int(n_axial)
     vs = 0.95 * fov / nxy  # the grid covers the field of view
     grid = VolumeGrid.centered((nz, nxy, nxy), vs, center)
     # simulation: a fine grid over the field of view (1/sim_oversample of the reconstruction voxel), coarse elsewhere
