@@ -5,7 +5,9 @@ all 9 DOF) at the size of the calibration issue's speed target: 360 views, a 256
 detector of the seed system's 110 um binned pixels, a 256^3 ROI grid (the field of view
 across, 256 voxels of the same size along the axis; until 2026-12-02 it was 256 x 256 x 230,
 the axial extent from the cone, and the figures quoted from "the speed benchmark" in
-calibration.py and the README before that day are on that grid: --axial 230); the mouse is scaled with the field of view so the scan stays truncated. Runs, in one process on the same data:
+calibration.py and the README before that day are on that grid: --axial 230); the mouse is
+scaled with the field of view so the scan stays truncated. Runs, in one process on the same
+data:
 
   ncc-lle   calibration.calibrate(schedule="fast"), --iterations outer iterations
   gdc-log   the same loop and schedule with the GDC-LoG estimator, --gdc-iterations

@@ -106,9 +106,9 @@ def reconstruct_bag(bag, out, *, geometry: str = "auto", voxel_mm=None, shape=No
 def _calibrate_kwargs(scan, prior_sigma, stop_update_px, drift_order=None, seed: int = 0) -> dict:
     """calibrate()'s ``prior_sigma`` (``"default"``: calibration.DEFAULT_PRIOR_SIGMA),
     ``drift_order`` (None: off) with ``drift_times``, ``seed``, and, when given,
-    ``stop_update_px`` (None keeps calibrate's default). The drift model's time axis is the frames' stamps (s): a pause
-    in the scan is then a gap in time, not one view's step (the view index without usable
-    stamps)."""
+    ``stop_update_px`` (None keeps calibrate's default). The drift model's time axis is the
+    frames' stamps (s): a pause in the scan is then a gap in time, not one view's step (the
+    view index without usable stamps)."""
     from robot_ct_ros.ct.calibration import DEFAULT_PRIOR_SIGMA
 
     prior = DEFAULT_PRIOR_SIGMA if isinstance(prior_sigma, str) and prior_sigma == "default" else prior_sigma
@@ -217,8 +217,8 @@ def calibrate_bag(bag, out, *, method: str = "ncc-lle-exact", iterations: int = 
     outer iterations, schedule, stop_update_px (None: calibrate's default),
     prior_sigma: ``"default"`` for calibration.DEFAULT_PRIOR_SIGMA, None for the data alone;
     drift_order: None for independent per-view errors, a degree for a slowly drifting geometry;
-    seed: the LLE methods' sampling seed; ``"fdk"`` only reconstructs with the nominal geometry). Writes into ``out``: the
-    corrected bag (``<bag name>_corrected``: every message of the input plus
+    seed: the LLE methods' sampling seed; ``"fdk"`` only reconstructs with the nominal
+    geometry). Writes into ``out``: the corrected bag (``<bag name>_corrected``: every message of the input plus
     /ct/geometry_corrected), ``volume.npy``/``.tif``/``_grid.json`` and ``report.json``.
     """
     from robot_ct_ros.bag import read_scan, write_corrected_bag
