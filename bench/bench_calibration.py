@@ -16,7 +16,8 @@ ncc-lle-exact with the drift model (calibrate(drift_order=3), no per-view prior)
 gauge-aligned reprojection error of ROI points (mean, p95, px), SSIM against the true-geometry
 reconstruction, edge sharpness, cap thickness (c, on a full-resolution strip: CapStrip), outer
 iterations, wall time; with --repeats N each LLE method again with N - 1 more sampling seeds on
-the same scan (calibrate(seed=); their scatter below each table). Writes results.md,
+the same scan (calibrate(seed=); their scatter, and the mean of their geometries as
+calibrate_ensemble makes it, below each table). Writes results.md,
 results.json and figures (report.py) into --out.
 
     .venv/bin/python bench/bench_calibration.py                      # defaults: about 6.5 min on 2 cores (13 with --repeats 3)
@@ -174,7 +175,7 @@ class CapStrip:
 
 SAMPLED_METHODS = tuple(calibration.LLE_METHODS) + (DRIFT_METHOD,)
 """The methods that draw random samples (calibrate(seed=)); the baselines draw nothing."""
-REPEAT_SEED_STEP = 1000  # --repeats: sampling seeds 0, 1000, 2000, ... (the levels use seed and seed + 1)
+REPEAT_SEED_STEP = calibration.ENSEMBLE_SEED_STEP  # --repeats: seeds 0, 1000, ..., calibrate_ensemble's members
 
 
 def run_method(method: str, sc, iterations: int, say, seed: int = 0):
@@ -198,23 +199,33 @@ def run_method(method: str, sc, iterations: int, say, seed: int = 0):
 
 def sampling_scatter(sc, results: dict, rows: list, truth_vol, repeats: int, iterations: int, say) -> dict:
     """Each sampling method of ``results`` again with ``repeats - 1`` more sampling seeds on the
-    same scan: {method: [{"seed", "reproj_mean_px", "reproj_p95_px", "ssim"}, ...]}, the
-    table's own run (seed 0) first. Same metrics as the table (report.summarize), without the cap."""
+    same scan, and the mean of all its seeds' geometries (calibration.average_estimates, what
+    calibrate_ensemble returns): {method: {"seeds": [{"seed", "reproj_mean_px",
+    "reproj_p95_px", "ssim"}, ...] (the table's own run, seed 0, first), "mean_of_seeds": {the
+    same metrics, "spread_px"}}}. Same metrics as the table (report.summarize), without the cap."""
+    def metrics(res):
+        row = summarize({"run": res}, sc.grid, (sc.true, truth_vol, None),
+                        reconstruct=lambda g: fdk(sc.li, g, sc.grid, valid_mask=sc.mask))[0]
+        return {k: row[k] for k in ("reproj_mean_px", "reproj_p95_px", "ssim")}
+
     out = {}
     for row in rows:
         method = row["method"]
         if method not in SAMPLED_METHODS or repeats < 2:
             continue
         runs = [{"seed": 0, **{k: row[k] for k in ("reproj_mean_px", "reproj_p95_px", "ssim")}}]
+        estimates = [results[method]]
         for r in range(1, repeats):
             seed = r * REPEAT_SEED_STEP
             res, _ = run_method(method, sc, iterations, lambda m: None, seed=seed)
-            again = summarize({method: res}, sc.grid, (sc.true, truth_vol, None),
-                              reconstruct=lambda g: fdk(sc.li, g, sc.grid, valid_mask=sc.mask))[0]
-            runs.append({"seed": seed, **{k: again[k] for k in ("reproj_mean_px", "reproj_p95_px", "ssim")}})
-            say(f"  {method}, sampling seed {seed}: {again['reproj_mean_px']:.3f} px, SSIM {again['ssim']:.4f} "
-                f"({res.wall_s:.1f} s)")
-        out[method] = runs
+            estimates.append(res)
+            runs.append({"seed": seed, **metrics(res)})
+            say(f"  {method}, sampling seed {seed}: {runs[-1]['reproj_mean_px']:.3f} px, SSIM "
+                f"{runs[-1]['ssim']:.4f} ({res.wall_s:.1f} s)")
+        mean = calibration.average_estimates(estimates, sc.li, sc.nominal, sc.grid, valid_mask=sc.mask)
+        out[method] = {"seeds": runs, "mean_of_seeds": {**metrics(mean), "spread_px": mean.spread_px}}
+        say(f"  {method}, mean of the {repeats} seeds' geometries: {out[method]['mean_of_seeds']['reproj_mean_px']:.3f} "
+            f"px (the seeds lie {mean.spread_px:.3f} px from it)")
     return out
 
 
@@ -222,15 +233,23 @@ def scatter_lines(scatter: dict) -> list:
     """Markdown lines for :func:`sampling_scatter`'s result (none when it is empty)."""
     if not scatter:
         return []
-    seeds = [r["seed"] for r in next(iter(scatter.values()))]
+    seeds = [r["seed"] for r in next(iter(scatter.values()))["seeds"]]
     lines = [f"Sampling scatter: each LLE method again on the same scan with the sampling seeds "
-             f"{', '.join(str(x) for x in seeds)} (the table's run is seed 0):", "",
-             "| method | error mean (px), per seed | mean ± sd | SSIM, per seed |", "| --- | --- | --- | --- |"]
-    for method, runs in scatter.items():
+             f"{', '.join(str(x) for x in seeds)} (the table's run is seed 0), and the mean of their geometries "
+             f"(calibration.average_estimates, as calibrate_ensemble; spread: the seeds' mean distance from it):",
+             "", "| method | error mean (px), per seed | mean ± sd | mean geometry: error (px), spread (px) | "
+             "SSIM, per seed | SSIM, mean geometry |", "| --- | --- | --- | --- | --- | --- |"]
+
+    def ssim_text(r):
+        return "-" if r["ssim"] is None else f"{r['ssim']:.4f}"
+
+    for method, entry in scatter.items():
+        runs, mean = entry["seeds"], entry["mean_of_seeds"]
         e = np.array([r["reproj_mean_px"] for r in runs], float)
         errors = " / ".join(f"{x:.3f}" for x in e)
-        ssims = " / ".join("-" if r["ssim"] is None else f"{r['ssim']:.4f}" for r in runs)
-        lines.append(f"| {method} | {errors} | {e.mean():.3f} ± {e.std(ddof=1):#.2g} | {ssims} |")
+        ssims = " / ".join(ssim_text(r) for r in runs)
+        lines.append(f"| {method} | {errors} | {e.mean():.3f} ± {e.std(ddof=1):#.2g} | "
+                     f"{mean['reproj_mean_px']:.3f}, {mean['spread_px']:.3f} | {ssims} | {ssim_text(mean)} |")
     return lines + [""]
 
 

@@ -121,6 +121,17 @@ def _calibrate_kwargs(scan, prior_sigma, stop_update_px, drift_order=None, seed:
             | ({} if stop_update_px is None else {"stop_update_px": float(stop_update_px)}))
 
 
+def _estimate(li, geom, grid, *, method: str, ensemble: int = 1, **kwargs):
+    """calibration.calibrate, or for an LLE method with ``ensemble`` > 1 calibrate_ensemble (the
+    mean of that many runs with different sampling seeds; the baselines draw no samples, so
+    they run once)."""
+    from robot_ct_ros.ct.calibration import LLE_METHODS, calibrate, calibrate_ensemble
+
+    if ensemble > 1 and method in LLE_METHODS:
+        return calibrate_ensemble(li, geom, grid, method=method, members=ensemble, **kwargs)
+    return calibrate(li, geom, grid, method=method, **kwargs)
+
+
 def _prior_json(prior):
     return None if prior is None else [float(x) for x in prior]
 
@@ -132,7 +143,7 @@ strongest published baseline."""
 
 def report_bag(bag, out, *, methods=REPORT_METHODS, iterations: int = 2, voxel_mm=None, shape=None,
                schedule: str = "accurate", prior_sigma="default", stop_update_px: float | None = None,
-               drift_order: int | None = None, seed: int = 0, say=_say) -> dict:
+               drift_order: int | None = None, seed: int = 0, ensemble: int = 1, say=_say) -> dict:
     """Compare calibration methods on one scan bag: figures like the NCC-LLE paper's and a table.
 
     ``methods``: ``"none"`` (FDK with the nominal geometry) and any of calibration.METHODS, each
@@ -146,7 +157,7 @@ def report_bag(bag, out, *, methods=REPORT_METHODS, iterations: int = 2, voxel_m
     ``report.json``. Returns the table rows and the paths.
     """
     from robot_ct_ros.bag import read_scan
-    from robot_ct_ros.ct.calibration import METHODS, calibrate, projection_consistency
+    from robot_ct_ros.ct.calibration import METHODS, projection_consistency
     from robot_ct_ros.ct.reconstruction import fdk
     from robot_ct_ros.ct.report import markdown_table, write_report
 
@@ -179,8 +190,9 @@ def report_bag(bag, out, *, methods=REPORT_METHODS, iterations: int = 2, voxel_m
             results[method] = timed_fdk(scan.geom)
         else:
             say(f"{method}:")
-            results[method] = calibrate(li, scan.geom, grid, method=method, n_iter=iterations, valid_mask=mask,
-                                        schedule=schedule, progress=lambda m: say(f"  {m}"), **kwargs)
+            results[method] = _estimate(li, scan.geom, grid, method=method, ensemble=ensemble, n_iter=iterations,
+                                        valid_mask=mask, schedule=schedule, progress=lambda m: say(f"  {m}"),
+                                        **kwargs)
     if scan.geom_corrected is not None:
         results["bag corrected"] = timed_fdk(scan.geom_corrected)
     truth = None
@@ -193,7 +205,7 @@ def report_bag(bag, out, *, methods=REPORT_METHODS, iterations: int = 2, voxel_m
                          initial_rmse=initial, reconstruct=reconstruct if truth is not None else None,
                          notes={"bag": str(bag), "iterations": iterations, "schedule": schedule,
                                 "prior_sigma": _prior_json(kwargs["prior_sigma"]),
-                                "drift_order": kwargs["drift_order"], "seed": kwargs["seed"],
+                                "drift_order": kwargs["drift_order"], "seed": kwargs["seed"], "ensemble": ensemble,
                                 "grid": grid.to_dict(), "bag_warnings": list(scan.warnings)})
     say("\n" + markdown_table(paths["rows"]))
     say(f"wrote {', '.join(str(paths[k]) for k in ('slices', 'rmse', 'param_error', 'markdown', 'json') if k in paths)}"
@@ -210,14 +222,15 @@ def calibration_methods() -> tuple:
 
 def calibrate_bag(bag, out, *, method: str = "ncc-lle-exact", iterations: int = 2, voxel_mm=None, shape=None,
                   schedule: str = "accurate", prior_sigma="default", stop_update_px: float | None = None,
-                  drift_order: int | None = None, seed: int = 0, say=_say) -> dict:
+                  drift_order: int | None = None, seed: int = 0, ensemble: int = 1, say=_say) -> dict:
     """Calibrate the per-view geometry of a scan bag offline and reconstruct it.
 
     Runs :func:`robot_ct_ros.ct.calibration.calibrate` (method, at most ``iterations``
     outer iterations, schedule, stop_update_px (None: calibrate's default),
     prior_sigma: ``"default"`` for calibration.DEFAULT_PRIOR_SIGMA, None for the data alone;
     drift_order: None for independent per-view errors, a degree for a slowly drifting geometry;
-    seed: the LLE methods' sampling seed; ``"fdk"`` only reconstructs with the nominal
+    seed: the LLE methods' sampling seed; ensemble: average that many runs with different
+    seeds, calibration.calibrate_ensemble; ``"fdk"`` only reconstructs with the nominal
     geometry). Writes into ``out``: the corrected bag (``<bag name>_corrected``: every message of the input plus
     /ct/geometry_corrected), ``volume.npy``/``.tif``/``_grid.json`` and ``report.json``.
     """
@@ -238,15 +251,16 @@ def calibrate_bag(bag, out, *, method: str = "ncc-lle-exact", iterations: int = 
     report.update({"job": "calibrate", "method": method, "iterations": iterations, "schedule": schedule})
     geom, volume, history, notes = scan.geom, None, [], []
     if method != "fdk":
-        from robot_ct_ros.ct.calibration import calibrate
-
         kwargs = _calibrate_kwargs(scan, prior_sigma, stop_update_px, drift_order, seed)
         report["prior_sigma"] = _prior_json(kwargs["prior_sigma"])
         report["drift_order"] = kwargs["drift_order"]
         report["seed"] = kwargs["seed"]
-        result = calibrate(li, scan.geom, grid, method=method, n_iter=iterations, valid_mask=mask, schedule=schedule,
-                           progress=say, **kwargs)
+        result = _estimate(li, scan.geom, grid, method=method, ensemble=ensemble, n_iter=iterations, valid_mask=mask,
+                           schedule=schedule, progress=say, **kwargs)
         geom, volume = result.geom, result.volume
+        report["ensemble"] = result.members
+        if result.members > 1:  # the members' spread around their mean: the estimate's sampling noise
+            report["ensemble_spread_px"] = result.spread_px
         report["iterations_run"] = len(result.history)
         # strict JSON: a quantity an iteration did not measure (NaN) is null
         history = [{k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in h.__dict__.items()}
@@ -395,6 +409,16 @@ def _cmd_info(args) -> int:
     return 0
 
 
+def _ensemble(text: str) -> int:
+    try:
+        k = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"ensemble must be a whole number, got {text!r}") from None
+    if k < 1:
+        raise argparse.ArgumentTypeError("ensemble must be >= 1")
+    return k
+
+
 def _drift_order(text: str):
     try:
         order = int(text)
@@ -441,14 +465,16 @@ def _cmd_report(args) -> int:
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     report_bag(args.bag, args.out, methods=methods, iterations=args.iterations, voxel_mm=args.voxel_mm,
                shape=args.shape, schedule=args.schedule, prior_sigma=args.prior_sigma,
-               stop_update_px=args.stop_update_px, drift_order=args.drift_order, seed=args.seed)
+               stop_update_px=args.stop_update_px, drift_order=args.drift_order, seed=args.seed,
+               ensemble=args.ensemble)
     return 0
 
 
 def _cmd_calibrate(args) -> int:
     calibrate_bag(args.bag, args.out, method=args.method, iterations=args.iterations, voxel_mm=args.voxel_mm,
                   shape=args.shape, schedule=args.schedule, prior_sigma=args.prior_sigma,
-                  stop_update_px=args.stop_update_px, drift_order=args.drift_order, seed=args.seed)
+                  stop_update_px=args.stop_update_px, drift_order=args.drift_order, seed=args.seed,
+                  ensemble=args.ensemble)
     return 0
 
 
@@ -527,6 +553,9 @@ def main(argv: list[str] | None = None) -> int:
             p.add_argument("--seed", type=int, default=0,
                            help="the LLE methods' sampling seed (default 0): another seed is another estimate of "
                                 "the same scan, and their spread the estimate's own scatter")
+            p.add_argument("--ensemble", type=_ensemble, default=1, metavar="K",
+                           help="average K runs of an LLE method with the sampling seeds SEED, SEED+1000, ... "
+                                "(K times the time, less sampling noise; the report gives their spread; default 1)")
 
     args = parser.parse_args(argv)
     if args.command == "demo":

@@ -93,6 +93,14 @@ def test_simulate_info_reconstruct_calibrate(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["calibrate", str(bag), "--drift-order", "-1", "--out", str(tmp_path / "never")])
     assert "drift order must be >= 0" in capsys.readouterr().err and not (tmp_path / "never").exists()
+    averaged = tmp_path / "calib_ensemble"  # two sampling seeds, averaged: the report says how far apart
+    assert main(["calibrate", str(bag), "--method", "ncc-lle", "--iterations", "1", "--ensemble", "2",
+                 "--out", str(averaged)]) == 0
+    report = json.loads((averaged / "report.json").read_text())
+    assert report["ensemble"] == 2 and report["ensemble_spread_px"] > 0.0
+    with pytest.raises(SystemExit):
+        main(["calibrate", str(bag), "--ensemble", "0", "--out", str(tmp_path / "never")])
+    assert "ensemble must be >= 1" in capsys.readouterr().err and not (tmp_path / "never").exists()
 
     # compare methods on the corrected bag: its own corrected and true geometries join the table
     compared = tmp_path / "report"

@@ -20,7 +20,8 @@ views less than this, px), schedule (accurate or fast, calibration.SCHEDULES), d
 independent per-view errors; a degree, e.g. 3: the geometry drifts slowly, calibration.fit_drift),
 prior_sigma_translation_m and prior_sigma_rotation_rad (the robots' per-view coordination error, the
 prior of the calibration's MAP estimate; 0 = the data alone), seed (the LLE methods' sampling seed:
-another seed, another estimate of the same scan), voxel_size_m (0: scan_info's, else pitch / magnification),
+another seed, another estimate of the same scan), ensemble (average that many runs with different
+seeds: calibration.calibrate_ensemble), voxel_size_m (0: scan_info's, else pitch / magnification),
 roi_shape ([nx, ny, nz] voxels; zeros: scan_info's ROI or the field of view), output_dir, auto_run,
 every_n_views (0 = off: also correct every N frames during the scan, into output_dir/partial_NNNN),
 bag_path ("" = the collected topics), evaluate_truth (simulated scans: error of the nominal and the
@@ -148,7 +149,7 @@ def markdown_report(report: dict) -> str:
 
 def run_correction(bag, out, *, method: str, iterations: int, voxel_mm=None, shape=None, evaluate_truth=True,
                    schedule: str = "accurate", prior_sigma="default", stop_update_px: float | None = None,
-                   drift_order: int | None = None, seed: int = 0, say=print) -> dict:
+                   drift_order: int | None = None, seed: int = 0, ensemble: int = 1, say=print) -> dict:
     """``robot-ct calibrate`` of ``bag`` into ``out`` (cli.calibrate_bag), then the figures of this node.
 
     Returns the report (also in ``out/report.json`` and ``out/report.md``) with ``paths``, and the
@@ -161,7 +162,7 @@ def run_correction(bag, out, *, method: str, iterations: int, voxel_mm=None, sha
     out = Path(out)
     report = calibrate_bag(bag, out, method=method, iterations=iterations, voxel_mm=voxel_mm, shape=shape,
                            schedule=schedule, prior_sigma=prior_sigma, stop_update_px=stop_update_px,
-                           drift_order=drift_order, seed=seed, say=say)
+                           drift_order=drift_order, seed=seed, ensemble=ensemble, say=say)
     corrected = read_scan(report["corrected_bag"])
     geom = corrected.geom_corrected if corrected.geom_corrected is not None else corrected.geom
     volume = np.load(out / "volume.npy")
@@ -190,6 +191,9 @@ class ReconServiceNode(Node):
         self.prior_sigma = declare_prior_sigma(self)
         self.drift_order = declare_drift_order(self)
         self.seed = int(p("seed", 0).value)
+        self.ensemble = int(p("ensemble", 1).value)
+        if self.ensemble < 1:
+            raise ValueError(f"ensemble must be >= 1, got {self.ensemble}")
         voxel = float(p("voxel_size_m", 0.0).value)
         self.voxel_mm = voxel * 1e3 if voxel > 0 else None
         shape = [int(x) for x in p("roi_shape", [0, 0, 0]).value]
@@ -402,7 +406,8 @@ class ReconServiceNode(Node):
             report = run_correction(bag, out, method=self.method, iterations=self.iterations, voxel_mm=self.voxel_mm,
                                     shape=self.shape, schedule=self.schedule, prior_sigma=self.prior_sigma,
                                     stop_update_px=self.stop_update_px, drift_order=self.drift_order,
-                                    seed=self.seed, evaluate_truth=self.evaluate_truth, say=say)
+                                    seed=self.seed, ensemble=self.ensemble, evaluate_truth=self.evaluate_truth,
+                                    say=say)
             report["partial"] = partial
             report["scan_id"] = self.scan_id
             result = (run, report, None)

@@ -12,7 +12,8 @@ Parameters
   method, e.g. ncc-lle-exact), iterations (at most), stop_update_px, schedule (accurate or fast), drift_order
   (-1 = off; a degree for a slowly drifting geometry), prior_sigma_translation_m and
   prior_sigma_rotation_rad (the robots' per-view error, the calibration prior; 0 = none), seed
-  (the LLE methods' sampling seed), output_dir
+  (the LLE methods' sampling seed), ensemble (average that many runs with different seeds),
+  output_dir
   (corrected bag, volume .npy/.tif and report.json, as ``robot-ct calibrate``).
 """
 
@@ -66,6 +67,9 @@ class ReplayNode(Node):
         self.prior_sigma = declare_prior_sigma(self)
         self.drift_order = declare_drift_order(self)
         self.seed = int(self.declare_parameter("seed", 0).value)
+        self.ensemble = int(self.declare_parameter("ensemble", 1).value)
+        if self.ensemble < 1:
+            raise ValueError(f"ensemble must be >= 1, got {self.ensemble}")
         self.output_dir = Path(self.declare_parameter("output_dir", "replay_out").value)
         if not self.bag_path:
             raise ValueError("parameter bag_path is required")
@@ -135,7 +139,7 @@ class ReplayNode(Node):
             report = calibrate_bag(self.bag_path, self.output_dir, method=self.method, iterations=self.iterations,
                                    schedule=self.schedule, prior_sigma=self.prior_sigma,
                                    stop_update_px=self.stop_update_px, drift_order=self.drift_order,
-                                   seed=self.seed, say=lambda s: log.info(s))
+                                   seed=self.seed, ensemble=self.ensemble, say=lambda s: log.info(s))
         except Exception as exc:  # noqa: BLE001 - reported, the node keeps running
             self.error = f"{type(exc).__name__}: {exc}"
             log.error(f"offline calibration failed: {self.error}")

@@ -639,6 +639,29 @@ def test_seed_reproduces_an_lle_estimate_and_another_seed_samples_anew():
     np.testing.assert_array_equal(runs["gdc", 7], runs["gdc", 0])  # the baselines draw no samples
 
 
+def test_an_ensemble_is_the_mean_of_its_members_and_says_how_far_they_spread():
+    from robot_ct_ros.ct.calibration import ENSEMBLE_SEED_STEP, average_estimates, calibrate_ensemble
+
+    nominal, true, grid, measured = _small_scan(n_views=12)
+    members = [calibrate(measured, nominal, grid, n_iter=1, seed=3 + k * ENSEMBLE_SEED_STEP) for k in range(2)]
+    said = []
+    both = calibrate_ensemble(measured, nominal, grid, members=2, seed=3, n_iter=1, progress=said.append)
+    np.testing.assert_allclose(both.params, 0.5 * (members[0].params + members[1].params), atol=1e-12)
+    assert both.members == 2
+    assert [h.projection_rmse for h in both.history] == [h.projection_rmse for h in members[0].history]
+    np.testing.assert_allclose(both.volume, fdk(measured, both.geom, grid), rtol=1e-5, atol=1e-6)
+    # the spread: each member's distance from the mean, here half the distance between the two
+    pts = roi_points(grid)
+    apart = reprojection_error(members[0].geom, members[1].geom, pts)["mean_px"]
+    assert 0.0 < both.spread_px and both.spread_px == pytest.approx(0.5 * apart, rel=0.05)
+    assert any("ensemble of 2" in line for line in said)
+    assert calibrate_ensemble(measured, nominal, grid, members=1, seed=3, n_iter=1).spread_px != 0.0  # nan: one run
+    with pytest.raises(ValueError, match="members"):
+        calibrate_ensemble(measured, nominal, grid, members=0)
+    with pytest.raises(ValueError, match="no estimates"):
+        average_estimates([], measured, nominal, grid)
+
+
 def test_without_prior_the_loop_reports_no_independent_fraction():
     nominal, _, grid, measured = _small_scan(n_views=12)
     result = calibrate(measured, nominal, grid, method="ncc-lle-exact", n_iter=1, prior_sigma=None)

@@ -166,7 +166,7 @@ def test_prior_parameters_are_si_and_zero_turns_the_prior_off(ros, tmp_path):
 def test_drift_order_parameter_is_off_by_default_and_passes_a_degree(ros, tmp_path):
     default = ros.add(ReconServiceNode("recon_nodrift", context=ros.context, parameter_overrides=_params(
         output_dir=str(tmp_path / "a"), auto_run=False)))
-    assert default.drift_order is None and default.seed == 0
+    assert default.drift_order is None and default.seed == 0 and default.ensemble == 1
     drift = ros.add(ReconServiceNode("recon_drift", context=ros.context, parameter_overrides=_params(
-        output_dir=str(tmp_path / "b"), auto_run=False, drift_order=3, seed=5)))
-    assert drift.drift_order == 3 and drift.seed == 5
+        output_dir=str(tmp_path / "b"), auto_run=False, drift_order=3, seed=5, ensemble=3)))
+    assert drift.drift_order == 3 and drift.seed == 5 and drift.ensemble == 3
