@@ -409,24 +409,21 @@ def _cmd_info(args) -> int:
     return 0
 
 
-def _ensemble(text: str) -> int:
-    try:
-        k = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"ensemble must be a whole number, got {text!r}") from None
-    if k < 1:
-        raise argparse.ArgumentTypeError("ensemble must be >= 1")
-    return k
+def _whole_number_at_least(minimum: int, what: str):
+    """An argparse type: a whole number >= ``minimum``, with ``what`` named in the error."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{what} must be a whole number, got {text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"{what} must be >= {minimum}")
+        return value
+    return parse
 
 
-def _drift_order(text: str):
-    try:
-        order = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"drift order must be a whole number, got {text!r}") from None
-    if order < 0:
-        raise argparse.ArgumentTypeError("drift order must be >= 0")
-    return order
+_ensemble = _whole_number_at_least(1, "ensemble")
+_drift_order = _whole_number_at_least(0, "drift order")
 
 
 def _prior_sigma(text: str):
