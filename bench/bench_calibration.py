@@ -224,8 +224,8 @@ def sampling_scatter(sc, results: dict, rows: list, truth_vol, repeats: int, ite
                 f"{runs[-1]['ssim']:.4f} ({res.wall_s:.1f} s)")
         mean = calibration.average_estimates(estimates, sc.li, sc.nominal, sc.grid, valid_mask=sc.mask)
         out[method] = {"seeds": runs, "mean_of_seeds": {**metrics(mean), "spread_px": mean.spread_px}}
-        say(f"  {method}, mean of the {repeats} seeds' geometries: {out[method]['mean_of_seeds']['reproj_mean_px']:.3f} "
-            f"px (the seeds lie {mean.spread_px:.3f} px from it)")
+        say(f"  {method}, mean of the {repeats} seeds' geometries: "
+            f"{out[method]['mean_of_seeds']['reproj_mean_px']:.3f} px (the seeds lie {mean.spread_px:.3f} px from it)")
     return out
 
 

@@ -1326,11 +1326,11 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
     from 1.02 px (SSIM 0.825) to 0.69 px (SSIM 0.966) with degree 3 and no prior (0.76 px
     over three sampling seeds; 0.79 px with the default prior, which pulls every view towards
     nominal). Where truncation biases the data term it does not help (a 9 mm cell through a
-    7.9 mm field of view: 1.60 px nominal, 1.46 px per view, 1.68 px as a drift; README). The returned volume is the
-    full-size FDK with the final geometry. The loop runs ``n_iter`` outer iterations, or
-    fewer: it stops after an iteration that moved the views less than ``stop_update_px``
-    (:attr:`IterationRecord.update_px`; 0 = always ``n_iter``). The default is the estimator's
-    own scatter (0.04 to 0.05 px on scenario (a) against a true-geometry volume): there an
+    7.9 mm field of view: 1.60 px nominal, 1.46 px per view, 1.68 px as a drift; README).
+    The returned volume is the full-size FDK with the final geometry. The loop runs
+    ``n_iter`` outer iterations, or fewer: it stops after an iteration that moved the views
+    less than ``stop_update_px`` (:attr:`IterationRecord.update_px`; 0 = always ``n_iter``).
+    The default is the estimator's own scatter (0.04 to 0.05 px on scenario (a) against a true-geometry volume): there an
     iteration that moved the views 0.064 px still cut the error from 0.123 to 0.102 px, the
     next ones, moving them 0.042 and 0.035 px, by 0.001 px.
     ``seed`` starts the LLE methods' random sampling (:func:`default_lle_configs`; explicit
