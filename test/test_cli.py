@@ -98,6 +98,13 @@ def test_simulate_info_reconstruct_calibrate(tmp_path, capsys):
                  "--out", str(averaged)]) == 0
     report = json.loads((averaged / "report.json").read_text())
     assert report["ensemble"] == 2 and report["ensemble_spread_px"] > 0.0
+    from robot_ct_ros.cli import _estimate, _grid_for
+
+    scan = read_scan(bag)
+    li, mask = scan.to_line_integrals()
+    once = _estimate(li, scan.geom, _grid_for(scan, None, (24, 24, 12)), method="gdc", ensemble=3, n_iter=1,
+                     valid_mask=mask)
+    assert once.members == 1  # a baseline draws no samples: its ensemble would be one run three times
     with pytest.raises(SystemExit):
         main(["calibrate", str(bag), "--ensemble", "0", "--out", str(tmp_path / "never")])
     assert "ensemble must be >= 1" in capsys.readouterr().err and not (tmp_path / "never").exists()
