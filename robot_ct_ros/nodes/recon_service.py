@@ -129,6 +129,9 @@ def markdown_report(report: dict) -> str:
              f"{[round(float(v) * 1000, 2) for v in report.get('grid', {}).get('voxel_size_mm', [])]} um",
              f"- correction applied: {report.get('correction_rms_translation_mm', 0.0):.4f} mm RMS translation, "
              f"{report.get('correction_rms_rotation_deg', 0.0):.4f} deg RMS rotation"]
+    if report.get("ensemble_spread_px") is not None:
+        lines.append(f"- ensemble: the mean of {report['ensemble']} runs with different sampling seeds, which lie "
+                     f"{report['ensemble_spread_px']:.3f} px from it (the estimate's sampling noise)")
     last, prior = (report.get("history") or [{}])[-1], report.get("prior_sigma")
     if last.get("independent_fraction") is not None and prior:
         lines.append(f"- last iteration: projection NCC {last['projection_ncc']:.4f}; independent pixels "

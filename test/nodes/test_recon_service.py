@@ -170,3 +170,12 @@ def test_drift_order_parameter_is_off_by_default_and_passes_a_degree(ros, tmp_pa
     drift = ros.add(ReconServiceNode("recon_drift", context=ros.context, parameter_overrides=_params(
         output_dir=str(tmp_path / "b"), auto_run=False, drift_order=3, seed=5, ensemble=3)))
     assert drift.drift_order == 3 and drift.seed == 5 and drift.ensemble == 3
+
+
+def test_markdown_report_says_how_far_an_ensembles_members_spread():
+    from robot_ct_ros.nodes.recon_service import markdown_report
+
+    base = {"bag": "b", "n_views": 4, "iterations": 2, "grid": {"shape_zyx": [2, 2, 2], "voxel_size_mm": [0.1] * 3}}
+    assert "ensemble" not in markdown_report(base)
+    text = markdown_report(base | {"ensemble": 3, "ensemble_spread_px": 0.0351})
+    assert "the mean of 3 runs" in text and "0.035 px" in text
