@@ -102,6 +102,17 @@ def declare_prior_sigma(node):
     return prior_sigma_from(t_m * 1e3, float(np.rad2deg(r_rad)))
 
 
+def declare_sampling(node) -> tuple[int, int]:
+    """Declare ``seed`` (the LLE methods' sampling seed, default 0) and ``ensemble`` (average that
+    many runs with different seeds, :func:`calibration.calibrate_ensemble`; default 1) and return
+    them as :func:`cli.calibrate_bag`'s ``seed`` and ``ensemble``."""
+    seed = int(node.declare_parameter("seed", 0).value)
+    ensemble = int(node.declare_parameter("ensemble", 1).value)
+    if ensemble < 1:
+        raise ValueError(f"ensemble must be >= 1, got {ensemble}")
+    return seed, ensemble
+
+
 def declare_drift_order(node):
     """Declare ``drift_order`` (integer; -1, the default, = off: independent per-view errors; a
     degree >= 0: the geometry drifts slowly, :func:`calibration.fit_drift`) and return it as

@@ -64,7 +64,7 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from robot_ct_ros.bag import format as fmt
-from robot_ct_ros.nodes.common import declare_drift_order, declare_prior_sigma, run_node
+from robot_ct_ros.nodes.common import declare_drift_order, declare_prior_sigma, declare_sampling, run_node
 from robot_ct_ros.nodes.recorder import message_class
 
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
@@ -193,10 +193,7 @@ class ReconServiceNode(Node):
         self.schedule = p("schedule", "accurate").value
         self.prior_sigma = declare_prior_sigma(self)
         self.drift_order = declare_drift_order(self)
-        self.seed = int(p("seed", 0).value)
-        self.ensemble = int(p("ensemble", 1).value)
-        if self.ensemble < 1:
-            raise ValueError(f"ensemble must be >= 1, got {self.ensemble}")
+        self.seed, self.ensemble = declare_sampling(self)
         voxel = float(p("voxel_size_m", 0.0).value)
         self.voxel_mm = voxel * 1e3 if voxel > 0 else None
         shape = [int(x) for x in p("roi_shape", [0, 0, 0]).value]

@@ -29,7 +29,7 @@ from std_msgs.msg import String
 
 from robot_ct_ros.bag import format as fmt
 from robot_ct_ros.bag.reader import read_raw_messages
-from robot_ct_ros.nodes.common import declare_drift_order, declare_prior_sigma, run_node
+from robot_ct_ros.nodes.common import declare_drift_order, declare_prior_sigma, declare_sampling, run_node
 from robot_ct_ros.nodes.recorder import LATCHED, message_class
 
 STREAM = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
@@ -66,10 +66,7 @@ class ReplayNode(Node):
         self.schedule = self.declare_parameter("schedule", "accurate").value
         self.prior_sigma = declare_prior_sigma(self)
         self.drift_order = declare_drift_order(self)
-        self.seed = int(self.declare_parameter("seed", 0).value)
-        self.ensemble = int(self.declare_parameter("ensemble", 1).value)
-        if self.ensemble < 1:
-            raise ValueError(f"ensemble must be >= 1, got {self.ensemble}")
+        self.seed, self.ensemble = declare_sampling(self)
         self.output_dir = Path(self.declare_parameter("output_dir", "replay_out").value)
         if not self.bag_path:
             raise ValueError("parameter bag_path is required")
