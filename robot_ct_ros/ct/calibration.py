@@ -559,6 +559,14 @@ def _as_view_mask(valid_mask, shape) -> np.ndarray:
     return np.broadcast_to(np.asarray(valid_mask, bool), shape)
 
 
+def _usable_data(line_integrals, valid_mask) -> tuple[np.ndarray, np.ndarray]:
+    """float32 line integrals with every pixel that is invalid or not finite set to 0, and the
+    (n, rows, cols) mask of the others."""
+    li = np.ascontiguousarray(line_integrals, dtype=np.float32)
+    mask = _as_view_mask(valid_mask, li.shape) & np.isfinite(li)
+    return np.where(mask, li, 0.0).astype(np.float32), mask
+
+
 def _score_samples(vol, grid, nom_c, src_params, sample_params, image_index, measured_c, mask_c, config,
                    margin_px):
     """Distances (c, S) of each view's samples to its measured image, and the data to embed them.
@@ -867,9 +875,8 @@ def average_estimates(results, line_integrals, nominal: ConeGeometry, grid: Volu
     spread = (float(np.mean([_moved_px(nominal, r.params, params, points) for r in results]))
               if len(results) > 1 else float("nan"))
     geom = nominal.perturbed(params)
-    li = np.asarray(line_integrals, np.float32)
-    mask = _as_view_mask(valid_mask, li.shape) & np.isfinite(li)  # as calibrate's final FDK
-    volume = fdk(np.where(mask, li, 0.0).astype(np.float32), geom, grid, valid_mask=mask, **(fdk_kwargs or {}))
+    li, mask = _usable_data(line_integrals, valid_mask)  # as calibrate's final FDK
+    volume = fdk(li, geom, grid, valid_mask=mask, **(fdk_kwargs or {}))
     wall = sum(r.wall_s for r in results) + time.perf_counter() - t0
     return CalibrationResult(results[0].method, params, geom, volume, results[0].history, wall,
                              members=sum(r.members for r in results), spread_px=spread)
@@ -1361,11 +1368,10 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
     if drift_order is not None:
         fit_drift(np.zeros((nominal.n_views, 9)), drift_order, drift_times)  # validates order and times
     t_start = time.perf_counter()
-    li = np.ascontiguousarray(line_integrals, dtype=np.float32)
-    if li.shape != (nominal.n_views,) + nominal.det_shape:
-        raise ValueError(f"{li.shape[0]} frames but {nominal.n_views} geometries, or detector shape mismatch")
-    mask = _as_view_mask(valid_mask, li.shape) & np.isfinite(li)
-    li = np.where(mask, li, 0.0).astype(np.float32)
+    if np.shape(line_integrals) != (nominal.n_views,) + nominal.det_shape:
+        raise ValueError(f"{np.shape(line_integrals)[0]} frames but {nominal.n_views} geometries, or detector "
+                         f"shape mismatch")
+    li, mask = _usable_data(line_integrals, valid_mask)
     say = progress or (lambda message: None)
     if truncated is None:
         level = truncation_level(li, mask)
