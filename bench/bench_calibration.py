@@ -120,8 +120,10 @@ def make_scenario(key: str, views: int, det: tuple[int, int], vol: int, binning:
                              outer_voxel_size_mm=0.4, rng=seed, chunk_views=8)
     say(f"  simulated {views} views {rows}x{cols} at {pitch * 1000:.0f} um, grid {grid.shape_zyx[::-1]} of "
         f"{vs * 1000:.1f} um, FOV {fov:.2f} mm ({time.perf_counter() - t0:.1f} s)")
-    return SimpleNamespace(key=key, phantom=phantom, nominal=nominal, true=true, errors=errors, grid=grid,
-                           li=scan.line_integrals, mask=scan.valid_mask, fov_mm=fov, pitch_mm=pitch)
+    sc = SimpleNamespace(key=key, phantom=phantom, nominal=nominal, true=true, errors=errors, grid=grid,
+                         li=scan.line_integrals, mask=scan.valid_mask, fov_mm=fov, pitch_mm=pitch)
+    sc.reconstruct = lambda geom: fdk(sc.li, geom, sc.grid, valid_mask=sc.mask)  # FDK of the scan onto the ROI grid
+    return sc
 
 
 CAP_STRIP_ROWS = 192       # unbinned detector rows around the cap: ±2 mm along the vessel at the ROI
@@ -175,16 +177,17 @@ class CapStrip:
 
 SAMPLED_METHODS = tuple(calibration.LLE_METHODS) + (DRIFT_METHOD,)
 """The methods that draw random samples (calibrate(seed=)); the baselines draw nothing."""
+SCATTER_METRICS = ("reproj_mean_px", "reproj_p95_px", "ssim")  # the table's columns that --repeats repeats
 REPEAT_SEED_STEP = calibration.ENSEMBLE_SEED_STEP  # --repeats: seeds 0, 1000, ..., calibrate_ensemble's members
 
 
 def run_method(method: str, sc, iterations: int, say, seed: int = 0):
     t0 = time.perf_counter()
     if method == "none":
-        v = fdk(sc.li, sc.nominal, sc.grid, valid_mask=sc.mask)
+        v = sc.reconstruct(sc.nominal)
         return (sc.nominal, v, (), time.perf_counter() - t0), "fdk"
     if method == "true geometry":
-        v = fdk(sc.li, sc.true, sc.grid, valid_mask=sc.mask)
+        v = sc.reconstruct(sc.true)
         return (sc.true, v, (), time.perf_counter() - t0), "fdk"
     prog = (lambda m: say(f"    {m}"))
     if method == DRIFT_METHOD:
@@ -205,15 +208,15 @@ def sampling_scatter(sc, results: dict, rows: list, truth_vol, repeats: int, ite
     same metrics, "spread_px"}}}. Same metrics as the table (report.summarize), without the cap."""
     def metrics(res):
         row = summarize({"run": res}, sc.grid, (sc.true, truth_vol, None),
-                        reconstruct=lambda g: fdk(sc.li, g, sc.grid, valid_mask=sc.mask))[0]
-        return {k: row[k] for k in ("reproj_mean_px", "reproj_p95_px", "ssim")}
+                        reconstruct=sc.reconstruct)[0]
+        return {k: row[k] for k in SCATTER_METRICS}
 
     out = {}
     for row in rows:
         method = row["method"]
         if method not in SAMPLED_METHODS or repeats < 2:
             continue
-        runs = [{"seed": 0, **{k: row[k] for k in ("reproj_mean_px", "reproj_p95_px", "ssim")}}]
+        runs = [{"seed": 0, **{k: row[k] for k in SCATTER_METRICS}}]
         estimates = [results[method]]
         for r in range(1, repeats):
             seed = r * REPEAT_SEED_STEP
@@ -307,7 +310,7 @@ def main(argv=None) -> int:
             wall = res.wall_s if hasattr(res, "wall_s") else res[3]
             say(f"  {m}: {wall:.1f} s ({via[m]})")
         truth_vol = (results["true geometry"][1] if "true geometry" in results
-                     else fdk(sc.li, sc.true, sc.grid, valid_mask=sc.mask))
+                     else sc.reconstruct(sc.true))
         cap = getattr(sc.phantom, "cap", None)
         truth = (sc.true, truth_vol, SimpleNamespace(cap=cap) if cap is not None else None)
         strip = reconstruct_cap = None
@@ -320,7 +323,7 @@ def main(argv=None) -> int:
         title = f"({key}) {SCENARIOS[key]}"
         paths = write_report(out, results, sc.grid, truth, sc.nominal, name=f"scenario_{key}", title=title,
                              initial_rmse=initial, notes={"via": via},
-                             reconstruct=lambda g: fdk(sc.li, g, sc.grid, valid_mask=sc.mask),
+                             reconstruct=sc.reconstruct,
                              reconstruct_cap=reconstruct_cap)
         rows = paths["rows"]
         if strip is not None:
