@@ -231,8 +231,9 @@ def calibrate_bag(bag, out, *, method: str = "ncc-lle-exact", iterations: int = 
     drift_order: None for independent per-view errors, a degree for a slowly drifting geometry;
     seed: the LLE methods' sampling seed; ensemble: average that many runs with different
     seeds, calibration.calibrate_ensemble; ``"fdk"`` only reconstructs with the nominal
-    geometry). Writes into ``out``: the corrected bag (``<bag name>_corrected``: every message of the input plus
-    /ct/geometry_corrected), ``volume.npy``/``.tif``/``_grid.json`` and ``report.json``.
+    geometry). Writes into ``out``: the corrected bag (``<bag name>_corrected``: every message
+    of the input plus /ct/geometry_corrected), ``volume.npy``/``.tif``/``_grid.json`` and
+    ``report.json``.
     """
     from robot_ct_ros.bag import read_scan, write_corrected_bag
     from robot_ct_ros.ct.reconstruction import fdk
