@@ -466,7 +466,11 @@ class LLEConfig:
     None = off) is the standard deviation of the nominal geometry's error (the robots'
     coordination error): samples are then ranked, and the ``l2`` and ``ncc-exact`` weights
     solved, by posterior instead of data alone (:func:`posterior_cost`), so the parameters
-    the data hardly see stay near their nominal values.
+    the data hardly see stay near their nominal values. ``draws`` independent sets of
+    ``n_samples`` samples are drawn per level, all scored against the same ray-casts; each set
+    is embedded in its own ``n_neighbours`` nearest samples and the sets' estimates are averaged
+    (fewer sampling errors for the cost of scoring, :data:`DRAWS`); the safeguard compares the
+    average with the best sample of all sets.
     """
 
     weighting: str = "ncc-exact"
@@ -485,6 +489,7 @@ class LLEConfig:
     chunk_views: int = 8
     seed: int = 0
     prior_sigma: tuple | None = None
+    draws: int = 1
 
     def __post_init__(self):
         if self.weighting not in WEIGHTINGS:
@@ -493,6 +498,8 @@ class LLEConfig:
             raise ValueError("half_width needs 9 values (mm x6, rad x3)")
         if self.n_neighbours < 2 or self.n_neighbours > self.n_samples:
             raise ValueError("need 2 <= n_neighbours <= n_samples")
+        if not (isinstance(self.draws, (int, np.integer)) and self.draws >= 1):
+            raise ValueError("draws must be a whole number >= 1")
         if self.prior_sigma is not None and (len(self.prior_sigma) != 9 or not all(x > 0 for x in self.prior_sigma)):
             raise ValueError("prior_sigma needs 9 positive values (mm x6, rad x3)")
 
@@ -717,37 +724,43 @@ def estimate_views(measured: np.ndarray, nominal: ConeGeometry, params0: np.ndar
             # uniform in the box; sample 0 = the current estimate
             src_params = np.repeat(g, n_src, axis=0)
             src_params[:, 0:3] += np.tile(src_offsets, (c, 1))
-            S = config.n_samples
-            a = rng.integers(0, n_src, size=(c, S))
-            a[:, 0] = 0
-            delta = np.zeros((c, S, 9))
-            delta[:, :, 0:3] = src_offsets[a]
-            delta[:, :, 3:9] = rng.uniform(-1.0, 1.0, size=(c, S, 6)) * h[3:9]
-            delta[:, 0, 3:9] = 0.0
-            sample_params = g[:, None, :] + delta
-            image_index = (np.arange(c)[:, None] * n_src + a).reshape(-1)
+            # config.draws independent sets of S samples, scored together: set d is samples
+            # d * S ... d * S + S - 1, each with the current estimate first
+            S, D = config.n_samples, config.draws
+            a = rng.integers(0, n_src, size=(c, D, S))
+            a[:, :, 0] = 0
+            delta = np.zeros((c, D, S, 9))
+            delta[..., 0:3] = src_offsets[a]
+            delta[..., 3:9] = rng.uniform(-1.0, 1.0, size=(c, D, S, 6)) * h[3:9]
+            delta[:, :, 0, 3:9] = 0.0
+            sample_params = (g[:, None, None, :] + delta).reshape(c, D * S, 9)
+            image_index = (np.arange(c)[:, None] * n_src + a.reshape(c, D * S)).reshape(-1)
             mask_c = np.ascontiguousarray(mask_all[idx])
             data_dist, images, H, n_valid, virtual = _score_samples(
                 vol, grid, nom_c, src_params, sample_params, image_index, measured[idx], mask_c, config, margin)
-            fraction = _best_fit_fraction(images, H, image_index, S, data_dist, measured[idx], mask_c, config)
+            fraction = _best_fit_fraction(images, H, image_index, D * S, data_dist, measured[idx], mask_c, config)
             dist = _ranking(data_dist, sample_params, n_valid, config, fraction)
             if fraction is not None:
                 fractions.append(fraction)
+            # one embedding per set, in that set's K nearest samples; the sets' estimates averaged
             K = config.n_neighbours
-            near = np.argpartition(dist, K - 1, axis=1)[:, :K]
-            flat_sel = (np.arange(c)[:, None] * S + near).reshape(-1)
+            near = (np.argpartition(dist.reshape(c, D, S), K - 1, axis=2)[:, :, :K]
+                    + (np.arange(D) * S)[None, :, None]).reshape(c, D * K)
+            flat_sel = (np.arange(c)[:, None] * (D * S) + near).reshape(-1)
             neigh, on_virtual = warp_projections(images, H[flat_sel], image_index[flat_sel], nominal.n_rows,
                                                  nominal.n_cols)
-            m = mask_all[idx] & on_virtual.reshape(c, K, *nominal.det_shape).all(axis=1)
-            g_near = np.take_along_axis(sample_params, near[:, :, None], axis=1)
-            w = lle_weights(measured[idx].reshape(c, -1), neigh.reshape(c, K, -1), config.weighting,
-                            mask=m.reshape(c, -1), reg=config.reg,
+            m = (mask_all[idx][:, None] & on_virtual.reshape(c, D, K, *nominal.det_shape).all(axis=2)).reshape(
+                c * D, *nominal.det_shape)
+            g_near = np.take_along_axis(sample_params, near[:, :, None], axis=1).reshape(c * D, K, 9)
+            w = lle_weights(np.repeat(measured[idx].reshape(c, -1), D, axis=0), neigh.reshape(c * D, K, -1),
+                            config.weighting, mask=m.reshape(c * D, -1), reg=config.reg,
                             basis=None if metric == "l2" else background_basis(m, *config.background).reshape(
-                                c, -1, m[0].size),
-                            prior=None if fraction is None else (g_near, config.prior_inv_var / fraction[:, None]))
-            g_new = np.einsum("ck,ckj->cj", w, g_near)
+                                c * D, -1, m[0].size),
+                            prior=None if fraction is None else (
+                                g_near, config.prior_inv_var / np.repeat(fraction, D)[:, None]))
+            g_new = np.einsum("ck,ckj->cj", w, g_near).reshape(c, D, 9)
             # an embedding may extrapolate; never beyond the sampled box (stability under model error)
-            g_new = np.clip(g_new, g - h, g + h)
+            g_new = np.clip(g_new, (g - h)[:, None], (g + h)[:, None]).mean(axis=1)
             rows = np.arange(c)
             best = np.argmin(dist, axis=1)  # by posterior with a prior
             d_best = data_dist[rows, best]
@@ -965,15 +978,30 @@ neighbours made it worse on the 360-view scan of bench/bench_calibration_speed.p
 0.692 px), so it keeps 16."""
 
 
+COARSE_SAMPLES = 96
+DRAWS = 2
+"""Samples per view and level of the coarse pass (:class:`LLEConfig` default 192), and the
+independent sample sets per level whose embeddings are averaged (:attr:`LLEConfig.draws`) on
+both levels. Each set is one draw of the random sampling; its embedding carries that draw's
+noise, which more samples in one set do not average out (they only tighten the K nearest
+ones), while a second set is scored against the same ray-casts, so it costs only its
+homography scoring and weights. Measured with ncc-lle-exact on scenario (a) of
+bench/bench_calibration.py (90 views, 3 iterations, six sampling seeds): 192 samples and one
+set per level 0.0995 to 0.1016 px (384 samples: 0.101 to 0.103 px), 96 coarse samples 0.094
+to 0.096 px, 96 coarse samples and two sets on both levels 0.089 to 0.094 px (mean 0.091) in
+24 s instead of 20 s; three sets of 64 coarse samples 0.090 px in 26 s."""
+
+
 def default_lle_configs(weighting: str, seed: int = 0, background=DEFAULT_BACKGROUND,
                         prior_sigma=DEFAULT_PRIOR_SIGMA) -> tuple[LLEConfig, LLEConfig]:
     """Coarse (binned, wide box) and fine (full size, narrow box) LLE settings."""
     prior = None if prior_sigma is None else tuple(float(x) for x in prior_sigma)
     embedding = EMBEDDING_SETTINGS.get(weighting, {})
     coarse = LLEConfig(weighting=weighting, levels=3, seed=seed, background=tuple(background), shift_search_px=4,
-                       prior_sigma=prior, **embedding)
+                       prior_sigma=prior, n_samples=COARSE_SAMPLES, draws=DRAWS, **embedding)
     fine = LLEConfig(weighting=weighting, levels=2, seed=seed + 1, background=tuple(background),
-                     half_width=tuple(np.asarray(coarse.half_width) * 0.25), prior_sigma=prior, **embedding)
+                     half_width=tuple(np.asarray(coarse.half_width) * 0.25), prior_sigma=prior, draws=DRAWS,
+                     **embedding)
     return coarse, fine
 
 
@@ -1234,9 +1262,9 @@ def fit_drift(params: np.ndarray, order: int, times=None) -> np.ndarray:
 
 SCHEDULES = {
     "accurate": {"coarse_binning": 2, "fine_binning": 1, "fine_volume": "sirt", "fine_source": "star",
-                 "fine_samples": 192, "coarse_passes": 3},
+                 "fine_samples": 192, "fine_draws": DRAWS, "coarse_passes": 3},
     "fast": {"coarse_binning": 4, "fine_binning": 2, "fine_volume": "fdk", "fine_source": "fixed",
-             "fine_samples": 96, "coarse_passes": 1},
+             "fine_samples": 96, "fine_draws": 1, "coarse_passes": 1},
 }
 """Resolution schedules of :func:`calibrate`. ``accurate``: estimate on 2x2 binned data, then
 at full size against a full-size FDK + SIRT volume. ``fast`` (large scans): 4x4 binned
@@ -1249,7 +1277,11 @@ Measured on the truncated mouse scan of bench/bench_calibration_speed.py (360 vi
 ended at 0.29 and 0.68 px), and 96 samples
 were as accurate as 192 (1.175 against 1.161 px) and 15 % faster. On the 90-view scans of
 bench/bench_calibration.py the fine SIRT is what makes the accurate schedule accurate
-(0.14 px; 1.69 px with FDK)."""
+(0.14 px; 1.69 px with FDK). ``fine_draws``: the finer level's sample sets
+(:attr:`LLEConfig.draws`). With one ray-cast per view the finer level of ``fast`` is all
+scoring, so a second set costs nearly its whole time again: on that scan two sets took 2
+iterations to 0.862 px in 73.6 s, one set to 0.886 px in 66.1 s (the coarse level has two
+sets in both)."""
 
 
 FINE_VOLUMES = ("sirt", "fdk+coarse-sirt", "fdk")
@@ -1383,7 +1415,8 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
         estimate, narrowed = estimate_views, _narrowed
         if configs is None:
             coarse_cfg, fine_cfg = default_lle_configs(LLE_METHODS[method], seed=seed, prior_sigma=prior_sigma)
-            fine_cfg = replace(fine_cfg, source_positions=plan["fine_source"], n_samples=plan["fine_samples"])
+            fine_cfg = replace(fine_cfg, source_positions=plan["fine_source"], n_samples=plan["fine_samples"],
+                               draws=plan["fine_draws"])
         else:
             coarse_cfg, fine_cfg = configs
     else:  # the baselines run on the same loop, their own search keeps its range
