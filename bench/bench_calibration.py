@@ -20,7 +20,7 @@ the same scan (calibrate(seed=); their scatter, and the mean of their geometries
 calibrate_ensemble makes it, below each table). Writes results.md,
 results.json and figures (report.py) into --out.
 
-    .venv/bin/python bench/bench_calibration.py                      # defaults: about 6.5 min on 2 cores (13 with --repeats 3)
+    .venv/bin/python bench/bench_calibration.py                      # defaults: about 7 min on 2 cores (15 with --repeats 3)
     .venv/bin/python bench/bench_calibration.py --views 60 --det 48x64 --vol 48 --scenarios a
 """
 
@@ -295,7 +295,7 @@ def main(argv=None) -> int:
     import numba
     say(f"bench_calibration: {len(args.scenarios)} scenario(s) x {len(methods)} method(s); {args.views} views, "
         f"detector {args.det[0]}x{args.det[1]}, grid {args.vol}, {args.iterations} iteration(s); "
-        f"{os.cpu_count()} CPU(s), numba threads {numba.get_num_threads()}. The defaults take about 6 min "
+        f"{os.cpu_count()} CPU(s), numba threads {numba.get_num_threads()}. The defaults take about 7 min "
         f"on a quiet 2-core machine.")
     scenarios = []
     for key in args.scenarios:
