@@ -313,18 +313,14 @@ def main(argv=None) -> int:
                      else sc.reconstruct(sc.true))
         cap = getattr(sc.phantom, "cap", None)
         truth = (sc.true, truth_vol, SimpleNamespace(cap=cap) if cap is not None else None)
-        strip = reconstruct_cap = None
-        if cap is not None:
-            strip = CapStrip(sc, PHOTONS_PER_MM2, args.seed, say)
-            labels = iter(list(results))  # summarize measures the rows in this order
-            reconstruct_cap = lambda g: strip(g, next(labels))  # noqa: E731
+        strip = CapStrip(sc, PHOTONS_PER_MM2, args.seed, say) if cap is not None else None
         initial = calibration.projection_consistency(results["none"][1], sc.grid, sc.nominal, sc.li, sc.mask)[0] \
             if "none" in results else None
         title = f"({key}) {SCENARIOS[key]}"
         paths = write_report(out, results, sc.grid, truth, sc.nominal, name=f"scenario_{key}", title=title,
                              initial_rmse=initial, notes={"via": via},
                              reconstruct=sc.reconstruct,
-                             reconstruct_cap=reconstruct_cap)
+                             reconstruct_cap=strip)
         rows = paths["rows"]
         if strip is not None:
             paths["cap"] = plot_cap_slabs(

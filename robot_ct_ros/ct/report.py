@@ -79,8 +79,9 @@ def summarize(results: dict, grid: VolumeGrid, truth=None, points_mm=None, recon
 
     The cap thickness (a plaque phantom) is measured in that gauge-aligned reconstruction
     (without ``reconstruct``, in the volume as given), or, with
-    ``reconstruct_cap(geom) -> (volume, grid)``, in a reconstruction made for it alone
-    from the gauge-aligned geometry: typically a fine grid around the cap from the unbinned
+    ``reconstruct_cap(geom, method) -> (volume, grid)``, in a reconstruction made for it alone
+    from the gauge-aligned geometry (``method``: the row's key in ``results``, for a caller that
+    keeps the volumes): typically a fine grid around the cap from the unbinned
     detector, as a cap thinner than the calibration's binned pixels needs.
     """
     true_geom, true_vol, phantom = (tuple(truth) + (None,) * 3)[:3] if truth is not None else (None, None, None)
@@ -105,7 +106,7 @@ def summarize(results: dict, grid: VolumeGrid, truth=None, points_mm=None, recon
         if true_vol is not None:
             row["ssim"] = _finite_or_none(ssim(aligned, true_vol))
         if cap is not None:
-            cap_vol, cap_grid = (aligned, grid) if reconstruct_cap is None else reconstruct_cap(aligned_geom)
+            cap_vol, cap_grid = (aligned, grid) if reconstruct_cap is None else reconstruct_cap(aligned_geom, method)
             row["cap_um"] = _finite_or_none(1000.0 * cap_thickness_mm(cap_vol, cap_grid, cap))
         rows.append(row)
     return rows
