@@ -988,7 +988,7 @@ noise, which more samples in one set do not average out (they only tighten the K
 ones), while a second set is scored against the same ray-casts, so it costs only its
 homography scoring and weights. Measured with ncc-lle-exact on scenario (a) of
 bench/bench_calibration.py (90 views, 3 iterations, six sampling seeds): 192 samples and one
-set per level 0.0995 to 0.1016 px (384 samples: 0.101 to 0.103 px), 96 coarse samples 0.094
+set per level 0.0995 to 0.102 px (384 samples: 0.101 to 0.103 px), 96 coarse samples 0.094
 to 0.096 px, 96 coarse samples and two sets on both levels 0.089 to 0.094 px (mean 0.091) in
 24 s instead of 20 s; three sets of 64 coarse samples 0.090 px in 26 s."""
 
