@@ -7,6 +7,9 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -20,3 +23,6 @@ def test_demo_quick(tmp_path):
     for key in ("scan_bag", "corrected_bag", "volume_npy", "volume_tif", "report_json", "report_md"):
         assert Path(summary["paths"][key]).exists(), key
     assert summary["frames"] == 12 and summary["truth"]["reprojection_error_nominal_px"]["mean"] > 0
+    # the correction's prior is the simulated arms' accuracy (0.1 mm, 0.05 deg per axis), not the default
+    report = json.loads(Path(summary["paths"]["report_json"]).read_text())
+    assert report["prior_sigma"] == pytest.approx([0.1] * 6 + [np.deg2rad(0.05)] * 3)
