@@ -11,13 +11,15 @@ the corrected reconstruction against the reconstruction with the true geometry.
 
 Default: 120 views of 0.1 s, detector cropped to 64 x 128 binned pixels (110 um), object
 inside the field of view. The correction's prior (the recon_service's prior_sigma_* parameters)
-is the simulated arms' accuracy, as a user sets it to their robots'. ``--quick``: 12 views on a 32 x 64 crop, one iteration (tests).
+is the simulated arms' accuracy, as a user sets it to their robots'. ``--quick``: 12 views on a
+32 x 64 crop, one iteration (tests).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import shutil
 import sys
 import time
@@ -86,8 +88,6 @@ def recon_parameters(s: dict) -> dict:
     ``sigma_deg``), which is what each view's parameters are off by. The calibration's own
     default (0.3 mm, 0.3 deg) is for robots whose accuracy nobody measured: on the demo's scan
     it gave 0.095 px against 0.064 px with the arms' 0.1 mm / 0.05 deg (2026-12-02)."""
-    import math
-
     return {"method": s["method"], "iterations": s["iterations"],
             "prior_sigma_translation_m": s["sigma_mm"] * 1e-3,
             "prior_sigma_rotation_rad": math.radians(s["sigma_deg"])}
