@@ -103,13 +103,14 @@ def reconstruct_bag(bag, out, *, geometry: str = "auto", voxel_mm=None, shape=No
     return report
 
 
-def _calibrate_kwargs(scan, prior_sigma, stop_update_px, drift_order=None, seed: int = 0) -> dict:
+def _calibrate_kwargs(scan, prior_sigma, stop_update_px, drift_order=None, seed: int = 0, padding=None) -> dict:
     """calibrate()'s ``prior_sigma`` (``"default"``: calibration.DEFAULT_PRIOR_SIGMA),
-    ``drift_order`` (None: off) with ``drift_times``, ``seed``, and, when given,
-    ``stop_update_px`` (None keeps calibrate's default). The drift model's time axis is the
+    ``drift_order`` (None: off) with ``drift_times``, ``seed``, ``padding`` (None:
+    calibration.DEFAULT_PADDING), and, when given, ``stop_update_px`` (None keeps calibrate's
+    default). The drift model's time axis is the
     frames' stamps (s): a pause in the scan is then a gap in time, not one view's step (the
     view index without usable stamps)."""
-    from robot_ct_ros.ct.calibration import DEFAULT_PRIOR_SIGMA
+    from robot_ct_ros.ct.calibration import DEFAULT_PADDING, DEFAULT_PRIOR_SIGMA
 
     prior = DEFAULT_PRIOR_SIGMA if isinstance(prior_sigma, str) and prior_sigma == "default" else prior_sigma
     times = None
@@ -117,7 +118,8 @@ def _calibrate_kwargs(scan, prior_sigma, stop_update_px, drift_order=None, seed:
         t = (np.asarray(scan.stamps_ns, np.int64) - int(scan.stamps_ns[0])).astype(np.float64) * 1e-9
         times = t if np.ptp(t) > 0 else None
     return ({"prior_sigma": prior, "drift_order": None if drift_order is None else int(drift_order),
-             "drift_times": times, "seed": int(seed)}
+             "drift_times": times, "seed": int(seed),
+             "padding": DEFAULT_PADDING if padding is None else float(padding)}
             | ({} if stop_update_px is None else {"stop_update_px": float(stop_update_px)}))
 
 
@@ -143,7 +145,8 @@ strongest published baseline."""
 
 def report_bag(bag, out, *, methods=REPORT_METHODS, iterations: int = 2, voxel_mm=None, shape=None,
                schedule: str = "accurate", prior_sigma="default", stop_update_px: float | None = None,
-               drift_order: int | None = None, seed: int = 0, ensemble: int = 1, say=_say) -> dict:
+               drift_order: int | None = None, seed: int = 0, ensemble: int = 1, padding: float | None = None,
+               say=_say) -> dict:
     """Compare calibration methods on one scan bag: figures like the NCC-LLE paper's and a table.
 
     ``methods``: ``"none"`` (FDK with the nominal geometry) and any of calibration.METHODS, each
@@ -172,7 +175,7 @@ def report_bag(bag, out, *, methods=REPORT_METHODS, iterations: int = 2, voxel_m
         say(f"warning: {w}")
     li, mask = scan.to_line_integrals()
     grid = _grid_for(scan, voxel_mm, shape)
-    kwargs = _calibrate_kwargs(scan, prior_sigma, stop_update_px, drift_order, seed)
+    kwargs = _calibrate_kwargs(scan, prior_sigma, stop_update_px, drift_order, seed, padding)
     say(f"{scan.n_views} views, detector {scan.geom.n_rows}x{scan.geom.n_cols}, grid {grid.shape_zyx[::-1]} of "
         f"{grid.voxel_size_mm[0] * 1000:.1f} um; methods {', '.join(methods)}; at most {iterations} iteration(s), "
         f"schedule {schedule}")
@@ -206,6 +209,7 @@ def report_bag(bag, out, *, methods=REPORT_METHODS, iterations: int = 2, voxel_m
                          notes={"bag": str(bag), "iterations": iterations, "schedule": schedule,
                                 "prior_sigma": _prior_json(kwargs["prior_sigma"]),
                                 "drift_order": kwargs["drift_order"], "seed": kwargs["seed"], "ensemble": ensemble,
+                                "padding": kwargs["padding"],
                                 "grid": grid.to_dict(), "bag_warnings": list(scan.warnings)})
     say("\n" + markdown_table(paths["rows"]))
     say(f"wrote {', '.join(str(paths[k]) for k in ('slices', 'rmse', 'param_error', 'markdown', 'json') if k in paths)}"
@@ -222,7 +226,8 @@ def calibration_methods() -> tuple:
 
 def calibrate_bag(bag, out, *, method: str = "ncc-lle-exact", iterations: int = 2, voxel_mm=None, shape=None,
                   schedule: str = "accurate", prior_sigma="default", stop_update_px: float | None = None,
-                  drift_order: int | None = None, seed: int = 0, ensemble: int = 1, say=_say) -> dict:
+                  drift_order: int | None = None, seed: int = 0, ensemble: int = 1, padding: float | None = None,
+                  say=_say) -> dict:
     """Calibrate the per-view geometry of a scan bag offline and reconstruct it.
 
     Runs :func:`robot_ct_ros.ct.calibration.calibrate` (method, at most ``iterations``
@@ -230,7 +235,8 @@ def calibrate_bag(bag, out, *, method: str = "ncc-lle-exact", iterations: int = 
     prior_sigma: ``"default"`` for calibration.DEFAULT_PRIOR_SIGMA, None for the data alone;
     drift_order: None for independent per-view errors, a degree for a slowly drifting geometry;
     seed: the LLE methods' sampling seed; ensemble: average that many runs with different
-    seeds, calibration.calibrate_ensemble; ``"fdk"`` only reconstructs with the nominal
+    seeds, calibration.calibrate_ensemble; padding: the estimation grid's widening across (None:
+    calibration.DEFAULT_PADDING); ``"fdk"`` only reconstructs with the nominal
     geometry). Writes into ``out``: the corrected bag (``<bag name>_corrected``: every message
     of the input plus /ct/geometry_corrected), ``volume.npy``/``.tif``/``_grid.json`` and
     ``report.json``.
@@ -252,10 +258,11 @@ def calibrate_bag(bag, out, *, method: str = "ncc-lle-exact", iterations: int = 
     report.update({"job": "calibrate", "method": method, "iterations": iterations, "schedule": schedule})
     geom, volume, history, notes = scan.geom, None, [], []
     if method != "fdk":
-        kwargs = _calibrate_kwargs(scan, prior_sigma, stop_update_px, drift_order, seed)
+        kwargs = _calibrate_kwargs(scan, prior_sigma, stop_update_px, drift_order, seed, padding)
         report["prior_sigma"] = _prior_json(kwargs["prior_sigma"])
         report["drift_order"] = kwargs["drift_order"]
         report["seed"] = kwargs["seed"]
+        report["padding"] = kwargs["padding"]
         result = _estimate(li, scan.geom, grid, method=method, ensemble=ensemble, n_iter=iterations, valid_mask=mask,
                            schedule=schedule, progress=say, **kwargs)
         geom, volume = result.geom, result.volume
@@ -424,6 +431,17 @@ def _whole_number_at_least(minimum: int, what: str):
 
 
 _ensemble = _whole_number_at_least(1, "ensemble")
+
+
+def _padding(text: str) -> float:
+    """An argparse type: the estimation grid's widening, a number >= 1."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"padding must be a number, got {text!r}") from None
+    if not value >= 1:
+        raise argparse.ArgumentTypeError("padding must be >= 1 (the estimation grid holds the ROI grid)")
+    return value
 _drift_order = _whole_number_at_least(0, "drift order")
 
 
@@ -464,7 +482,7 @@ def _cmd_report(args) -> int:
     report_bag(args.bag, args.out, methods=methods, iterations=args.iterations, voxel_mm=args.voxel_mm,
                shape=args.shape, schedule=args.schedule, prior_sigma=args.prior_sigma,
                stop_update_px=args.stop_update_px, drift_order=args.drift_order, seed=args.seed,
-               ensemble=args.ensemble)
+               ensemble=args.ensemble, padding=args.padding)
     return 0
 
 
@@ -472,7 +490,7 @@ def _cmd_calibrate(args) -> int:
     calibrate_bag(args.bag, args.out, method=args.method, iterations=args.iterations, voxel_mm=args.voxel_mm,
                   shape=args.shape, schedule=args.schedule, prior_sigma=args.prior_sigma,
                   stop_update_px=args.stop_update_px, drift_order=args.drift_order, seed=args.seed,
-                  ensemble=args.ensemble)
+                  ensemble=args.ensemble, padding=args.padding)
     return 0
 
 
@@ -536,7 +554,7 @@ def main(argv: list[str] | None = None) -> int:
             p.add_argument("--stop-px", type=float, default=None, dest="stop_update_px",
                            help="stop when an iteration moves the views less than this (gauge-aligned mean px; "
                                 "default 0.05; 0: always --iterations)")
-            from robot_ct_ros.ct.calibration import SCHEDULES
+            from robot_ct_ros.ct.calibration import DEFAULT_PADDING, SCHEDULES
 
             p.add_argument("--schedule", choices=tuple(SCHEDULES), default="accurate",
                            help="accurate: 2x binned then full size with SIRT; fast (large scans): 4x then 2x "
@@ -554,6 +572,10 @@ def main(argv: list[str] | None = None) -> int:
             p.add_argument("--ensemble", type=_ensemble, default=1, metavar="K",
                            help="average K runs of an LLE method with the sampling seeds SEED, SEED+1000, ... "
                                 "(K times the time, less sampling noise; the report gives their spread; default 1)")
+            p.add_argument("--padding", type=_padding, default=None, metavar="FACTOR",
+                           help="widen the ROI grid this many times across for the volume the views are registered "
+                                f"against (default {DEFAULT_PADDING:g}; about 2 helped objects several times wider than the field "
+                                "of view and hurt mildly truncated ones: README)")
 
     args = parser.parse_args(argv)
     if args.command == "demo":

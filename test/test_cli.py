@@ -64,7 +64,7 @@ def test_simulate_info_reconstruct_calibrate(tmp_path, capsys):
                  "--stop-px", "1000", "--seed", "3", "--out", str(mapped)]) == 0
     report = json.loads((mapped / "report.json").read_text())
     np.testing.assert_allclose(report["prior_sigma"], [0.2] * 6 + [np.deg2rad(0.25)] * 3)
-    assert report["seed"] == 3
+    assert report["seed"] == 3 and report["padding"] == 1.25  # calibration.DEFAULT_PADDING
     assert report["drift_order"] is None  # independent per-view errors unless asked
     assert 0.0 < report["history"][0]["independent_fraction"] <= 1.0
     # every iteration moves the views less than 1000 px: one of at most three ran
@@ -108,6 +108,9 @@ def test_simulate_info_reconstruct_calibrate(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["calibrate", str(bag), "--ensemble", "0", "--out", str(tmp_path / "never")])
     assert "ensemble must be >= 1" in capsys.readouterr().err and not (tmp_path / "never").exists()
+    with pytest.raises(SystemExit):
+        main(["calibrate", str(bag), "--padding", "0.8", "--out", str(tmp_path / "never")])
+    assert "padding must be >= 1" in capsys.readouterr().err and not (tmp_path / "never").exists()
 
     # compare methods on the corrected bag: its own corrected and true geometries join the table
     compared = tmp_path / "report"
@@ -124,6 +127,13 @@ def test_simulate_info_reconstruct_calibrate(tmp_path, capsys):
                  "--prior-sigma", "0.2,0.25", "--out", str(tmp_path / "seed0")]) == 0
     seed0 = {r["method"]: r for r in json.loads((tmp_path / "seed0" / "report.json").read_text())["rows"]}
     assert seed0["ncc-lle"]["reproj_mean_px"] != pytest.approx(rows["ncc-lle"]["reproj_mean_px"], rel=1e-6)
+    # so does the estimation grid's width (same seed, a wider grid: another volume to register against)
+    assert main(["report", str(mapped / "scan_corrected"), "--methods", "ncc-lle", "--iterations", "1",
+                 "--prior-sigma", "0.2,0.25", "--seed", "3", "--padding", "2", "--out", str(tmp_path / "wide")]) == 0
+    wide = json.loads((tmp_path / "wide" / "report.json").read_text())
+    assert wide["notes"]["padding"] == 2.0 and table["notes"]["padding"] == 1.25
+    wide_row = {r["method"]: r for r in wide["rows"]}["ncc-lle"]
+    assert wide_row["reproj_mean_px"] != pytest.approx(rows["ncc-lle"]["reproj_mean_px"], rel=1e-6)
     assert rows["ncc-lle"]["iterations"] == 1 and rows["none"]["iterations"] == 0
     for figure in ("report_slices.png", "report_rmse.png", "report_param_error.png", "report.md"):
         assert (compared / figure).stat().st_size > 0

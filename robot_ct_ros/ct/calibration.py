@@ -1184,6 +1184,13 @@ def reconstruct_for_estimation(line_integrals, geom, grid, mask, sirt_iterations
     return EstimationVolume(out, corr_fdk, vol)
 
 
+DEFAULT_PADDING = 1.25
+"""How many times :func:`calibrate` widens the ROI grid across for the estimation volume
+(:func:`estimation_grid`). Wider helped objects several times the field of view and hurt
+mildly truncated ones (README, "Between (a) and (c)": scenario (a)'s mouse at 1, 1.25, 1.5, 2
+and 3 times its width, padding 1.25 / 1.6 / 2.0)."""
+
+
 TRUNCATED_ABOVE = 0.01
 """:func:`truncation_level` above which :func:`calibrate` treats a scan as truncated."""
 
@@ -1313,7 +1320,7 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
               coarse_passes: int | None = None, coarse_tol_px: float = 0.1, stop_update_px: float = 0.05,
               configs: tuple | None = None, gauge_points_mm=None, sirt_iterations: int = 15,
               truncated: bool | None = True,
-              padding: float = 1.25, undo_inconsistent: bool = False, prior_sigma=DEFAULT_PRIOR_SIGMA,
+              padding: float = DEFAULT_PADDING, undo_inconsistent: bool = False, prior_sigma=DEFAULT_PRIOR_SIGMA,
               drift_order: int | None = None, drift_times=None, focus_modes: dict | None = None,
               fdk_kwargs: dict | None = None, seed: int = 0, progress=None,
               on_iteration=None) -> CalibrationResult:
@@ -1398,6 +1405,8 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
         raise ValueError("coarse_passes must be >= 1")
     if not stop_update_px >= 0:
         raise ValueError("stop_update_px must be >= 0")
+    if not padding >= 1:
+        raise ValueError("padding must be >= 1 (the estimation grid holds the ROI grid)")
     if drift_order is not None:
         fit_drift(np.zeros((nominal.n_views, 9)), drift_order, drift_times)  # validates order and times
     t_start = time.perf_counter()

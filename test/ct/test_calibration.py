@@ -223,6 +223,8 @@ def test_fast_schedule_reduces_the_geometry_error():
     assert result.volume.shape == grid.shape_zyx  # the final volume is full size
     with pytest.raises(ValueError, match="schedule"):
         calibrate(measured, nominal, grid, schedule="fastest")
+    with pytest.raises(ValueError, match="padding"):
+        calibrate(measured, nominal, grid, padding=0.9)
 
 
 @pytest.mark.parametrize("method", ["ncc-lle-exact", "ncc-lle", "l2-lle"])
