@@ -417,32 +417,24 @@ def _cmd_info(args) -> int:
     return 0
 
 
-def _whole_number_at_least(minimum: int, what: str):
-    """An argparse type: a whole number >= ``minimum``, with ``what`` named in the error."""
-    def parse(text: str) -> int:
+def _number_at_least(minimum, what: str, whole: bool = True):
+    """An argparse type: a number (a whole one with ``whole``) >= ``minimum``, with ``what``
+    named in the error."""
+    def parse(text: str):
         try:
-            value = int(text)
+            value = int(text) if whole else float(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"{what} must be a whole number, got {text!r}") from None
-        if value < minimum:
+            raise argparse.ArgumentTypeError(f"{what} must be a {'whole ' if whole else ''}number, "
+                                             f"got {text!r}") from None
+        if not value >= minimum:
             raise argparse.ArgumentTypeError(f"{what} must be >= {minimum}")
         return value
     return parse
 
 
-_ensemble = _whole_number_at_least(1, "ensemble")
-
-
-def _padding(text: str) -> float:
-    """An argparse type: the estimation grid's widening, a number >= 1."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"padding must be a number, got {text!r}") from None
-    if not value >= 1:
-        raise argparse.ArgumentTypeError("padding must be >= 1 (the estimation grid holds the ROI grid)")
-    return value
-_drift_order = _whole_number_at_least(0, "drift order")
+_ensemble = _number_at_least(1, "ensemble")
+_drift_order = _number_at_least(0, "drift order")
+_padding = _number_at_least(1, "padding", whole=False)  # the estimation grid holds the ROI grid
 
 
 def _prior_sigma(text: str):
