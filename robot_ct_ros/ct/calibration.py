@@ -69,9 +69,15 @@ def _regularised(G, reg):
     return G + (reg * np.where(scale > 0, scale, 1.0))[:, None, None] * np.eye(K)
 
 
+REG_FLOOR = 1e-12
+"""Smallest ridge :func:`_solve_regularised` applies (relative to tr(G)/K): a measured view that
+lies exactly in its neighbours' affine span makes the L2 Gram matrix exactly singular, and LAPACK
+then fails or not depending on rounding."""
+
+
 def _solve_regularised(G, rhs, reg):
-    """Solve (G + reg * tr(G)/K * I) x = rhs for a batch of small symmetric matrices."""
-    return np.linalg.solve(_regularised(G, reg), rhs[..., None])[..., 0]
+    """Solve (G + max(reg, REG_FLOOR) * tr(G)/K * I) x = rhs for a batch of small symmetric matrices."""
+    return np.linalg.solve(_regularised(G, max(reg, REG_FLOOR)), rhs[..., None])[..., 0]
 
 
 def _map_weights(M_data, q_data, prior) -> np.ndarray:

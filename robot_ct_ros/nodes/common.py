@@ -119,3 +119,47 @@ def declare_drift_order(node):
     :func:`calibration.calibrate`'s ``drift_order`` (None when off)."""
     order = int(node.declare_parameter("drift_order", -1).value)
     return order if order >= 0 else None
+
+
+def declare_settings(node, cls, *, prefix: str = "", **defaults):
+    """Declare one ROS parameter per field of the settings class ``cls`` (robot_ct_ros.parameters)
+    and return the validated instance built from their values.
+
+    Each parameter is ``prefix + ros_name``, typed by its default, with a ParameterDescriptor that
+    carries the field's help and unit and, for numbers, its range (rclpy then refuses a value
+    outside it when set at run time). ``defaults`` override field defaults (core units). A value of
+    the wrong type or out of range raises ValueError naming the parameter (never a traceback from
+    rclpy's internals)."""
+    import math
+
+    from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+    from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+
+    from robot_ct_ros.parameters import from_ros_values, specs
+
+    values = {}
+    for s in specs(cls):
+        if not s.ros:
+            continue
+        name = prefix + s.ros_name
+        unit = f" [{s.ros_unit}]" if s.ros_unit else ""
+        extra = f" ({s.to_ros(None) if s.ros_none is not None else ''} = off)" if s.ros_none is not None else ""
+        choices = f" One of: {', '.join(map(str, s.choices))}." if s.choices else ""
+        desc = ParameterDescriptor(name=name, description=f"{s.help}{unit}{extra}{choices}")
+        if s.kind in (int, float) and s.ros_none is None and (s.minimum is not None or s.maximum is not None):
+            lo = -math.inf if s.minimum is None else s.to_ros(s.minimum)
+            hi = math.inf if s.maximum is None else s.to_ros(s.maximum)
+            if s.kind is float:
+                desc.floating_point_range = [FloatingPointRange(from_value=float(lo), to_value=float(hi), step=0.0)]
+            else:  # IntegerRange holds int64 bounds
+                desc.integer_range = [IntegerRange(from_value=int(max(lo, -2 ** 63)), to_value=int(min(hi, 2 ** 63 - 1)),
+                                                   step=1)]
+        default = s.to_ros(defaults.get(s.name, s.default))
+        try:
+            values[s.ros_name] = node.declare_parameter(name, default, desc).value
+        except (InvalidParameterTypeException, InvalidParameterValueException) as exc:
+            raise ValueError(f"parameter {name}: {exc}") from None
+    try:
+        return from_ros_values(cls, values)
+    except ValueError as exc:
+        raise ValueError(f"{node.get_name()} parameters: {exc}") from None

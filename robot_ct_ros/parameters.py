@@ -1,0 +1,146 @@
+"""Typed settings objects shared by code, command line and ROS parameters (no ROS import).
+
+A settings class is a frozen dataclass whose fields are made with :func:`setting`. Each field
+carries its help text, unit, bounds or choices, and how it appears as a ROS parameter (REP 103
+SI units at that boundary: ``ros_scale`` multiplies the core value, e.g. 1e-3 for mm -> m;
+``ros_none`` is the ROS value that stands for None, since ROS parameters have no null). The
+nodes declare their parameters from these fields (:func:`robot_ct_ros.nodes.common.declare_settings`),
+the CLI builds its options from them, and ``to_dict`` goes into report.json, so a new setting
+reaches every front end at once, in the style of generate_parameter_library.
+
+Validation lives here too: :func:`validate` checks every field against its bounds and
+choices and raises one ``ValueError`` naming the field and what it accepts.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Any
+
+__all__ = ["setting", "SettingSpec", "specs", "validate", "to_dict", "ros_defaults", "from_ros_values",
+           "with_changes"]
+
+
+def setting(default, help: str, *, unit: str = "", minimum=None, maximum=None, choices=None,
+            ros_name: str | None = None, ros_scale: float = 1.0, ros_unit: str | None = None, ros_none=None,
+            ros: bool = True, kind: type | None = None) -> dataclasses.Field:
+    """A dataclass field with what the front ends need to show, parse and check it.
+
+    ``choices`` is a tuple or a zero-argument callable returning one (a registry filled later);
+    ``minimum``/``maximum`` are inclusive bounds in core units; ``ros_unit`` the unit after
+    ``ros_scale`` (default ``unit``); ``ros=False`` keeps a field off ROS; ``kind`` is the value
+    type when the default is None (e.g. an optional int)."""
+    return dataclasses.field(default=default, metadata={
+        "help": help, "unit": unit, "minimum": minimum, "maximum": maximum, "choices": choices,
+        "ros_name": ros_name, "ros_scale": float(ros_scale),
+        "ros_unit": unit if ros_unit is None else ros_unit, "ros_none": ros_none, "ros": ros, "kind": kind})
+
+
+@dataclass(frozen=True)
+class SettingSpec:
+    """What :func:`setting` recorded about one field, resolved."""
+
+    name: str
+    default: Any
+    kind: type
+    help: str
+    unit: str
+    minimum: Any
+    maximum: Any
+    choices: tuple | None
+    ros_name: str
+    ros_scale: float
+    ros_unit: str
+    ros_none: Any
+    ros: bool
+
+    def to_ros(self, value):
+        """The ROS parameter value of a core value (None -> ``ros_none``)."""
+        if value is None:
+            return self.ros_none
+        if self.kind is float:
+            return float(value) * self.ros_scale
+        return self.kind(value)
+
+    def from_ros(self, value):
+        """The core value of a ROS parameter value (``ros_none`` -> None)."""
+        if self.ros_none is not None and value == self.ros_none:
+            return None
+        if self.kind is float:
+            return float(value) / self.ros_scale
+        if self.kind is int:
+            if isinstance(value, float) and not value.is_integer():
+                raise ValueError(f"{self.ros_name} must be a whole number, got {value!r}")
+            return int(value)
+        if self.kind is bool:
+            return bool(value)
+        return str(value)
+
+    def check(self, value) -> None:
+        """Raise ValueError unless ``value`` is acceptable for this field."""
+        if value is None:
+            if self.default is None:
+                return
+            raise ValueError(f"{self.name} must be given")
+        if self.kind in (int, float) and (isinstance(value, bool) or not isinstance(value, (int, float))):
+            raise ValueError(f"{self.name} must be a number, got {value!r}")
+        if self.kind is int and isinstance(value, float) and not value.is_integer():
+            raise ValueError(f"{self.name} must be a whole number, got {value!r}")
+        if self.kind is float and not math.isfinite(value):
+            raise ValueError(f"{self.name} must be finite, got {value!r}")
+        unit = f" {self.unit}" if self.unit else ""
+        if self.minimum is not None and not value >= self.minimum:
+            raise ValueError(f"{self.name} must be >= {self.minimum}{unit}, got {value!r}")
+        if self.maximum is not None and not value <= self.maximum:
+            raise ValueError(f"{self.name} must be <= {self.maximum}{unit}, got {value!r}")
+        if self.choices is not None and value not in self.choices:
+            raise ValueError(f"{self.name} must be one of {', '.join(map(str, self.choices))}; got {value!r}")
+
+
+def specs(cls_or_obj) -> tuple[SettingSpec, ...]:
+    """The :class:`SettingSpec` of every field of a settings class (or instance), in order."""
+    out = []
+    for f in dataclasses.fields(cls_or_obj):
+        m = f.metadata
+        if "help" not in m:
+            continue
+        choices = m["choices"]() if callable(m["choices"]) else m["choices"]
+        kind = m["kind"] or type(f.default)
+        out.append(SettingSpec(f.name, f.default, kind, m["help"], m["unit"], m["minimum"], m["maximum"],
+                               None if choices is None else tuple(choices), m["ros_name"] or f.name,
+                               m["ros_scale"], m["ros_unit"], m["ros_none"], m["ros"]))
+    return tuple(out)
+
+
+def validate(obj) -> None:
+    """Check every field of a settings instance (:meth:`SettingSpec.check`)."""
+    for s in specs(obj):
+        s.check(getattr(obj, s.name))
+
+
+def to_dict(obj) -> dict:
+    """Field name -> value (tuples as lists): what report.json records."""
+    return {s.name: (list(v) if isinstance(v := getattr(obj, s.name), tuple) else v) for s in specs(obj)}
+
+
+def ros_defaults(cls) -> dict:
+    """ROS parameter name -> ROS default value of every field shown on ROS."""
+    return {s.ros_name: s.to_ros(s.default) for s in specs(cls) if s.ros}
+
+
+def from_ros_values(cls, values: dict, **fixed):
+    """A validated instance of ``cls`` from ROS parameter values (name -> value; missing ones take
+    their defaults); ``fixed`` sets fields directly, in core units."""
+    kwargs = dict(fixed)
+    for s in specs(cls):
+        if s.ros and s.ros_name in values and s.name not in kwargs:
+            kwargs[s.name] = s.from_ros(values[s.ros_name])
+    return cls(**kwargs)
+
+
+def with_changes(obj, **changes):
+    """``dataclasses.replace`` that also validates (settings classes validate in __post_init__)."""
+    return dataclasses.replace(obj, **changes)
+
