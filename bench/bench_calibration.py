@@ -27,7 +27,6 @@ results.json and figures (report.py) into --out.
 from __future__ import annotations
 
 import argparse
-import inspect
 import json
 import os
 import platform
@@ -40,10 +39,11 @@ import numpy as np
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 from robot_ct_ros.ct import calibration  # noqa: E402
+from robot_ct_ros.ct.calibration.volume import projection_consistency  # noqa: E402
 from robot_ct_ros.ct import simulation as sim  # noqa: E402
 from robot_ct_ros.ct.geometry import VolumeGrid  # noqa: E402
 from robot_ct_ros.ct.reconstruction import fdk  # noqa: E402
-from robot_ct_ros.ct.report import markdown_table, plot_cap_slabs, summarize, write_report  # noqa: E402
+from robot_ct_ros.jobs.figures import markdown_table, plot_cap_slabs, summarize, write_report  # noqa: E402
 from robot_ct_ros.ct.trajectory import SeedSystem, fov_radius_mm, robotic_roi_scan  # noqa: E402
 
 DRIFT_METHOD = "ncc-lle-exact + drift(3)"
@@ -175,10 +175,10 @@ class CapStrip:
         return vol, self.grid
 
 
-SAMPLED_METHODS = tuple(calibration.LLE_METHODS) + (DRIFT_METHOD,)
+SAMPLED_METHODS = tuple(m.name for m in calibration.METHODS.values() if m.samples) + (DRIFT_METHOD,)
 """The methods that draw random samples (calibrate(seed=)); the baselines draw nothing."""
 SCATTER_METRICS = ("reproj_mean_px", "reproj_p95_px", "ssim")  # the table's columns that --repeats repeats
-REPEAT_SEED_STEP = calibration.ENSEMBLE_SEED_STEP  # --repeats: seeds 0, 1000, ..., calibrate_ensemble's members
+REPEAT_SEED_STEP = calibration.ENSEMBLE_SEED_STEP  # --repeats: seeds 0, 1000, ..., an ensemble's members
 
 
 def run_method(method: str, sc, iterations: int, say, seed: int = 0):
@@ -191,11 +191,12 @@ def run_method(method: str, sc, iterations: int, say, seed: int = 0):
         return (sc.true, v, (), time.perf_counter() - t0), "fdk"
     prog = (lambda m: say(f"    {m}"))
     if method == DRIFT_METHOD:
-        return calibration.calibrate(sc.li, sc.nominal, sc.grid, method="ncc-lle-exact", n_iter=iterations,
-                                     valid_mask=sc.mask, drift_order=3, prior_sigma=None, seed=seed,
-                                     progress=prog), "calibration.calibrate(drift_order=3, prior_sigma=None)"
+        settings = calibration.CalibrationSettings(method="ncc-lle-exact", iterations=iterations, drift_order=3,
+                                                   seed=seed).without_prior()
+        return calibration.calibrate(sc.li, sc.nominal, sc.grid, settings, valid_mask=sc.mask,
+                                     progress=prog), "calibration.calibrate(drift_order=3, no prior)"
     if method in calibration.METHODS:
-        return calibration.calibrate(sc.li, sc.nominal, sc.grid, method=method, n_iter=iterations,
+        return calibration.calibrate(sc.li, sc.nominal, sc.grid, method=method, iterations=iterations,
                                      valid_mask=sc.mask, seed=seed, progress=prog), "calibration.calibrate"
     raise ValueError(f"unknown method {method!r}")
 
@@ -256,7 +257,7 @@ def scatter_lines(scatter: dict) -> list:
     return lines + [""]
 
 
-_STOP_PX = inspect.signature(calibration.calibrate).parameters["stop_update_px"].default
+_STOP_PX = calibration.CalibrationSettings().stop_update_px
 
 
 def main(argv=None) -> int:
@@ -314,7 +315,7 @@ def main(argv=None) -> int:
         cap = getattr(sc.phantom, "cap", None)
         truth = (sc.true, truth_vol, SimpleNamespace(cap=cap) if cap is not None else None)
         strip = CapStrip(sc, PHOTONS_PER_MM2, args.seed, say) if cap is not None else None
-        initial = calibration.projection_consistency(results["none"][1], sc.grid, sc.nominal, sc.li, sc.mask)[0] \
+        initial = projection_consistency(results["none"][1], sc.grid, sc.nominal, sc.li, sc.mask)[0] \
             if "none" in results else None
         title = f"({key}) {SCENARIOS[key]}"
         paths = write_report(out, results, sc.grid, truth, sc.nominal, name=f"scenario_{key}", title=title,
@@ -351,7 +352,7 @@ def main(argv=None) -> int:
              f"detector {args.det[0]}x{args.det[1]} at {args.binning * 55} um, photon-counting noise; ROI grid "
              f"{args.vol} voxels across; at most {args.iterations} outer iteration(s) per method (fewer where one "
              f"moved the views less than {_STOP_PX} px); seed {args.seed}. "
-             f"GDC methods: Gauss-Newton variant, see baselines.py. Reprojection error: ROI "
+             f"GDC methods: Gauss-Newton variant, see ct/calibration/gdc.py. Reprojection error: ROI "
              f"points, best global rigid motion (gauge) removed, pixels. SSIM against the FDK reconstruction with "
              f"the true geometry, each estimate moved into the true gauge first. Total {total / 60:.1f} min on {os.cpu_count()} CPU(s) "
              f"(load at end {os.getloadavg()[0]:.2f}).", ""]

@@ -41,6 +41,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 from bench_calibration import _det, make_scenario  # noqa: E402
 from robot_ct_ros.ct import calibration  # noqa: E402
+from robot_ct_ros.ct.calibration.volume import truncation_level  # noqa: E402
 from robot_ct_ros.ct.metrics import gauge_aligned_reprojection_error, roi_points  # noqa: E402
 from robot_ct_ros.ct.trajectory import SeedSystem, fov_radius_mm  # noqa: E402
 
@@ -60,7 +61,7 @@ def run(method: str, sc, iterations: int, schedule: str, say) -> dict:
                       "projection_ncc": rec.projection_ncc, "eval_s": time.perf_counter() - t_eval})
         say(f"  {method} iteration {rec.iteration}: {t:6.1f} s, error {e['mean_px']:.3f} px (p95 {e['p95_px']:.3f})")
 
-    res = calibration.calibrate(sc.li, sc.nominal, sc.grid, method=method, n_iter=iterations, valid_mask=sc.mask,
+    res = calibration.calibrate(sc.li, sc.nominal, sc.grid, method=method, iterations=iterations, valid_mask=sc.mask,
                                 schedule=schedule, on_iteration=on_iteration, stop_update_px=0.0,
                                 progress=lambda m: say(f"    {m}"))
     total = res.wall_s - sum(x["eval_s"] for x in trace)
@@ -103,7 +104,7 @@ def main(argv=None) -> int:
     fov = 2 * fov_radius_mm(0.5 * args.det[1] * args.binning * system.raw_pixel_mm, system.sod_mm, system.sdd_mm)
     sc = make_scenario("a", args.views, args.det, args.vol, args.binning, args.seed, say, sim_oversample=1,
                        phantom_scale=fov / fov_a, n_axial=args.vol if args.axial is None else args.axial)
-    say(f"  mouse scaled {fov / fov_a:.3f}x; truncation level {calibration.truncation_level(sc.li, sc.mask):.4f}")
+    say(f"  mouse scaled {fov / fov_a:.3f}x; truncation level {truncation_level(sc.li, sc.mask):.4f}")
     e0 = gauge_aligned_reprojection_error(sc.nominal, sc.true, roi_points(sc.grid))
     say(f"  grid {sc.grid.shape_zyx[::-1]} (x, y, z); nominal geometry error {e0['mean_px']:.3f} px "
         f"(p95 {e0['p95_px']:.3f})")

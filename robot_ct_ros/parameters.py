@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from typing import Any
 
 __all__ = ["setting", "SettingSpec", "specs", "validate", "to_dict", "ros_defaults", "from_ros_values",
-           "with_changes"]
+           "with_changes", "yaml_lines"]
 
 
 def setting(default, help: str, *, unit: str = "", minimum=None, maximum=None, choices=None,
@@ -144,3 +144,22 @@ def with_changes(obj, **changes):
     """``dataclasses.replace`` that also validates (settings classes validate in __post_init__)."""
     return dataclasses.replace(obj, **changes)
 
+
+def yaml_lines(cls, indent: int = 4, exclude=()) -> list[str]:
+    """The ROS parameters of ``cls`` with their defaults as YAML lines (``name: value  # help [unit]``),
+    for a node's config/*.yaml: the files list every setting, and a test checks they do."""
+    import json
+
+    rows = []
+    for s in specs(cls):
+        if not s.ros or s.name in exclude:
+            continue
+        v = s.to_ros(s.default)
+        text = ("true" if v else "false") if isinstance(v, bool) else json.dumps(v) if isinstance(v, str) else (
+            repr(round(v, 9)) if isinstance(v, float) else str(v))
+        unit = f" [{s.ros_unit}]" if s.ros_unit else ""
+        off = f"; {json.dumps(s.ros_none) if isinstance(s.ros_none, str) else s.ros_none} = off" if s.ros_none is not None \
+            else ""
+        rows.append((f"{' ' * indent}{s.ros_name}: {text}", f"# {s.help}{unit}{off}"))
+    width = max(len(a) for a, _ in rows) + 1
+    return [f"{a:<{width}} {b}" for a, b in rows]

@@ -1,4 +1,4 @@
-"""The whole graph on simulated hardware (robot_ct_ros.graph): scan -> record -> online correction.
+"""The whole graph on simulated hardware (robot_ct_ros.testing.graph): scan -> record -> online correction.
 
 A small interior scan (24 views, 64 x 128 detector, an object inside the field of view, robot
 errors of 0.1 mm / 0.05 deg per move and axis) runs through every node on one executor; the
@@ -15,9 +15,10 @@ import json
 import numpy as np
 
 from robot_ct_ros.bag import read_scan
-from robot_ct_ros.cli import calibrate_bag
+from robot_ct_ros.ct.calibration import CalibrationSettings
+from robot_ct_ros.jobs.calibrate import calibrate_bag
 from robot_ct_ros.ct.metrics import reprojection_error, roi_points
-from robot_ct_ros.graph import run_scan_graph
+from robot_ct_ros.testing.graph import run_scan_graph
 
 N = 24
 PROTOCOL = {"name": "e2e", "n_views": N, "roi_center_m": [0.4, 0.0, 0.3], "fov_diameter_m": 0.005,
@@ -63,7 +64,8 @@ def test_scan_record_correct_and_replay_offline(tmp_path):
     assert 0 < truth["ssim_nominal"] <= 1 and 0 < truth["ssim_corrected"] <= 1  # 24 views: too few to rank by SSIM
 
     # offline, from the recorded bag: the same corrected geometry
-    report = calibrate_bag(r.bag, tmp_path / "offline", method=METHOD, iterations=ITERATIONS, say=lambda s: None)
+    report = calibrate_bag(r.bag, tmp_path / "offline", CalibrationSettings(method=METHOD, iterations=ITERATIONS),
+                           say=lambda s: None).report
     offline = read_scan(report["corrected_bag"]).geom_corrected
     np.testing.assert_allclose(offline.source_mm, online.geom_corrected.source_mm, rtol=0, atol=1e-9)
     np.testing.assert_allclose(offline.detector_mm, online.geom_corrected.detector_mm, rtol=0, atol=1e-9)

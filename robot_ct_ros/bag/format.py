@@ -347,3 +347,10 @@ def geometry_from_views(views, n_rows: int, n_cols: int, row_pitch_mm: float, co
     s, d, u, v = (np.array([view[k] for view in views], float) for k in range(4))
     return ConeGeometry(source_mm=s, detector_mm=d, u=u, v=v, n_rows=n_rows, n_cols=n_cols,
                         row_pitch_mm=row_pitch_mm, col_pitch_mm=col_pitch_mm)
+
+
+def as_transmitted(geom: ConeGeometry) -> ConeGeometry:
+    """``geom`` as a reader gets it back from /ct/geometry_* messages (metres and quaternions
+    round-tripped): what a published or recorded correction is, to the last bit."""
+    views = [view_from_pose_array(m) for m in geometry_pose_arrays(geom, range(geom.n_views))]
+    return geometry_from_views(views, geom.n_rows, geom.n_cols, geom.row_pitch_mm, geom.col_pitch_mm)

@@ -284,7 +284,8 @@ class ScanData:
     integrals without flat). ``pixel_mask`` (rows, cols) bool: not dead and flat > 0.
     ``valid_mask`` (n, rows, cols) bool: ``pixel_mask`` and a finite, non-negative value in
     that frame. ``geom_corrected`` / ``geom_true`` when the bag holds them for every frame.
-    ``warnings``: everything that was dropped or repaired, one line each.
+    ``warnings``: everything that was dropped or repaired, one line each. ``raw``: every message
+    of the bag as read (``read_scan(keep_raw=True)``), so that a corrected copy needs no second read.
     """
 
     path: Path
@@ -299,6 +300,7 @@ class ScanData:
     geom_corrected: ConeGeometry | None = None
     geom_true: ConeGeometry | None = None
     recovered: bool = False
+    raw: RawBag | None = None
 
     @property
     def n_views(self) -> int:
@@ -430,8 +432,8 @@ def _single_image(raw: RawBag, topic: str, shape, encodings, warnings: list):
     return arr
 
 
-def read_scan(path) -> ScanData:
-    """Read the scan bag at ``path`` (see the module docstring and README.md ("Bag format")).
+def read_scan(path, *, keep_raw: bool = False) -> ScanData:
+    """Read the scan bag at ``path`` (see the module docstring and docs/bag-format.md).
 
     Raises :class:`ScanBagError` with the reason when the bag cannot give a scan: nothing
     readable, no /ct/scan_info, no frame paired with a geometry, no flat field for counts.
@@ -550,7 +552,7 @@ def read_scan(path) -> ScanData:
     return ScanData(path=Path(path), counts=counts, stamps_ns=np.asarray(paired, np.int64), geom=geom, flat=flat,
                     pixel_mask=pixel_mask, valid_mask=valid, info=info, warnings=warnings,
                     geom_corrected=extra(fmt.TOPIC_GEOMETRY_CORRECTED), geom_true=extra(fmt.TOPIC_GEOMETRY_TRUE),
-                    recovered=raw.recovered)
+                    recovered=raw.recovered, raw=raw if keep_raw else None)
 
 
 def summarize(path) -> dict:

@@ -218,13 +218,14 @@ def write_scan(path, frames, geom: ConeGeometry, *, info: dict | None = None, st
 def write_corrected_bag(src, dst, geom_corrected: ConeGeometry, stamps_ns, *, notes: str | None = None) -> Path:
     """Copy every message of the bag ``src`` to a new bag ``dst`` with /ct/geometry_corrected added.
 
+    ``src`` is a bag path or the :class:`~robot_ct_ros.bag.reader.RawBag` already read from it.
     ``stamps_ns`` are the stamps of the views of ``geom_corrected`` (the paired frames' stamps);
     corrected geometries already in ``src`` are replaced. Works on damaged bags (copies what
     :func:`robot_ct_ros.bag.reader.read_raw_messages` recovers).
     """
-    from .reader import read_raw_messages
+    from .reader import RawBag, read_raw_messages
 
-    raw = read_raw_messages(src)
+    raw = src if isinstance(src, RawBag) else read_raw_messages(src)
     stamps = np.asarray(stamps_ns, np.int64)
     w = ScanBagWriter(dst, None, flush_every_frame=False)
     with w:

@@ -89,45 +89,14 @@ class ServiceThread:
             pass
 
 
-def declare_prior_sigma(node):
-    """Declare ``prior_sigma_translation_m`` and ``prior_sigma_rotation_rad`` (SI, REP 103: the
-    robots' per-view coordination error, the prior of the calibration's MAP estimate; 0 = the
-    data alone) and return them as :func:`calibration.calibrate`'s ``prior_sigma`` (mm, rad)."""
-    import numpy as np
-
-    from robot_ct_ros.ct.calibration import DEFAULT_PRIOR_SIGMA, prior_sigma_from
-
-    t_m = float(node.declare_parameter("prior_sigma_translation_m", DEFAULT_PRIOR_SIGMA[0] * 1e-3).value)
-    r_rad = float(node.declare_parameter("prior_sigma_rotation_rad", DEFAULT_PRIOR_SIGMA[6]).value)
-    return prior_sigma_from(t_m * 1e3, float(np.rad2deg(r_rad)))
-
-
-def declare_sampling(node) -> tuple[int, int]:
-    """Declare ``seed`` (the LLE methods' sampling seed, default 0) and ``ensemble`` (average that
-    many runs with different seeds, :func:`calibration.calibrate_ensemble`; default 1) and return
-    them as :func:`cli.calibrate_bag`'s ``seed`` and ``ensemble``."""
-    seed = int(node.declare_parameter("seed", 0).value)
-    ensemble = int(node.declare_parameter("ensemble", 1).value)
-    if ensemble < 1:
-        raise ValueError(f"ensemble must be >= 1, got {ensemble}")
-    return seed, ensemble
-
-
-def declare_drift_order(node):
-    """Declare ``drift_order`` (integer; -1, the default, = off: independent per-view errors; a
-    degree >= 0: the geometry drifts slowly, :func:`calibration.fit_drift`) and return it as
-    :func:`calibration.calibrate`'s ``drift_order`` (None when off)."""
-    order = int(node.declare_parameter("drift_order", -1).value)
-    return order if order >= 0 else None
-
-
-def declare_settings(node, cls, *, prefix: str = "", **defaults):
+def declare_settings(node, cls, *, prefix: str = "", exclude=(), **defaults):
     """Declare one ROS parameter per field of the settings class ``cls`` (robot_ct_ros.parameters)
     and return the validated instance built from their values.
 
     Each parameter is ``prefix + ros_name``, typed by its default, with a ParameterDescriptor that
     carries the field's help and unit and, for numbers, its range (rclpy then refuses a value
-    outside it when set at run time). ``defaults`` override field defaults (core units). A value of
+    outside it when set at run time). ``exclude``: fields the node declares its own way (they keep
+    their defaults here). ``defaults`` override field defaults (core units). A value of
     the wrong type or out of range raises ValueError naming the parameter (never a traceback from
     rclpy's internals)."""
     import math
@@ -139,7 +108,7 @@ def declare_settings(node, cls, *, prefix: str = "", **defaults):
 
     values = {}
     for s in specs(cls):
-        if not s.ros:
+        if not s.ros or s.name in exclude:
             continue
         name = prefix + s.ros_name
         unit = f" [{s.ros_unit}]" if s.ros_unit else ""

@@ -8,13 +8,10 @@ Publishes (the bag's own messages, byte for byte, original header stamps)
 Parameters
   bag_path (bag directory or .mcap, damaged bags are recovered), rate_hz (frames per second;
   <= 0: do not republish), wait_for_subscribers (start republishing once /ct/projection has this
-  many subscribers), method ("" = no offline job; "fdk" = reconstruct only; else a calibration
-  method, e.g. ncc-lle-exact), iterations (at most), stop_update_px, schedule (accurate or fast), drift_order
-  (-1 = off; a degree for a slowly drifting geometry), prior_sigma_translation_m and
-  prior_sigma_rotation_rad (the robots' per-view error, the calibration prior; 0 = none), seed
-  (the LLE methods' sampling seed), ensemble (average that many runs with different seeds),
-  output_dir
-  (corrected bag, volume .npy/.tif and report.json, as ``robot-ct calibrate``).
+  many subscribers), method ("" = no offline job; "none" = reconstruct only; else a calibration
+  method, robot_ct_ros.ct.calibration.registry), the other calibration settings
+  (robot_ct_ros.ct.calibration.CalibrationSettings: iterations, prior_sigma_translation_m, ...),
+  output_dir (corrected bag, volume .npy/.tif and report.json, as ``robot-ct calibrate``).
 """
 
 from __future__ import annotations
@@ -29,7 +26,8 @@ from std_msgs.msg import String
 
 from robot_ct_ros.bag import format as fmt
 from robot_ct_ros.bag.reader import read_raw_messages
-from robot_ct_ros.nodes.common import declare_drift_order, declare_prior_sigma, declare_sampling, run_node
+from robot_ct_ros.ct.calibration import CalibrationSettings
+from robot_ct_ros.nodes.common import declare_settings, run_node
 from robot_ct_ros.nodes.recorder import LATCHED, message_class
 
 STREAM = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
@@ -60,13 +58,10 @@ class ReplayNode(Node):
         self.bag_path = self.declare_parameter("bag_path", "").value
         self.rate_hz = float(self.declare_parameter("rate_hz", 10.0).value)
         self.wait_for_subscribers = int(self.declare_parameter("wait_for_subscribers", 0).value)
-        self.method = self.declare_parameter("method", "").value
-        self.iterations = int(self.declare_parameter("iterations", 2).value)
-        self.stop_update_px = float(self.declare_parameter("stop_update_px", 0.05).value)
-        self.schedule = self.declare_parameter("schedule", "accurate").value
-        self.prior_sigma = declare_prior_sigma(self)
-        self.drift_order = declare_drift_order(self)
-        self.seed, self.ensemble = declare_sampling(self)
+        self.method = self.declare_parameter("method", "").value  # "": no offline job
+        self.settings = declare_settings(self, CalibrationSettings, exclude=("method",))
+        if self.method:
+            self.settings = self.settings.replace(method=self.method)
         self.output_dir = Path(self.declare_parameter("output_dir", "replay_out").value)
         if not self.bag_path:
             raise ValueError("parameter bag_path is required")
@@ -129,21 +124,19 @@ class ReplayNode(Node):
         self._job.start()
 
     def _run_job(self) -> None:
-        from robot_ct_ros.cli import calibrate_bag
+        from robot_ct_ros.jobs.calibrate import calibrate_bag
+        from robot_ct_ros.jobs.output import clean_json, json_default
 
         log = self.get_logger()
         try:
-            report = calibrate_bag(self.bag_path, self.output_dir, method=self.method, iterations=self.iterations,
-                                   schedule=self.schedule, prior_sigma=self.prior_sigma,
-                                   stop_update_px=self.stop_update_px, drift_order=self.drift_order,
-                                   seed=self.seed, ensemble=self.ensemble, say=lambda s: log.info(s))
+            report = calibrate_bag(self.bag_path, self.output_dir, self.settings, say=lambda s: log.info(s)).report
         except Exception as exc:  # noqa: BLE001 - reported, the node keeps running
             self.error = f"{type(exc).__name__}: {exc}"
             log.error(f"offline calibration failed: {self.error}")
             self._report_pub.publish(String(data=json.dumps({"error": self.error})))
             return
         self.report = report
-        self._report_pub.publish(String(data=json.dumps(report, default=str)))
+        self._report_pub.publish(String(data=json.dumps(clean_json(report), default=json_default)))
         log.info(f"offline calibration done: {self.output_dir}/report.json")
 
     @property

@@ -72,7 +72,8 @@ def test_bag_written_with_rosbags_alone_is_read_and_calibrated(tmp_path, check_b
 
     # the project reads it...
     from robot_ct_ros.bag import read_scan
-    from robot_ct_ros.cli import calibrate_bag
+    from robot_ct_ros.ct.calibration import CalibrationSettings
+    from robot_ct_ros.jobs.calibrate import calibrate_bag
     from robot_ct_ros.ct.reconstruction import fdk
 
     data = read_scan(bag)
@@ -90,8 +91,8 @@ def test_bag_written_with_rosbags_alone_is_read_and_calibrated(tmp_path, check_b
     assert abs(vol[:, :3, :3].mean()) < 0.1
 
     # ... and calibrates it (FDK only until robot_ct_ros.ct.calibration.calibrate runs)
-    report = calibrate_bag(bag, tmp_path / "out", iterations=1, shape=(32, 32, 16), voxel_mm=0.04,
-                           say=lambda s: None)
+    report = calibrate_bag(bag, tmp_path / "out", CalibrationSettings(iterations=1), shape_xyz=(32, 32, 16),
+                           voxel_mm=0.04, say=lambda s: None).report
     assert (tmp_path / "out" / "volume.npy").exists() and (tmp_path / "out" / "report.json").exists()
     corrected = read_scan(report["corrected_bag"])
     assert corrected.geom_corrected is not None and corrected.n_views == 24

@@ -272,8 +272,8 @@ def test_beam_drop_mid_exposure_rejects_that_frame(ros, tmp_path):
 
     # recon_service collected the two frames only
     assert ros.spin_until(lambda: recon.n_paired == 2)
-    assert bad not in recon._per_frame[fmt.TOPIC_PROJECTION]
-    snapshot, n = recon._snapshot(tmp_path / "snapshot")
+    assert bad not in recon.scan.per_frame[fmt.TOPIC_PROJECTION]
+    snapshot, n = recon.scan.write_bag(tmp_path / "snapshot")
     assert n == 2 and read_scan(snapshot).stamps_ns.tolist() == kept
 
     # the recorded bag keeps the rejected frame on its own topic; the reader never uses it

@@ -15,7 +15,7 @@ from std_srvs.srv import Trigger
 
 from robot_ct_ros.bag import format as fmt
 from robot_ct_ros.bag import read_scan
-from robot_ct_ros.cli import simulate_bag
+from robot_ct_ros.jobs.simulate import simulate_bag
 from robot_ct_ros.nodes.recon_service import LATCHED, SLICES, STATUS, STREAM, ReconServiceNode, mid_slices
 from robot_ct_ros.nodes.replay import ReplayNode
 
@@ -99,7 +99,7 @@ def test_run_service_on_a_bag_path_and_refusals(ros, tmp_path):
 
     out = tmp_path / "fdk"
     recon = ros.add(ReconServiceNode(context=ros.context, parameter_overrides=_params(
-        output_dir=str(out), method="fdk", bag_path=str(bag), auto_run=False, evaluate_truth=False)))
+        output_dir=str(out), method="none", bag_path=str(bag), auto_run=False, evaluate_truth=False)))
     answer = ros.call(client, Trigger.Request())
     assert answer.success, answer.message
     busy = ros.call(client, Trigger.Request())
@@ -107,18 +107,18 @@ def test_run_service_on_a_bag_path_and_refusals(ros, tmp_path):
     assert ros.spin_until(lambda: recon.done and len(probe.corrected) == N and len(probe.slices) == 3, timeout_s=60.0)
     assert recon.state == "done", recon.error
     scan = read_scan(bag)
-    for i, s in enumerate(scan.stamps_ns):  # fdk: the corrected geometry is the nominal one
+    for i, s in enumerate(scan.stamps_ns):  # none: the corrected geometry is the nominal one
         src, det, u, v = fmt.view_from_pose_array(probe.corrected[int(s)])
         np.testing.assert_allclose(src, scan.geom.source_mm[i], atol=1e-6)
         np.testing.assert_allclose(u, scan.geom.u[i], atol=1e-9)
-    assert probe.reports[-1]["method_used"] == "fdk" and probe.reports[-1].get("truth") is None
+    assert probe.reports[-1]["method_used"] == "none" and probe.reports[-1].get("truth") is None
 
 
 def test_every_n_views_corrects_during_the_scan(tmp_path):
     """The whole graph (graph.run_scan_graph) on a 16-view scan with every_n_views 8: partial corrections
     of the first 8 (and 16) frames run while the scan goes on, the scan still completes with every frame
     recorded, and the final correction covers the whole scan."""
-    from robot_ct_ros.graph import run_scan_graph
+    from robot_ct_ros.testing.graph import run_scan_graph
 
     n, every = 16, 8
     protocol = {"name": "online", "n_views": n, "roi_center_m": [0.4, 0.0, 0.3], "fov_diameter_m": 0.005,
@@ -166,14 +166,16 @@ def test_prior_parameters_are_si_and_zero_turns_the_prior_off(ros, tmp_path):
 def test_drift_order_parameter_is_off_by_default_and_passes_a_degree(ros, tmp_path):
     default = ros.add(ReconServiceNode("recon_nodrift", context=ros.context, parameter_overrides=_params(
         output_dir=str(tmp_path / "a"), auto_run=False)))
-    assert default.drift_order is None and default.seed == 0 and default.ensemble == 1
+    s = default.settings
+    assert s.drift_order is None and s.seed == 0 and s.ensemble == 1
     drift = ros.add(ReconServiceNode("recon_drift", context=ros.context, parameter_overrides=_params(
         output_dir=str(tmp_path / "b"), auto_run=False, drift_order=3, seed=5, ensemble=3)))
-    assert drift.drift_order == 3 and drift.seed == 5 and drift.ensemble == 3
+    s = drift.settings
+    assert s.drift_order == 3 and s.seed == 5 and s.ensemble == 3
 
 
 def test_markdown_report_says_how_far_an_ensembles_members_spread():
-    from robot_ct_ros.nodes.recon_service import markdown_report
+    from robot_ct_ros.jobs.calibrate import markdown_report
 
     base = {"bag": "b", "n_views": 4, "iterations": 2, "grid": {"shape_zyx": [2, 2, 2], "voxel_size_mm": [0.1] * 3}}
     assert "ensemble" not in markdown_report(base)

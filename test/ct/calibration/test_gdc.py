@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from robot_ct_ros.ct.baselines import GDCConfig, default_gdc_configs, estimate_views_gdc
+from robot_ct_ros.ct.calibration.gdc import GDCConfig, default_gdc_configs, estimate_views_gdc
 from robot_ct_ros.ct.calibration import calibrate
 from robot_ct_ros.ct.geometry import VolumeGrid
 from robot_ct_ros.ct.metrics import reprojection_error, roi_points
@@ -90,7 +90,7 @@ def test_signature_and_validation(problem):
 
 def test_calibrate_gdc_alternating_loop_improves_geometry(problem):
     nominal, true, grid, meas, rec, pts = problem
-    res = calibrate(meas, nominal, grid, method="gdc-log", n_iter=1,
+    res = calibrate(meas, nominal, grid, method="gdc-log", iterations=1,
                         configs=(GDCConfig(log_sigma_px=1.0, iterations=3, fd_step=(0.1,) * 6 + (0.004,) * 3),
                                  GDCConfig(log_sigma_px=1.5, iterations=2)))
     assert res.method == "gdc-log" and len(res.history) == 1 and res.volume.shape == grid.shape_zyx

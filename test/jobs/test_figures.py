@@ -8,7 +8,7 @@ import pytest
 from robot_ct_ros.ct.calibration import CalibrationResult, IterationRecord
 from robot_ct_ros.ct.geometry import VolumeGrid
 from robot_ct_ros.ct.metrics import cap_thickness_mm, edge_sharpness, reprojection_error, roi_points, ssim
-from robot_ct_ros.ct.report import markdown_table, write_report
+from robot_ct_ros.jobs.figures import markdown_table, write_report
 from robot_ct_ros.ct.simulation import carotid_plaque_phantom, robot_coordination, voxelize
 from robot_ct_ros.ct.trajectory import circular_scan
 
@@ -85,7 +85,7 @@ def test_ssim_is_taken_in_the_true_gauge_when_a_reconstruction_is_given(inputs):
     """An estimate that differs from the truth by the gauge alone (a rigid motion) reconstructs
     the true image once moved back: SSIM 1 with ``reconstruct``, not without."""
     from robot_ct_ros.ct.metrics import rigidly_moved
-    from robot_ct_ros.ct.report import summarize
+    from robot_ct_ros.jobs.figures import summarize
 
     phantom, grid, truth_vol, nominal, true, _ = inputs
     pts = roi_points(grid)
@@ -106,7 +106,7 @@ def test_ssim_is_taken_in_the_true_gauge_when_a_reconstruction_is_given(inputs):
 def test_the_true_geometry_row_is_not_reconstructed_again(inputs):
     """The true geometry needs no move into the true gauge: its row keeps its volume, and
     ``reconstruct`` runs only for the rows that differ from it."""
-    from robot_ct_ros.ct.report import summarize
+    from robot_ct_ros.jobs.figures import summarize
 
     phantom, grid, truth_vol, nominal, true, _ = inputs
     calls = []
@@ -125,7 +125,7 @@ def test_the_cap_is_measured_in_the_true_gauge_and_in_reconstruct_cap_when_given
     """The cap row uses the gauge-aligned reconstruction, and ``reconstruct_cap`` (a fine
     grid of its own) gets the gauge-aligned geometry: a rigidly moved truth measures as the truth."""
     from robot_ct_ros.ct.metrics import rigidly_moved
-    from robot_ct_ros.ct.report import summarize
+    from robot_ct_ros.jobs.figures import summarize
 
     phantom, grid, truth_vol, nominal, true, _ = inputs
     pts = roi_points(grid)
@@ -155,7 +155,7 @@ def test_the_cap_is_measured_in_the_true_gauge_and_in_reconstruct_cap_when_given
 
 
 def test_cap_slab_figure(tmp_path, inputs):
-    from robot_ct_ros.ct.report import plot_cap_slabs
+    from robot_ct_ros.jobs.figures import plot_cap_slabs
 
     phantom, grid, truth_vol, *_ = inputs
     path = plot_cap_slabs(tmp_path / "cap.png", {"a": truth_vol, "b": truth_vol[::-1]}, grid, phantom.cap,

@@ -1,7 +1,7 @@
 """The main job on simulated hardware, end to end: scan -> record -> correct -> report.
 
-``robot-ct demo --out out/demo`` (``make demo``) starts the whole node graph in one process
-(robot_ct_ros.graph): simulated arms with per-move coordination errors carry the source and the
+``robot-ct demo --out out/demo`` (``make demo``; robot_ct_ros.cli holds its options) starts the whole node graph in one process
+(robot_ct_ros.testing.graph): simulated arms with per-move coordination errors carry the source and the
 photon-counting detector around a mouse phantom, the scan_orchestrator takes the scan, the
 recorder writes the scan bag, and the recon_service corrects the per-view geometry online
 (NCC-LLE) as soon as the scan is done, reconstructs, and reports. Since the simulation knows
@@ -17,11 +17,9 @@ is the simulated arms' accuracy, as a user sets it to their robots'. ``--quick``
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import shutil
-import sys
 import time
 from pathlib import Path
 
@@ -31,31 +29,15 @@ MOUSE_SPINE_Y_M = 0.0066  # the vertebral bodies lie 6.6 mm dorsal (-y) of the m
 QUICK = {"views": 12, "rows": 32, "cols": 64, "iterations": 1, "exposure_s": 0.02}
 
 
-def add_demo_arguments(p: argparse.ArgumentParser) -> None:
-    """The ``robot-ct demo`` options (cli.py's demo sub-command)."""
-    p.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
-    p.add_argument("--quick", action="store_true", help="a tiny run: 12 views, 32 x 64 detector, 1 iteration")
-    p.add_argument("--views", type=int, default=None, help=f"number of views (default {DEFAULTS['views']})")
-    p.add_argument("--rows", type=int, default=None, help=f"detector rows, binned (default {DEFAULTS['rows']})")
-    p.add_argument("--cols", type=int, default=None, help=f"detector columns, binned (default {DEFAULTS['cols']})")
-    p.add_argument("--phantom", choices=("mouse", "carotid", "battery"), default=None,
-                   help=f"simulated object (default {DEFAULTS['phantom']})")
-    p.add_argument("--method", default=None, help=f"calibration method (default {DEFAULTS['method']}; fdk: none)")
-    p.add_argument("--iterations", type=int, default=None, help="outer calibration iterations (default 2)")
-    p.add_argument("--truncated", action="store_true",
-                   help="interior scan of the whole phantom (truncated projections) instead of an object inside "
-                        "the field of view")
-
-
-def _settings(args) -> dict:
+def demo_settings(*, quick: bool = False, **given) -> dict:
+    """The demo's settings: :data:`DEFAULTS`, then :data:`QUICK` with ``quick``, then the values
+    given (None: keep)."""
     s = dict(DEFAULTS)
-    if getattr(args, "quick", False):
+    if quick:
         s.update(QUICK)
-    for k in ("views", "rows", "cols", "phantom", "method", "iterations"):
-        v = getattr(args, k, None)
-        if v is not None:
-            s[k] = v
-    s["truncated"] = bool(getattr(args, "truncated", False))
+    s.update({k: v for k, v in given.items() if v is not None and k in DEFAULTS})
+    s["truncated"] = bool(given.get("truncated", False))
+    s["quick"] = bool(quick)
     return s
 
 
@@ -93,13 +75,14 @@ def recon_parameters(s: dict) -> dict:
             "prior_sigma_rotation_rad": math.radians(s["sigma_deg"])}
 
 
-def run_demo(args) -> int:
-    from robot_ct_ros.graph import GraphError, run_scan_graph
+def run_demo(out="out/demo", *, quick: bool = False, **given) -> int:
+    """Run the demo into ``out`` (``given``: views, rows, cols, phantom, method, iterations,
+    truncated; None keeps the default); 0 on success, 1 when the graph failed (it says why)."""
+    from robot_ct_ros.testing.graph import GraphError, run_scan_graph
 
     t0 = time.monotonic()
-    s = _settings(args)
-    s["quick"] = bool(getattr(args, "quick", False))
-    out = Path(args.out)
+    s = demo_settings(quick=quick, **given)
+    out = Path(out)
     for sub in ("bags", "recon"):  # this demo's own outputs of an earlier run
         if (out / sub).exists():
             shutil.rmtree(out / sub)
@@ -142,14 +125,3 @@ def run_demo(args) -> int:
     print(f"  report         {r.report_json}, {r.report_md}")
     print(f"  summary        {out / 'summary.json'}")
     return 0
-
-
-def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="robot-ct demo", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_demo_arguments(p)
-    return run_demo(p.parse_args(argv))
-
-
-if __name__ == "__main__":
-    sys.exit(main())

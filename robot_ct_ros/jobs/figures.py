@@ -18,14 +18,14 @@ Figures use matplotlib's Agg backend (no display needed).
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
 import numpy as np
 
-from .geometry import ConeGeometry, VolumeGrid
-from .metrics import cap_thickness_mm, edge_sharpness, remove_gauge, reprojection_error, roi_points, ssim
+from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
+from robot_ct_ros.jobs.output import write_json
+from robot_ct_ros.ct.metrics import cap_thickness_mm, edge_sharpness, remove_gauge, reprojection_error, roi_points, ssim
 
 COLUMNS = (
     ("method", "method", "{}"),
@@ -270,24 +270,6 @@ def plot_param_error(path, results: dict, true_geom: ConeGeometry, points_mm, *,
 
 
 # ----------------------------------------------------------------------------- report
-def _json_default(o):
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    raise TypeError(f"{type(o).__name__} is not JSON serialisable")
-
-
-def _clean(obj):
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: _clean(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_clean(v) for v in obj]
-    return obj
-
-
 def write_report(out_dir, results: dict, grid: VolumeGrid, truth=None, nominal: ConeGeometry | None = None, *,
                  name: str = "report", title: str = "", points_mm=None, slice_center_mm=None, zoom: float = 0.6,
                  initial_rmse: float | None = None, notes: dict | None = None, reconstruct=None,
@@ -322,6 +304,5 @@ def write_report(out_dir, results: dict, grid: VolumeGrid, truth=None, nominal: 
     paths["markdown"] = out / f"{name}.md"
     paths["markdown"].write_text(md)
     paths["json"] = out / f"{name}.json"
-    paths["json"].write_text(json.dumps(_clean({"name": name, "title": title, "rows": rows, "notes": notes or {}}),
-                                        indent=2, default=_json_default))
+    write_json(paths["json"], {"name": name, "title": title, "rows": rows, "notes": notes or {}})
     return paths

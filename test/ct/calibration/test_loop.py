@@ -1,195 +1,19 @@
-"""LLE embedding weights and the detector homography."""
+"""The alternating loop, the LLE estimator, the estimation volume and the loop's constraints, on small scans."""
 
 import numpy as np
 import pytest
-from scipy.optimize import minimize
 
-from robot_ct_ros.ct.calibration import WEIGHTINGS, detector_homographies, lle_weights, warp_projections
-from robot_ct_ros.ct.metrics import ncc
-from robot_ct_ros.ct.geometry import ConeGeometry
-
-
-def _random_problem(rng, n=4, K=6, P=400):
-    Y = rng.normal(size=(n, K, P)).cumsum(axis=2)  # smooth-ish, correlated "projections"
-    w_true = rng.dirichlet(np.ones(K), size=n)  # sums to 1
-    return Y, w_true
-
-
-@pytest.mark.parametrize("method", WEIGHTINGS)
-def test_weights_sum_to_one(method):
-    rng = np.random.default_rng(0)
-    Y, _ = _random_problem(rng)
-    b = Y.mean(axis=1) + rng.normal(scale=0.1, size=(Y.shape[0], Y.shape[2]))
-    w = lle_weights(b, Y, method)
-    assert w.shape == Y.shape[:2]
-    np.testing.assert_allclose(w.sum(axis=1), 1.0, atol=1e-12)
-
-
-def test_ncc_exact_equals_brute_force_maximiser():
-    rng = np.random.default_rng(1)
-    K, P = 5, 300
-    for trial in range(3):
-        # as in LLE: b lies near the neighbours, which are noisy versions of one another
-        base = rng.normal(size=P).cumsum()
-        Y = base + rng.normal(size=(K, P)) * 3.0
-        b = 0.7 * base + rng.normal(size=P) * 3.0 + 4.0
-        w = lle_weights(b[None], Y[None], "ncc-exact", reg=0.0)[0]
-        Yc = Y - Y.mean(axis=1, keepdims=True)
-        assert np.linalg.solve(Yc @ Yc.T, Yc @ (b - b.mean())).sum() > 0  # a finite maximiser exists
-
-        def neg_ncc(free):
-            ww = np.append(free, 1.0 - free.sum())
-            return -ncc(ww @ Y, b)[0]
-
-        best = None
-        for start in range(4):
-            x0 = rng.dirichlet(np.ones(K))[:-1]
-            res = minimize(neg_ncc, x0, method="BFGS", options={"gtol": 1e-12, "maxiter": 10000})
-            best = res if best is None or res.fun < best.fun else best
-        w_brute = np.append(best.x, 1.0 - best.x.sum())
-        assert ncc(w @ Y, b)[0] >= -best.fun - 1e-10
-        np.testing.assert_allclose(w, w_brute, atol=1e-4)
-
-
-def test_exact_embedding_recovered_and_ncc_ignores_gain_and_offset():
-    rng = np.random.default_rng(2)
-    Y, w_true = _random_problem(rng, n=3, K=4, P=500)
-    b = np.einsum("nk,nkp->np", w_true, Y)
-    for method in ("l2", "ncc-exact"):
-        np.testing.assert_allclose(lle_weights(b, Y, method, reg=0.0), w_true, atol=1e-8)
-    b_gain_offset = 2.5 * b + 7.0  # what truncation and calibration drifts do to a projection
-    np.testing.assert_allclose(lle_weights(b_gain_offset, Y, "ncc-exact", reg=0.0), w_true, atol=1e-8)
-    assert np.abs(lle_weights(b_gain_offset, Y, "l2", reg=0.0) - w_true).max() > 1e-2
-
-
-def test_masked_and_nan_pixels_are_ignored():
-    rng = np.random.default_rng(3)
-    Y, w_true = _random_problem(rng, n=2, K=4, P=300)
-    b = np.einsum("nk,nkp->np", w_true, Y)
-    b_bad = b.copy()
-    b_bad[:, :20] = np.nan          # dead pixels
-    b_bad[:, 20:40] = 1e6           # hot pixels, masked out
-    mask = np.ones(b.shape[1], bool)
-    mask[20:40] = False
-    for method in WEIGHTINGS:
-        w = lle_weights(b_bad, Y, method, mask=mask, reg=0.0)
-        assert np.all(np.isfinite(w))
-        if method != "ncc":  # the published closed form is not exact for correlated neighbours
-            np.testing.assert_allclose(w, w_true, atol=1e-8)
-
-
-def test_rejects_bad_shapes_and_methods():
-    with pytest.raises(ValueError):
-        lle_weights(np.zeros((2, 10)), np.zeros((2, 3, 11)))
-    with pytest.raises(ValueError):
-        lle_weights(np.zeros((1, 10)), np.zeros((1, 3, 10)), method="l1")
-
-
-def _view(source, det_center, u, v, n_rows, n_cols, pitch):
-    return ConeGeometry(source_mm=[source], detector_mm=[det_center], u=[u], v=[v], n_rows=n_rows,
-                        n_cols=n_cols, row_pitch_mm=pitch, col_pitch_mm=pitch)
-
-
-def _ray_image(geom: ConeGeometry) -> np.ndarray:
-    """A smooth 'projection' that depends only on each pixel's ray: a function of where the ray
-    crosses the plane x = 0 (the object's mid-plane). Any two detectors that see the same ray
-    must show the same value there."""
-    s = geom.source_mm[0]
-    X = geom.pixel_centers_mm(0)
-    t = -s[0] / (X[..., 0] - s[0])
-    y = s[1] + t * (X[..., 1] - s[1])
-    z = s[2] + t * (X[..., 2] - s[2])
-    return (np.sin(0.4 * y) * np.cos(0.3 * z) + 0.02 * y * z).astype(np.float32)
-
-
-def test_homography_warp_equals_direct_image_of_moved_detector():
-    source = np.array([120.0, 0.0, 0.0])
-    virtual = _view(source, [-200.0, 0.0, 0.0], [0, 1, 0], [0, 0, 1], 240, 320, 0.1)
-    # the moved detector: shifted, tilted and skewed, with another pixel grid
-    params = np.array([[0, 0, 0, 0.8, -0.5, 1.5, np.deg2rad(2.0), np.deg2rad(-1.5), np.deg2rad(3.0)]])
-    nominal = _view(source, [-200.0, 0.0, 0.0], [0, 1, 0], [0, 0, 1], 150, 200, 0.11)
-    moved = nominal.perturbed(params)
-    H = detector_homographies(virtual, moved)
-    warped, valid = warp_projections(_ray_image(virtual)[None], H, [0], moved.n_rows, moved.n_cols)
-    direct = _ray_image(moved)
-    assert valid.all()
-    err = np.abs(warped[0] - direct)
-    assert err.max() < 2e-3 * np.abs(direct).max()
-    # and an unrelated detector pose does not match: the test can fail
-    other = nominal.perturbed(params * 0.0 + np.array([0, 0, 0, 2.0, 0, 0, 0, 0, 0]))
-    assert np.abs(warped[0] - _ray_image(other)).max() > 1e-2
-
-
-def test_homography_requires_same_source_and_reports_off_detector_pixels():
-    source = np.array([120.0, 0.0, 0.0])
-    virtual = _view(source, [-200.0, 0.0, 0.0], [0, 1, 0], [0, 0, 1], 20, 20, 0.1)
-    big = _view(source, [-200.0, 0.0, 0.0], [0, 1, 0], [0, 0, 1], 40, 40, 0.1)
-    _, valid = warp_projections(np.ones((1, 20, 20), np.float32), detector_homographies(virtual, big), [0], 40, 40)
-    assert valid.any() and not valid.all()
-    with pytest.raises(ValueError):
-        detector_homographies(virtual, big.replace(source_mm=[[121.0, 0.0, 0.0]]))
-
-
-@pytest.mark.parametrize("background", [(0, 0), (2, 1)])
-def test_fused_warp_and_score_sums_equal_those_of_the_stored_warps(background):
-    """The scoring kernel (branch-free, never stores a warped image) accumulates the same sums
-    as the warped images themselves, over the mask and only where the ray hits the virtual
-    detector (some of these detectors hang over its edge)."""
-    from robot_ct_ros.ct.calibration import N_SUMS, _project_out, _warp_score_kernel, background_basis
-
-    rng = np.random.default_rng(11)
-    source = np.array([120.0, 0.0, 0.0])
-    virtual = _view(source, [-200.0, 0.0, 0.0], [0, 1, 0], [0, 0, 1], 30, 40, 0.1)
-    nominal = _view(source, [-200.0, 0.0, 0.0], [0, 1, 0], [0, 0, 1], 24, 36, 0.11)
-    n_targets, S = 2, 5
-    params = np.zeros((n_targets * S, 9))
-    params[:, 3:6] = rng.uniform(-0.6, 0.6, size=(n_targets * S, 3))
-    params[:, 6:9] = np.deg2rad(rng.uniform(-2.0, 2.0, size=(n_targets * S, 3)))
-    moved = nominal.subset(np.zeros(n_targets * S, int)).perturbed(params)
-    H = np.ascontiguousarray(detector_homographies(virtual.subset(np.zeros(n_targets * S, int)), moved))
-    images = np.stack([_ray_image(virtual), rng.random((30, 40)).astype(np.float32)])
-    image_index = rng.integers(0, 2, size=n_targets * S)
-    target_index = np.repeat(np.arange(n_targets), S)
-    measured = rng.random((n_targets, 24, 36)).astype(np.float32)
-    mask = rng.random((n_targets, 24, 36)) > 0.2
-    basis = background_basis(mask, *background)
-    residual = _project_out(measured, basis, mask)
-    sums = np.empty((n_targets * S, N_SUMS + basis.shape[1]))
-    _warp_score_kernel(images, H, image_index, target_index, measured, residual.astype(np.float32),
-                       basis.astype(np.float32), mask.astype(np.float32), sums)
-
-    warped, on = warp_projections(images, H, image_index, 24, 36)
-    assert (~on).any() and on.any()
-    use = (mask[target_index] & on).astype(np.float64)
-    p = warped.astype(np.float64) * use
-    b = measured[target_index].astype(np.float64)
-    expected = np.stack([use.sum((1, 2)), p.sum((1, 2)), (p * p).sum((1, 2)), (p * b).sum((1, 2)),
-                         (b * use).sum((1, 2)), (b * b * use).sum((1, 2)), (p * residual[target_index]).sum((1, 2))]
-                        + [(p * basis[target_index, k]).sum((1, 2)) for k in range(basis.shape[1])], axis=1)
-    np.testing.assert_allclose(sums, expected, rtol=1e-5, atol=1e-6 * np.abs(expected).max())
-
-
-def test_ncc_exact_falls_back_to_best_neighbour_when_no_finite_maximiser():
-    rng = np.random.default_rng(5)
-    for _ in range(50):  # find random data whose NCC maximiser lies on the wrong side of sum(w) = 1
-        Y = rng.normal(size=(1, 4, 100))
-        b = rng.normal(size=(1, 100))
-        Yc = Y[0] - Y[0].mean(axis=1, keepdims=True)
-        if np.linalg.solve(Yc @ Yc.T, Yc @ (b[0] - b[0].mean())).sum() < 0:
-            break
-    w = lle_weights(b, Y, "ncc-exact", reg=0.0)[0]
-    assert np.count_nonzero(w) == 1 and w.sum() == 1.0
-    assert np.argmax(w) == np.argmax(ncc(Y[0], np.repeat(b, 4, axis=0)))
-
-
-# ----------------------------------------------------------------------------- estimator
-from robot_ct_ros.ct.calibration import LLEConfig, calibrate, estimate_views  # noqa: E402
-from robot_ct_ros.ct.geometry import VolumeGrid  # noqa: E402
-from robot_ct_ros.ct.metrics import reprojection_error, roi_points  # noqa: E402
-from robot_ct_ros.ct.projector import forward_project  # noqa: E402
-from robot_ct_ros.ct.reconstruction import fdk  # noqa: E402
-from robot_ct_ros.ct.simulation import mouse_phantom, robot_coordination, voxelize  # noqa: E402
-from robot_ct_ros.ct.trajectory import circular_scan  # noqa: E402
+from robot_ct_ros.ct.calibration import calibrate
+from robot_ct_ros.ct.calibration.constraints import focus_conjugate_modes, hold_magnification, view_angles
+from robot_ct_ros.ct.calibration.kernels import detector_homographies, warp_projections
+from robot_ct_ros.ct.calibration.lle.estimator import LLEConfig, estimate_views
+from robot_ct_ros.ct.calibration.volume import reconstruct_for_estimation
+from robot_ct_ros.ct.geometry import VolumeGrid
+from robot_ct_ros.ct.metrics import fit_object_scale, ncc, reprojection_error, roi_points
+from robot_ct_ros.ct.projector import forward_project
+from robot_ct_ros.ct.reconstruction import fdk
+from robot_ct_ros.ct.simulation import mouse_phantom, robot_coordination, voxelize
+from robot_ct_ros.ct.trajectory import circular_scan
 
 
 def _small_scan(n_views=30, n_det=48, body_width_mm=9.0, length_mm=10.0, seed=1, error_model=None):
@@ -214,7 +38,7 @@ def test_fast_schedule_reduces_the_geometry_error():
     pts = roi_points(grid)
     before = reprojection_error(nominal, true, pts)["mean_px"]
     said = []
-    result = calibrate(measured, nominal, grid, method="ncc-lle", n_iter=2, schedule="fast", truncated=None,
+    result = calibrate(measured, nominal, grid, method="ncc-lle", iterations=2, schedule="fast", projections="auto",
                        progress=said.append)
     assert "not truncated, FDK" in said[0]  # the object fits in the field of view
     after = reprojection_error(result.geom, true, pts)["mean_px"]
@@ -232,7 +56,7 @@ def test_calibrate_reduces_the_geometry_error(method):
     nominal, true, grid, measured = _small_scan()
     pts = roi_points(grid)
     before = reprojection_error(nominal, true, pts)["mean_px"]
-    result = calibrate(measured, nominal, grid, method=method, n_iter=2)
+    result = calibrate(measured, nominal, grid, method=method, iterations=2)
     after = reprojection_error(result.geom, true, pts)["mean_px"]
     assert before > 1.0
     assert after < 0.6 * before, (method, before, after)
@@ -249,7 +73,7 @@ def test_coarse_warm_up_passes_converge_the_first_iteration_and_stop_when_the_vi
     errors, said = {}, {}
     for passes in (1, 3):
         said[passes] = []
-        result = calibrate(measured, nominal, grid, method="ncc-lle-exact", n_iter=1, coarse_passes=passes,
+        result = calibrate(measured, nominal, grid, method="ncc-lle-exact", iterations=1, coarse_passes=passes,
                            progress=said[passes].append)
         errors[passes] = reprojection_error(result.geom, true, pts)["mean_px"]
     assert errors[3] < 0.85 * errors[1], errors
@@ -272,7 +96,7 @@ def test_undo_inconsistent_restores_the_geometry_and_compares_with_the_one_enter
     before = {}
     for passes in (1, 3):
         said = []
-        result = calibrate(measured, true, grid, method="l2-lle", n_iter=2, configs=(poor, poor), coarse_passes=passes,
+        result = calibrate(measured, true, grid, method="l2-lle", iterations=2, configs=(poor, poor), coarse_passes=passes,
                            coarse_tol_px=0.0, undo_inconsistent=True, progress=said.append)
         undone = [line for line in said if "undone" in line]
         assert len(undone) == 1 and len(result.history) == 0
@@ -288,7 +112,7 @@ def test_loop_stops_when_an_iteration_hardly_moves_the_views():
     nominal, true, grid, measured = _small_scan()
     pts = roi_points(grid)
     seen, said = [], []
-    result = calibrate(measured, nominal, grid, method="ncc-lle-exact", n_iter=3, stop_update_px=0.0,
+    result = calibrate(measured, nominal, grid, method="ncc-lle-exact", iterations=3, stop_update_px=0.0,
                        on_iteration=lambda rec, params: seen.append(params))
     assert len(result.history) == 3
     before = [np.zeros_like(seen[0])] + seen[:-1]
@@ -298,7 +122,7 @@ def test_loop_stops_when_an_iteration_hardly_moves_the_views():
     assert result.history[0].update_px > 0.5  # the first iteration undoes most of the ~1 px error
     # a threshold above the first update: one iteration, and it says why
     first = result.history[0].update_px
-    stopped = calibrate(measured, nominal, grid, method="ncc-lle-exact", n_iter=3, stop_update_px=2 * first,
+    stopped = calibrate(measured, nominal, grid, method="ncc-lle-exact", iterations=3, stop_update_px=2 * first,
                         progress=said.append)
     assert len(stopped.history) == 1
     assert any(line.startswith("converged") for line in said)
@@ -342,7 +166,7 @@ def test_drift_model_beats_per_view_estimates_on_a_drifting_truncated_scan():
     pts = roi_points(grid)
     errors = {}
     for order in (None, 3):
-        result = calibrate(measured, nominal, grid, method="ncc-lle-exact", n_iter=2, drift_order=order)
+        result = calibrate(measured, nominal, grid, method="ncc-lle-exact", iterations=2, drift_order=order)
         errors[order] = reprojection_error(result.geom, true, pts)["mean_px"]
         if order is not None:
             np.testing.assert_allclose(fit_drift(result.params, order), result.params, atol=1e-9)
@@ -383,12 +207,6 @@ def test_homography_warp_equals_a_true_reprojection_after_a_detector_move():
     assert rel < 0.03, rel  # bilinear resampling of a 0.67 mm-pixel image
     unmoved = forward_project(volume, grid, nominal)
     assert np.linalg.norm(unmoved - direct) / np.linalg.norm(direct) > 3 * rel
-
-
-# ----------------------------------------------------------------------------- loop helpers
-from robot_ct_ros.ct.calibration import (focus_conjugate_modes, hold_magnification,  # noqa: E402
-                                         reconstruct_for_estimation, view_angles)
-from robot_ct_ros.ct.metrics import fit_object_scale  # noqa: E402
 
 
 def test_shift_search_captures_a_large_detector_shift_that_the_local_search_misses():
@@ -457,7 +275,7 @@ def test_estimation_volume_is_consistent_with_truncated_data():
     mask[:, 7] = False
     bad = measured.copy()
     bad[:, :, 7] = 1e3
-    from robot_ct_ros.ct.calibration import projection_consistency
+    from robot_ct_ros.ct.calibration.volume import projection_consistency
     ncc_fdk = reconstruct_for_estimation(bad, true, grid, mask, 0).fdk_ncc
     vol, ncc_fdk_again, _ = reconstruct_for_estimation(bad, true, grid, mask, 10)
     assert ncc_fdk_again == ncc_fdk
@@ -469,7 +287,7 @@ def test_estimation_volume_is_consistent_with_truncated_data():
 def test_coarse_sirt_correction_makes_the_fine_fdk_consistent():
     """FDK plus the 2x binned level's SIRT correction reprojects closer to truncated data than FDK
     at the coarse level's resolution (the low frequencies, where truncation leaves FDK wrong)."""
-    from robot_ct_ros.ct.calibration import bin_masked
+    from robot_ct_ros.ct.calibration.masks import bin_masked
     from robot_ct_ros.ct.geometry import bin_projections
 
     nominal, true, grid, measured = _small_scan(body_width_mm=14.0, length_mm=30.0)
@@ -506,7 +324,7 @@ def test_focus_finds_an_odd_detector_shift_mode():
 def test_truncation_level_tells_interior_scans_apart():
     """About zero when the object fits in the field of view, clearly above the threshold for
     an object wider than it; dead edge pixels are ignored."""
-    from robot_ct_ros.ct.calibration import TRUNCATED_ABOVE, truncation_level
+    from robot_ct_ros.ct.calibration.volume import TRUNCATED_ABOVE, truncation_level
 
     _, _, _, inside = _small_scan(n_views=8, body_width_mm=9.0, length_mm=30.0)
     _, _, _, wider = _small_scan(n_views=8, body_width_mm=40.0, length_mm=30.0)
@@ -518,90 +336,6 @@ def test_truncation_level_tells_interior_scans_apart():
     mask[:, 0] = False
     assert truncation_level(hot, mask) < 0.1 * TRUNCATED_ABOVE
     assert truncation_level(hot) > TRUNCATED_ABOVE
-
-
-# ----------------------------------------------------------------------------- MAP estimate (prior)
-from robot_ct_ros.ct.calibration import effective_pixel_fraction, posterior_cost  # noqa: E402
-
-
-def _constrained_minimum(objective, K, rng):
-    best = None
-    for _ in range(4):
-        x0 = rng.dirichlet(np.ones(K))[:-1]
-        res = minimize(lambda free: objective(np.append(free, 1.0 - free.sum())), x0, method="BFGS",
-                       options={"gtol": 1e-10, "maxiter": 10000})
-        best = res if best is None or res.fun < best.fun else best
-    return np.append(best.x, 1.0 - best.x.sum())
-
-
-@pytest.mark.parametrize("method", ["l2", "ncc-exact"])
-def test_map_weights_equal_the_brute_force_posterior_minimiser(method):
-    """Data term in units of the best data-only fit's residual variance, plus a Gaussian prior on
-    the embedded parameters (for ncc-exact at the unconstrained fit's gain)."""
-    rng = np.random.default_rng(7)
-    K, P, D = 5, 300, 9
-    base = rng.normal(size=P).cumsum()
-    Y = base + rng.normal(size=(K, P)) * 3.0
-    b = 0.8 * base + rng.normal(size=P) * 3.0 + (4.0 if method == "ncc-exact" else 0.0)
-    g = rng.normal(size=(K, D))
-    inv_var = rng.uniform(0.5, 2.0, size=D) * 30.0
-    w = lle_weights(b[None], Y[None], method, reg=0.0, prior=(g[None], inv_var))[0]
-    np.testing.assert_allclose(w.sum(), 1.0, atol=1e-12)
-    if method == "l2":
-        w0 = lle_weights(b[None], Y[None], "l2", reg=0.0)[0]
-        var = np.sum((b - w0 @ Y) ** 2) / P
-        gain, bt, Yt = 1.0, b, Y
-    else:
-        bt, Yt = b - b.mean(), Y - Y.mean(axis=1, keepdims=True)
-        v = np.linalg.solve(Yt @ Yt.T, Yt @ bt)
-        gain, var = v.sum(), np.sum((bt - v @ Yt) ** 2) / P
-
-    def posterior(ww):
-        return np.sum((bt - gain * (ww @ Yt)) ** 2) / var + (ww @ g) ** 2 @ inv_var
-
-    w_brute = _constrained_minimum(posterior, K, rng)
-    assert posterior(w) <= posterior(w_brute) + 1e-8
-    np.testing.assert_allclose(w, w_brute, atol=1e-4)
-    # a vanishing prior gives the data-only weights back; a strong one pulls the parameters in
-    w_data = lle_weights(b[None], Y[None], method, reg=0.0)[0]
-    np.testing.assert_allclose(lle_weights(b[None], Y[None], method, reg=0.0, prior=(g[None], inv_var * 1e-12))[0],
-                               w_data, atol=1e-8)
-    strong = lle_weights(b[None], Y[None], method, reg=0.0, prior=(g[None], inv_var * 1e6))[0]
-    M = (g * inv_var) @ g.T  # the affine combination with the smallest prior term
-    w_min = np.linalg.solve(M, np.ones(K)) / np.linalg.solve(M, np.ones(K)).sum()
-    np.testing.assert_allclose(strong, w_min, atol=1e-3)
-
-
-def test_effective_pixel_fraction_counts_white_residuals_fully_and_structured_ones_little():
-    """White residuals count fully; residuals at the edges' scale hardly; a smooth bowl (what
-    FDK of a truncated scan leaves) is mostly taken out by the high-pass before it counts."""
-    from scipy.ndimage import gaussian_filter
-
-    rng = np.random.default_rng(3)
-    n, R, C = 3, 48, 160
-    pred = rng.normal(size=(n, R, C)).cumsum(axis=2)
-    mask = np.ones((n, R, C), bool)
-    mask[:, :, 5] = False  # a chip gap
-    fit = 2.0 * pred + 1.0  # gain and offset are not residual
-    white = fit + rng.normal(size=(n, R, C))
-    edges = fit + gaussian_filter(rng.normal(size=(n, R, C)) * 5.0, (0, 1.5, 1.5)) + 0.05 * rng.normal(size=(n, R, C))
-    bowl = fit + 20.0 * np.linspace(-1, 1, C)[None, None, :] ** 2 + rng.normal(size=(n, R, C))
-    assert np.all(effective_pixel_fraction(white, pred, mask) > 0.8)
-    assert np.all(effective_pixel_fraction(edges, pred, mask) < 0.02)
-    high_passed, raw = effective_pixel_fraction(bowl, pred, mask), effective_pixel_fraction(bowl, pred, mask, highpass_px=0)
-    assert np.all(high_passed > 0.05) and np.all(high_passed > 100 * raw), (high_passed, raw)
-
-
-def test_posterior_cost_is_chi_square_plus_prior():
-    d = np.array([[0.1, 0.2, np.inf]])
-    params = np.zeros((1, 3, 2))
-    params[0, 1] = [1.0, 0.0]
-    cost = posterior_cost(d, params, np.full((1, 3), 100.0), "l2", np.array([4.0, 1.0]))
-    np.testing.assert_allclose(cost[0, :2], [100.0, 200.0 + 4.0])
-    assert cost[0, 2] == np.inf
-    rho = 1.0 - d[0, :2]
-    ncc_cost = posterior_cost(d, params, np.full((1, 3), 100.0), "ncc", np.array([4.0, 1.0]))
-    np.testing.assert_allclose(ncc_cost[0, 1], 100.0 * (1 - rho[1] ** 2) / (1 - rho[0] ** 2) + 4.0)
 
 
 def test_prior_keeps_views_whose_data_the_volume_cannot_explain_near_nominal():
@@ -634,20 +368,20 @@ def test_prior_keeps_views_whose_data_the_volume_cannot_explain_near_nominal():
 
 def test_seed_reproduces_an_lle_estimate_and_another_seed_samples_anew():
     nominal, _, grid, measured = _small_scan(n_views=12)
-    runs = {(method, seed): calibrate(measured, nominal, grid, method=method, n_iter=1, seed=seed).params
+    runs = {(method, seed): calibrate(measured, nominal, grid, method=method, iterations=1, seed=seed).params
             for method in ("ncc-lle-exact", "gdc") for seed in (0, 7)}
-    np.testing.assert_array_equal(runs["ncc-lle-exact", 0], calibrate(measured, nominal, grid, n_iter=1).params)
+    np.testing.assert_array_equal(runs["ncc-lle-exact", 0], calibrate(measured, nominal, grid, iterations=1).params)
     assert np.abs(runs["ncc-lle-exact", 7] - runs["ncc-lle-exact", 0]).max() > 1e-4
     np.testing.assert_array_equal(runs["gdc", 7], runs["gdc", 0])  # the baselines draw no samples
 
 
 def test_an_ensemble_is_the_mean_of_its_members_and_says_how_far_they_spread():
-    from robot_ct_ros.ct.calibration import ENSEMBLE_SEED_STEP, average_estimates, calibrate_ensemble
+    from robot_ct_ros.ct.calibration import ENSEMBLE_SEED_STEP, average_estimates
 
     nominal, true, grid, measured = _small_scan(n_views=12)
-    members = [calibrate(measured, nominal, grid, n_iter=1, seed=3 + k * ENSEMBLE_SEED_STEP) for k in range(2)]
+    members = [calibrate(measured, nominal, grid, iterations=1, seed=3 + k * ENSEMBLE_SEED_STEP) for k in range(2)]
     said = []
-    both = calibrate_ensemble(measured, nominal, grid, members=2, seed=3, n_iter=1, progress=said.append)
+    both = calibrate(measured, nominal, grid, ensemble=2, seed=3, iterations=1, progress=said.append)
     np.testing.assert_allclose(both.params, 0.5 * (members[0].params + members[1].params), atol=1e-12)
     assert both.members == 2
     assert [h.projection_rmse for h in both.history] == [h.projection_rmse for h in members[0].history]
@@ -657,16 +391,17 @@ def test_an_ensemble_is_the_mean_of_its_members_and_says_how_far_they_spread():
     apart = reprojection_error(members[0].geom, members[1].geom, pts)["mean_px"]
     assert 0.0 < both.spread_px and both.spread_px == pytest.approx(0.5 * apart, rel=0.05)
     assert any("ensemble of 2" in line for line in said)
-    assert calibrate_ensemble(measured, nominal, grid, members=1, seed=3, n_iter=1).spread_px != 0.0  # nan: one run
-    with pytest.raises(ValueError, match="members"):
-        calibrate_ensemble(measured, nominal, grid, members=0)
+    assert calibrate(measured, nominal, grid, ensemble=1, seed=3, iterations=1).spread_px != 0.0  # nan: one run
+    with pytest.raises(ValueError, match="ensemble"):
+        calibrate(measured, nominal, grid, ensemble=0)
     with pytest.raises(ValueError, match="no estimates"):
         average_estimates([], measured, nominal, grid)
 
 
 def test_without_prior_the_loop_reports_no_independent_fraction():
     nominal, _, grid, measured = _small_scan(n_views=12)
-    result = calibrate(measured, nominal, grid, method="ncc-lle-exact", n_iter=1, prior_sigma=None)
+    result = calibrate(measured, nominal, grid, method="ncc-lle-exact", iterations=1,
+                       prior_translation_mm=0.0, prior_rotation_deg=0.0)
     assert np.isnan(result.history[0].independent_fraction)
 
 

@@ -22,7 +22,7 @@ import yaml
 
 from robot_ct_ros.hardware.detector import warm_up_projector
 
-CONFIG_DIR = Path(__file__).resolve().parents[1] / "config"
+CONFIG_DIR = Path(__file__).resolve().parents[2] / "config"
 ROLES = ("source", "detector")
 _domains = itertools.count()
 
@@ -247,15 +247,15 @@ def run_scan_graph(out_dir, protocol="quick", *, grabber: dict | None = None, ar
 
         # 4. the online correction (auto_run on scan/status done; else started here)
         t0 = time.monotonic()
-        if not recon_node.auto_run:
+        if not recon_node.service.auto_run:
             spin_until(lambda: recon_node.n_paired >= frames and not recon_node.running,
-                       15.0 + (recon_timeout_s if recon_node.every_n_views else 0.0),
+                       15.0 + (recon_timeout_s if recon_node.service.every_n_views else 0.0),
                        "recon_service to collect every frame (and end a partial run)")
             ok, msg = recon_node.start_run()
             if not ok:
                 raise GraphError(f"recon/run refused: {msg}")
         # (every_n_views: partial runs may run before; the one on the whole scan is started once they end)
-        spin_until(lambda: recon_node.full_runs > 0, 15.0 + (recon_timeout_s if recon_node.every_n_views else 0.0),
+        spin_until(lambda: recon_node.full_runs > 0, 15.0 + (recon_timeout_s if recon_node.service.every_n_views else 0.0),
                    "the correction to start")
         # the acquisition is over: stop its nodes, so the executor (and the CPU) serves the correction
         # alone; the simulated arms alone publish hundreds of messages a second

@@ -36,9 +36,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy import ndimage
 
-from .calibration import (_as_view_mask, blas_single_threaded, detector_homographies, roi_support_mask,
-                          warp_projections)
-from .geometry import ConeGeometry, VolumeGrid
+from robot_ct_ros.ct.calibration.kernels import blas_single_threaded, detector_homographies, warp_projections
+from robot_ct_ros.ct.calibration.masks import as_view_mask, roi_support_mask
+from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
 
 GDC_METHODS = ("gdc", "gdc-log")
 
@@ -129,7 +129,7 @@ def _residual_cost(pred_f, meas_f, mask):
 
 def _jacobian_chunk(vol, grid, nom_c: ConeGeometry, g: np.ndarray, fd: np.ndarray, sigma):
     """Current filtered prediction (c, R, C) and central-difference Jacobian (c, 9, R, C)."""
-    from .projector import forward_project
+    from robot_ct_ros.ct.projector import forward_project
 
     c = nom_c.n_views
     R, C = nom_c.det_shape
@@ -180,7 +180,7 @@ def estimate_views_gdc(measured: np.ndarray, nominal: ConeGeometry, params0: np.
     after each iteration, index 0 = start), ``accepted`` (fraction of views whose step was
     kept, per iteration) and ``metric``.
     """
-    from .projector import forward_project
+    from robot_ct_ros.ct.projector import forward_project
 
     n = nominal.n_views
     meas = np.ascontiguousarray(measured, dtype=np.float32)
@@ -189,12 +189,12 @@ def estimate_views_gdc(measured: np.ndarray, nominal: ConeGeometry, params0: np.
     params = np.array(params0, dtype=np.float64).reshape(n, 9)
     vol = np.ascontiguousarray(volume, dtype=np.float32)
     sigma = config.log_sigma_px
-    valid = _as_view_mask(valid_mask, meas.shape) & np.isfinite(meas)
+    valid = as_view_mask(valid_mask, meas.shape) & np.isfinite(meas)
     mask = valid & roi_support_mask(nominal, params, grid, config.roi_support_fraction)
     if sigma is None:
         meas_f = np.where(valid, meas, 0.0).astype(np.float32)
     else:
-        from .reconstruction import fill_invalid_pixels
+        from robot_ct_ros.ct.reconstruction import fill_invalid_pixels
 
         meas_f = _filter(fill_invalid_pixels(np.where(valid, meas, 0.0), valid), sigma)
         r = int(np.ceil(config.log_erode * sigma))

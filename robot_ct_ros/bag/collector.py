@@ -1,0 +1,104 @@
+"""A scan collected from its topics as received (CDR bytes), until it is written as a scan bag.
+
+The recon_service subscribes to the scan's topics with raw (serialized) callbacks and keeps the
+messages here: the latched ones by topic, the per-frame ones by header stamp. A /ct/scan_info
+different from the one held starts a new scan. :meth:`ScanCollector.write_bag` writes the
+frames paired with a geometry, in stamp order, as a scan bag (docs/bag-format.md).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+from robot_ct_ros.bag import format as fmt
+from robot_ct_ros.bag.writer import ScanBagWriter
+
+__all__ = ["ScanCollector", "PER_FRAME"]
+
+PER_FRAME = (fmt.TOPIC_PROJECTION, fmt.TOPIC_GEOMETRY, fmt.TOPIC_GEOMETRY_TRUE)
+"""The per-frame topics a scan is collected from (paired by header stamp)."""
+
+
+class ScanCollector:
+    """The messages of one scan as received. Not thread-safe: feed it from one executor."""
+
+    def __init__(self):
+        self.latched: dict[str, tuple[str, bytes]] = {}
+        self.per_frame: dict[str, dict[int, bytes]] = {t: {} for t in PER_FRAME}
+        self.scan_id = ""
+
+    def add_latched(self, topic: str, data: bytes) -> bool:
+        """Keep a latched message (scan_info, flat field, dead pixels); True when it is a
+        /ct/scan_info different from the one held (the collection was reset: a new scan)."""
+        data = bytes(data)
+        old = self.latched.get(topic)
+        new_scan = topic == fmt.TOPIC_SCAN_INFO and old is not None and old[1] != data
+        if new_scan:
+            self.reset()
+        self.latched[topic] = (fmt.TOPIC_TYPES[topic], data)
+        if topic == fmt.TOPIC_SCAN_INFO:
+            try:
+                info = json.loads(fmt.deserialize(data, fmt.STRING).data)
+                self.scan_id = str((info.get("notes") or {}).get("scan_id", "")) if isinstance(info, dict) else ""
+            except (ValueError, AttributeError):
+                self.scan_id = ""
+        return new_scan
+
+    def add_frame_message(self, topic: str, data: bytes) -> bool:
+        """Keep a per-frame message by its header stamp (the first one of a stamp wins); False
+        when it cannot be decoded (it is then dropped)."""
+        data = bytes(data)
+        try:
+            stamp = fmt.stamp_to_ns(fmt.deserialize(data, fmt.TOPIC_TYPES[topic]).header.stamp)
+        except Exception:  # noqa: BLE001 - a damaged message is not collected
+            return False
+        self.per_frame[topic].setdefault(stamp, data)
+        return True
+
+    def reset(self) -> None:
+        """Forget the frames (a new scan starts); latched messages are replaced as they come."""
+        for d in self.per_frame.values():
+            d.clear()
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.per_frame[fmt.TOPIC_PROJECTION])
+
+    @property
+    def n_paired(self) -> int:
+        """Frames that have a geometry with the same stamp."""
+        return len(set(self.per_frame[fmt.TOPIC_PROJECTION]) & set(self.per_frame[fmt.TOPIC_GEOMETRY]))
+
+    def write_bag(self, path) -> tuple[Path, int]:
+        """Write the paired frames (and the latched messages) as a new scan bag at ``path``,
+        replacing one there; returns the path and the number of frames.
+
+        Raises
+        ------
+        ValueError
+            No /ct/scan_info yet, or no frame paired with a geometry.
+        """
+        path = Path(path)
+        if fmt.TOPIC_SCAN_INFO not in self.latched:
+            raise ValueError("no /ct/scan_info received yet")
+        frames, geoms = self.per_frame[fmt.TOPIC_PROJECTION], self.per_frame[fmt.TOPIC_GEOMETRY]
+        true = self.per_frame[fmt.TOPIC_GEOMETRY_TRUE]
+        stamps = sorted(set(frames) & set(geoms))
+        if not stamps:
+            raise ValueError(f"no frame paired with a geometry yet ({len(frames)} frames, {len(geoms)} geometries)")
+        if path.exists():
+            shutil.rmtree(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        t0 = stamps[0] - 1_000_000
+        with ScanBagWriter(path, None, flush_every_frame=False) as w:
+            for topic in fmt.LATCHED_TOPICS:  # scan_info first
+                if topic in self.latched:
+                    w.write_raw(topic, *self.latched[topic], t0)
+            for s in stamps:
+                w.write_raw(fmt.TOPIC_PROJECTION, fmt.IMAGE, frames[s], s)
+                w.write_raw(fmt.TOPIC_GEOMETRY, fmt.POSE_ARRAY, geoms[s], s)
+                if s in true:
+                    w.write_raw(fmt.TOPIC_GEOMETRY_TRUE, fmt.POSE_ARRAY, true[s], s)
+        return path, len(stamps)

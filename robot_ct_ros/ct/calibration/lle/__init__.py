@@ -1,0 +1,1 @@
+"""The LLE estimator: weights, sampling, the per-view pass."""

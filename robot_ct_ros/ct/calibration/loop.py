@@ -1,0 +1,241 @@
+"""The alternating loop: reconstruct, estimate every view, fix the gauge, repeat (design.md §2).
+
+:func:`calibrate` is the one entry point: data, nominal geometry, ROI grid and a
+:class:`~robot_ct_ros.ct.calibration.settings.CalibrationSettings`. The method comes from the
+registry (:mod:`robot_ct_ros.ct.calibration.registry`). Why each step is there, and the
+measurements behind the defaults: docs/calibration.md.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from robot_ct_ros.ct.calibration.constraints import fit_drift, focus_conjugate_modes, hold_magnification, moved_px
+from robot_ct_ros.ct.calibration.ensemble import average_estimates, member_seeds
+from robot_ct_ros.ct.calibration.kernels import blas_single_threaded
+from robot_ct_ros.ct.calibration.masks import bin_masked, usable_data
+from robot_ct_ros.ct.calibration.registry import get_method
+from robot_ct_ros.ct.calibration.result import CalibrationResult, IterationRecord
+from robot_ct_ros.ct.calibration.settings import CalibrationSettings
+from robot_ct_ros.ct.calibration.volume import (TRUNCATED_ABOVE, estimation_grid, projection_consistency,
+                                                reconstruct_for_estimation, truncation_level)
+from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
+from robot_ct_ros.ct.metrics import remove_gauge, roi_points
+
+__all__ = ["calibrate", "settings_with"]
+
+
+def _level(li, mask, nominal, grid, factor):
+    """Data, mask, nominal geometry and grid binned ``factor`` times (the inputs themselves at 1)."""
+    if factor <= 1:
+        return li, mask, nominal, grid
+    li_b, mask_b = bin_masked(li, mask, factor)
+    return li_b, mask_b, nominal.binned(factor), grid.binned(factor)
+
+
+def settings_with(settings: CalibrationSettings | None, changes: dict) -> CalibrationSettings:
+    """``settings`` (default: ``CalibrationSettings()``) with field ``changes`` applied."""
+    base = CalibrationSettings() if settings is None else settings
+    return base.replace(**changes) if changes else base
+
+
+def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGrid,
+              settings: CalibrationSettings | None = None, *, valid_mask=None, drift_times=None,
+              gauge_points_mm=None, configs: tuple | None = None, focus_modes: dict | None = None,
+              fdk_kwargs: dict | None = None, progress=None, on_iteration=None, **changes) -> CalibrationResult:
+    """Correct the per-view geometry of a scan by alternating reconstruction and per-view estimation.
+
+    Parameters
+    ----------
+    line_integrals : (n, rows, cols) array
+        The measured projections as line integrals on ``nominal``'s detector grid.
+    nominal : ConeGeometry
+        The nominal (robot-reported) geometry of the n views.
+    grid : VolumeGrid
+        The ROI grid the result is reconstructed on.
+    settings : CalibrationSettings, optional
+        Method, iterations, schedule, prior, ...; ``changes`` (field names) override fields of it.
+    valid_mask : (rows, cols) or (n, rows, cols) bool, optional
+        Usable pixels (dead pixels and chip gaps False); non-finite data are masked too.
+    drift_times : (n,) array, optional
+        Acquisition times of the views for ``settings.drift_order`` (default: the view index).
+    gauge_points_mm : (m, 3) array, optional
+        Points the gauge (global rigid motion) and the magnification are fixed on (default: points
+        filling ``grid``).
+    configs : (coarse, fine), optional
+        Expert override of the method's per-level settings (e.g. an ``LLEConfig`` pair).
+    focus_modes : dict, optional
+        Conjugate modes set by image sharpness after each iteration
+        (:func:`~robot_ct_ros.ct.calibration.constraints.focus_conjugate_modes`); off by default.
+    fdk_kwargs : dict, optional
+        Options of every FDK (window, cutoff, ...).
+    progress : callable, optional
+        ``progress(message)``, one line per step.
+    on_iteration : callable, optional
+        ``on_iteration(record, params)`` after each outer iteration.
+
+    Returns
+    -------
+    CalibrationResult
+        With ``settings.ensemble`` > 1 and a sampling method, the mean of that many runs with the
+        seeds :func:`~robot_ct_ros.ct.calibration.ensemble.member_seeds` and their spread.
+
+    Raises
+    ------
+    ValueError
+        Frame and geometry counts or detector shapes disagree, or a setting is invalid.
+    """
+    settings = settings_with(settings, changes)
+    method = get_method(settings.method)
+    say = progress or (lambda message: None)
+    if not method.uses_prior and settings.prior_sigma is not None:
+        settings = settings.without_prior()
+        say(f"{method.name} has no prior: the robots' error (prior_sigma) is not used")
+    kw = dict(valid_mask=valid_mask, drift_times=drift_times, gauge_points_mm=gauge_points_mm, configs=configs,
+              focus_modes=focus_modes, fdk_kwargs=fdk_kwargs, progress=progress, on_iteration=on_iteration)
+    if settings.ensemble <= 1 or not method.samples or configs is not None:
+        return _calibrate_once(line_integrals, nominal, grid, settings, **kw)
+    runs = []
+    for k, seed in enumerate(member_seeds(settings.seed, settings.ensemble)):
+        say(f"ensemble member {k + 1}/{settings.ensemble} (sampling seed {seed})")
+        runs.append(_calibrate_once(line_integrals, nominal, grid, settings.replace(seed=seed), **kw))
+    result = average_estimates(runs, line_integrals, nominal, grid, valid_mask=valid_mask, points_mm=gauge_points_mm,
+                               fdk_kwargs=fdk_kwargs)
+    say(f"ensemble of {settings.ensemble}: the members lie {result.spread_px:.3f} px from their mean")
+    return result
+
+
+@blas_single_threaded
+def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, settings: CalibrationSettings, *,
+                    valid_mask, drift_times, gauge_points_mm, configs, focus_modes, fdk_kwargs, progress,
+                    on_iteration) -> CalibrationResult:
+    """One run of the loop (the body of :func:`calibrate`).
+
+    Each outer iteration reconstructs with the current geometry (FDK, then SIRT on a truncated
+    scan, on the ROI grid widened ``padding`` times across:
+    :func:`~robot_ct_ros.ct.calibration.volume.reconstruct_for_estimation`) and re-estimates every
+    view, first on coarsely binned projections, then on finer ones (the schedule). In the first
+    iteration the coarse level alternates by itself up to ``coarse_passes`` times, until a pass
+    moves the views less than ``coarse_tol_px``. The gauge (a global rigid motion) is then
+    removed by aligning the estimate to the nominal geometry on the gauge points, the common
+    magnification held at the nominal one, and optionally the drift model and the conjugate
+    modes applied. The loop stops after ``iterations`` or after an iteration that moved the
+    views less than ``stop_update_px``; with ``undo_inconsistent`` an iteration that lowers the
+    data consistency is undone and ends it. The returned volume is the full-size FDK with the
+    final geometry.
+    """
+    from robot_ct_ros.ct.reconstruction import fdk
+
+    method = get_method(settings.method)
+    plan = settings.plan()
+    coarse_binning, fine_binning = int(plan["coarse_binning"]), int(plan["fine_binning"])
+    fine_volume, coarse_passes = plan["fine_volume"], int(plan["coarse_passes"])
+    n_iter, stop_update_px, coarse_tol_px = settings.iterations, settings.stop_update_px, settings.coarse_tol_px
+    drift_order, undo_inconsistent = settings.drift_order, settings.undo_inconsistent
+    if drift_order is not None:
+        fit_drift(np.zeros((nominal.n_views, 9)), drift_order, drift_times)  # validates order and times
+    t_start = time.perf_counter()
+    if np.shape(line_integrals) != (nominal.n_views,) + nominal.det_shape:
+        raise ValueError(f"{np.shape(line_integrals)[0]} frames but {nominal.n_views} geometries, or detector "
+                         f"shape mismatch")
+    li, mask = usable_data(line_integrals, valid_mask)
+    say = progress or (lambda message: None)
+    if method.estimate is None:  # no correction: the nominal geometry
+        volume = fdk(li, nominal, grid, valid_mask=mask, **(fdk_kwargs or {}))
+        return CalibrationResult(method.name, np.zeros((nominal.n_views, 9)), nominal, volume, (),
+                                 time.perf_counter() - t_start, settings=settings)
+    truncated = settings.projections == "truncated"
+    if settings.projections == "auto":
+        level = truncation_level(li, mask)
+        truncated = level > TRUNCATED_ABOVE
+        say(f"truncation level {level:.4f}: {'truncated, FDK + SIRT' if truncated else 'not truncated, FDK'} volumes")
+    sirt_iterations = settings.sirt_iterations if truncated else 0  # else every volume is an FDK
+    estimate, narrowed = method.estimate, method.narrow
+    coarse_cfg, fine_cfg = configs if configs is not None else method.configs(settings)
+    fdk_kwargs = dict(fdk_kwargs or {})
+    points = roi_points(grid) if gauge_points_mm is None else np.asarray(gauge_points_mm, float)
+    grid_e = estimation_grid(grid, settings.padding)
+    has_coarse = coarse_binning > fine_binning
+    li_f, mask_f, nom_f, grid_f = _level(li, mask, nominal, grid_e, fine_binning)
+    inner_f = grid.binned(fine_binning).shape_zyx[1:]
+    if has_coarse:
+        li_c, mask_c, nom_c, grid_c = _level(li, mask, nominal, grid_e, coarse_binning)
+        inner_c = grid.binned(coarse_binning).shape_zyx[1:]
+    else:  # one level: it also runs the data consistency check (undo_inconsistent)
+        li_c, mask_c, nom_c, grid_c, inner_c = li_f, mask_f, nom_f, grid_f, inner_f
+        if fine_volume == "fdk+coarse-sirt":  # no coarse level to take the correction from
+            fine_volume = "sirt"
+    params = np.zeros((nominal.n_views, 9))
+    history = []
+    # the coarse level's reconstruction with the geometry entering each iteration: its volume
+    # for the coarse estimate, its FDK's NCC for undo_inconsistent, its SIRT correction for a
+    # fine level without SIRT
+    rec_c = reconstruct_for_estimation(li_c, nom_c, grid_c, mask_c, sirt_iterations, fdk_kwargs, inner_c)
+    for it in range(n_iter):
+        t0 = time.perf_counter()
+        start = params.copy()
+        rec_in = rec_c  # the consistency of the geometry entering the iteration (undo_inconsistent)
+        n_passes = (coarse_passes if it == 0 else 1) if has_coarse else 0
+        for rep in range(n_passes):
+            if rep:  # a warm-up pass: the coarse volume again, with the geometry of the last pass
+                rec_c = reconstruct_for_estimation(li_c, nom_c.perturbed(params), grid_c, mask_c, sirt_iterations,
+                                                   fdk_kwargs, inner_c)
+            before = params
+            cfg = narrowed(coarse_cfg, it)
+            if rep:
+                cfg = method.fresh_samples(cfg, rep)
+            params, _ = estimate(li_c, nom_c, params, rec_c.volume, grid_c, cfg, mask_c)
+            moved = moved_px(nom_c, params, before, points)
+            say(f"iteration {it + 1}/{n_iter}: coarse estimate {rep + 1} done, views moved {moved:.3f} coarse px "
+                f"({time.perf_counter() - t0:.1f} s)")
+            if moved < coarse_tol_px:
+                break
+        correction = (rec_c.volume - rec_c.fdk, grid_c) if fine_volume == "fdk+coarse-sirt" else None
+        vol = reconstruct_for_estimation(li_f, nom_f.perturbed(params), grid_f, mask_f,
+                                         sirt_iterations if fine_volume == "sirt" else 0, fdk_kwargs,
+                                         inner_f, correction=correction, measure_fdk=False).volume
+        params, fine_info = estimate(li_f, nom_f, params, vol, grid_f, narrowed(fine_cfg, it), mask_f)
+        params = remove_gauge(nominal.perturbed(params), nominal, points).params_relative_to(nominal)
+        params = hold_magnification(nominal, params, points)
+        if drift_order is not None:
+            params = fit_drift(params, drift_order, drift_times)
+        if focus_modes:
+            params, focus = focus_conjugate_modes(li, nominal, params, grid, mask, modes=focus_modes,
+                                                  fdk_kwargs=fdk_kwargs)
+            say(f"iteration {it + 1}/{n_iter}: sharpness focus of {len(focus['modes'])} conjugate modes, entropy "
+                f"{focus['entropy_before']:.6f} -> {focus['entropy_after']:.6f}")
+        moved = moved_px(nominal, params, start, points)
+        last = it + 1 == n_iter or moved < stop_update_px
+        # the next iteration's coarse volume (and the consistency check): not after the last
+        rec_next = (reconstruct_for_estimation(li_c, nom_c.perturbed(params), grid_c, mask_c, sirt_iterations,
+                                               fdk_kwargs, inner_c)
+                    if undo_inconsistent or not last else None)
+        rmse, corr = projection_consistency(vol, grid_f, nom_f.perturbed(params), li_f, mask_f)
+        step = params - start
+        fractions = fine_info.get("independent_fraction") or [float("nan")]
+        rec = IterationRecord(it + 1, rmse, corr, float(np.sqrt((step[:, :6] ** 2).mean())),
+                              float(np.rad2deg(np.sqrt((step[:, 6:] ** 2).mean()))), time.perf_counter() - t0,
+                              fractions[-1], moved)
+        if undo_inconsistent and not rec_next.fdk_ncc > rec_in.fdk_ncc:
+            say(f"iteration {it + 1}/{n_iter}: data consistency fell ({rec_in.fdk_ncc:.5f} -> {rec_next.fdk_ncc:.5f}); "
+                f"undone, stopping")
+            params = start
+            break
+        rec_c = rec_next
+        history.append(rec)
+        if on_iteration is not None:
+            on_iteration(rec, params.copy())
+        say(f"iteration {rec.iteration}/{n_iter}: projection RMSE {rec.projection_rmse:.4g}, NCC "
+            f"{rec.projection_ncc:.5f}, update {rec.update_rms_mm:.3f} mm / {rec.update_rms_deg:.3f} deg, "
+            + ("" if np.isnan(rec.independent_fraction) else f"independent pixels {rec.independent_fraction:.3f}, ")
+            + f"views moved {rec.update_px:.3f} px, {rec.wall_s:.1f} s")
+        if last and it + 1 < n_iter:
+            say(f"converged: the views moved less than {stop_update_px:g} px; stopping after {rec.iteration} of "
+                f"{n_iter} iterations")
+            break
+    geom = nominal.perturbed(params)
+    volume = fdk(li, geom, grid, valid_mask=mask, **fdk_kwargs)
+    return CalibrationResult(method.name, params, geom, volume, tuple(history), time.perf_counter() - t_start,
+                             settings=settings)

@@ -1,0 +1,57 @@
+"""Which detector pixels the calibration may use: valid pixels, finite data, ROI support, binning."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
+
+__all__ = ["roi_support_mask", "as_view_mask", "usable_data", "bin_masked"]
+
+
+def roi_support_mask(nominal: ConeGeometry, params: np.ndarray, grid: VolumeGrid, fraction: float,
+                     axial_tolerance: float = 0.02) -> np.ndarray:
+    """(n, rows, cols) pixels whose reprojection of the ROI volume is meaningful.
+
+    A pixel counts when its ray crosses the ROI for at least ``fraction`` of the longest
+    chord of that view, and leaves it through the sides, not through the top or bottom
+    face: a ray that exits axially also crosses object outside the reconstructed slab
+    (the long-object problem), which no offset or gain can absorb. Chords are ray-cast
+    through coarse ones-volumes (4x larger voxels: only lengths matter).
+    """
+    from robot_ct_ros.ct.projector import forward_project
+
+    geom = nominal.perturbed(params)
+    coarse = VolumeGrid.centered(tuple(max(2, s // 4) for s in grid.shape_zyx),
+                                 tuple(e / max(2, s // 4) for e, s in zip(grid.extent_mm, grid.shape_xyz)),
+                                 grid.center_mm)
+    nz, ny, nx = coarse.shape_zyx
+    tall = VolumeGrid.centered((3 * nz, ny, nx), coarse.voxel_size_mm, coarse.center_mm)
+    chord = forward_project(np.ones(coarse.shape_zyx, np.float32), coarse, geom)
+    chord_tall = forward_project(np.ones(tall.shape_zyx, np.float32), tall, geom)
+    peak = chord.reshape(chord.shape[0], -1).max(axis=1)
+    return (chord > (fraction * peak)[:, None, None]) & (chord >= (1.0 - axial_tolerance) * chord_tall)
+
+
+def as_view_mask(valid_mask, shape) -> np.ndarray:
+    if valid_mask is None:
+        return np.ones(shape, bool)
+    return np.broadcast_to(np.asarray(valid_mask, bool), shape)
+
+
+def usable_data(line_integrals, valid_mask) -> tuple[np.ndarray, np.ndarray]:
+    """float32 line integrals with every pixel that is invalid or not finite set to 0, and the
+    (n, rows, cols) mask of the others."""
+    li = np.ascontiguousarray(line_integrals, dtype=np.float32)
+    mask = as_view_mask(valid_mask, li.shape) & np.isfinite(li)
+    return np.where(mask, li, 0.0).astype(np.float32), mask
+
+
+def bin_masked(line_integrals: np.ndarray, valid_mask: np.ndarray, factor: int) -> tuple[np.ndarray, np.ndarray]:
+    """Average valid pixels in ``factor`` x ``factor`` bins; a bin with no valid pixel is invalid."""
+    from robot_ct_ros.ct.geometry import bin_projections
+
+    m = as_view_mask(valid_mask, line_integrals.shape).astype(np.float32)
+    total = bin_projections(np.where(m > 0, line_integrals, 0.0).astype(np.float32), factor)
+    count = bin_projections(m, factor)
+    return (total / np.maximum(count, 1.0)).astype(np.float32), count > 0

@@ -1,0 +1,157 @@
+"""Calibration settings: one typed object for the code, the CLI, the nodes and report.json.
+
+:class:`CalibrationSettings` holds every choice :func:`robot_ct_ros.ct.calibration.calibrate`
+makes; the command line builds it from its options, the recon_service and replay nodes from
+their ROS parameters (robot_ct_ros.parameters: SI units on ROS, e.g. the prior in m and rad),
+and report.json records it (``to_dict``). The evidence behind the defaults is in
+docs/calibration.md.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+from robot_ct_ros.ct.calibration.lle.estimator import DRAWS
+from robot_ct_ros.parameters import setting, to_dict, validate
+
+__all__ = ["CalibrationSettings", "SCHEDULES", "FINE_VOLUMES", "PROJECTION_KINDS", "DEFAULT_PADDING",
+           "DEFAULT_PRIOR_MM", "DEFAULT_PRIOR_DEG", "DEFAULT_PRIOR_SIGMA", "prior_sigma_from"]
+
+
+def prior_sigma_from(translation_mm: float, rotation_deg: float):
+    """The 9 prior standard deviations (mm x6, rad x3) from one translation and one rotation
+    error; None when either is not positive (no prior: the data alone)."""
+    if not (translation_mm > 0 and rotation_deg > 0):
+        return None
+    return (float(translation_mm),) * 6 + (math.radians(rotation_deg),) * 3
+
+
+DEFAULT_PRIOR_MM = 0.3
+DEFAULT_PRIOR_DEG = 0.3
+"""The seed system's robot coordination error per view and axis (design.md §1): the default
+prior of the MAP estimate. Set it to the robots' measured accuracy."""
+DEFAULT_PRIOR_SIGMA = prior_sigma_from(DEFAULT_PRIOR_MM, DEFAULT_PRIOR_DEG)
+
+
+SCHEDULES = {
+    "accurate": {"coarse_binning": 2, "fine_binning": 1, "fine_volume": "sirt", "fine_source": "star",
+                 "fine_samples": 192, "fine_draws": DRAWS, "coarse_passes": 3},
+    "fast": {"coarse_binning": 4, "fine_binning": 2, "fine_volume": "fdk", "fine_source": "fixed",
+             "fine_samples": 96, "fine_draws": 1, "coarse_passes": 1},
+}
+"""Resolution schedules. ``accurate``: estimate on 2x2 binned data, then at full size against
+a full-size FDK + SIRT volume. ``fast`` (large scans): 4x4 binned (FDK + SIRT), then 2x2 binned
+against the FDK alone, the source held at the coarse estimate on the finer level (one ray-cast
+per view and level) with 96 samples and one sample set there. The final volume is the
+full-size FDK in both. Evidence: docs/calibration.md, "Schedules"."""
+
+FINE_VOLUMES = ("sirt", "fdk+coarse-sirt", "fdk")
+"""The volume the finer level registers against on a truncated scan: its own FDK + SIRT, its
+FDK plus the coarse level's SIRT correction resampled, or its FDK alone."""
+
+PROJECTION_KINDS = ("truncated", "complete", "auto")
+"""Whether the projections are truncated (estimation volumes FDK + SIRT) or see the whole object
+(FDK alone); ``auto`` decides from the data (:func:`robot_ct_ros.ct.calibration.volume.truncation_level`)."""
+
+DEFAULT_PADDING = 1.25
+"""How many times the ROI grid is widened across the scan axis for the estimation volume
+(docs/calibration.md, "Estimation volume")."""
+
+
+def _method_names():
+    from robot_ct_ros.ct.calibration.registry import method_names
+
+    return method_names()
+
+
+def _schedule_names():
+    return tuple(SCHEDULES)
+
+
+@dataclass(frozen=True)
+class CalibrationSettings:
+    """Everything the calibration of one scan is set by (units in each field's help).
+
+    ``method`` is a name of the method registry (:mod:`robot_ct_ros.ct.calibration.registry`),
+    ``"none"`` for no correction. The prior is the robots' per-view coordination error, the same
+    standard deviation on every translation and on every rotation; 0 for either turns it off. Fields left at
+    None (``coarse_binning``, ``fine_binning``, ``fine_volume``, ``coarse_passes``) take the
+    schedule's value.
+
+    Raises
+    ------
+    ValueError
+        A field outside its bounds or choices (the message names the field).
+    """
+
+    method: str = setting("ncc-lle-exact", "calibration method, or none for the nominal geometry",
+                          choices=_method_names)
+    iterations: int = setting(2, "outer iterations at most (fewer when one moves the views less than stop_update_px)",
+                              minimum=1, maximum=100)
+    schedule: str = setting("accurate", "resolution schedule: accurate (2x binned, then full size with SIRT) or fast "
+                            "(4x then 2x binned, for large scans)", choices=_schedule_names)
+    stop_update_px: float = setting(0.05, "stop after an iteration that moves the views less than this "
+                                    "(gauge-aligned mean; 0: always run every iteration)", unit="px", minimum=0.0)
+    prior_translation_mm: float = setting(DEFAULT_PRIOR_MM, "the robots' per-view translation error, prior of the "
+                                          "MAP estimate (0: no prior, the data alone)", unit="mm", minimum=0.0,
+                                          ros_name="prior_sigma_translation_m", ros_scale=1e-3, ros_unit="m")
+    prior_rotation_deg: float = setting(DEFAULT_PRIOR_DEG, "the robots' per-view rotation error, prior of the MAP "
+                                        "estimate (0: no prior)", unit="deg", minimum=0.0,
+                                        ros_name="prior_sigma_rotation_rad", ros_scale=math.pi / 180, ros_unit="rad")
+    drift_order: int | None = setting(None, "fit every parameter with a polynomial of this degree in time (a slowly "
+                                      "drifting geometry); off: independent per-view errors", minimum=0,
+                                      ros_none=-1, kind=int)
+    seed: int = setting(0, "sampling seed of the LLE methods (another seed, another estimate of the same scan)",
+                        minimum=0)
+    ensemble: int = setting(1, "average this many runs with different sampling seeds (LLE methods)", minimum=1,
+                            maximum=100)
+    padding: float = setting(DEFAULT_PADDING, "widening of the ROI grid across the scan axis for the estimation "
+                             "volume", minimum=1.0, maximum=20.0)
+    projections: str = setting("truncated", "truncated (interior scan: FDK + SIRT estimation volumes) or complete "
+                               "(the object inside the field of view: FDK alone); auto: decide from the data",
+                               choices=PROJECTION_KINDS)
+    sirt_iterations: int = setting(15, "SIRT iterations of each estimation volume of a truncated scan", minimum=0,
+                                   maximum=1000)
+    coarse_binning: int | None = setting(None, "binning of the coarse level (off: the schedule's)", minimum=1,
+                                         maximum=16, ros_none=0, kind=int)
+    fine_binning: int | None = setting(None, "binning of the finer level (off: the schedule's)", minimum=1, maximum=16,
+                                       ros_none=0, kind=int)
+    fine_volume: str | None = setting(None, "volume the finer level registers against (off: the schedule's)",
+                                      choices=FINE_VOLUMES, ros_none="", kind=str)
+    coarse_passes: int | None = setting(None, "coarse passes of the first iteration at most (off: the schedule's)",
+                                        minimum=1, maximum=20, ros_none=0, kind=int)
+    coarse_tol_px: float = setting(0.1, "the coarse passes stop when one moves the views less than this", unit="px",
+                                   minimum=0.0)
+    undo_inconsistent: bool = setting(False, "undo an iteration that lowers the data consistency, and stop")
+
+    def __post_init__(self):
+        validate(self)
+
+    @property
+    def prior_sigma(self):
+        """The prior's 9 standard deviations (mm x6, rad x3), or None without a prior."""
+        return prior_sigma_from(self.prior_translation_mm, self.prior_rotation_deg)
+
+    def plan(self) -> dict:
+        """The schedule's values with this object's overrides: coarse_binning, fine_binning,
+        fine_volume, coarse_passes, fine_source, fine_samples, fine_draws."""
+        p = dict(SCHEDULES[self.schedule])
+        for k in ("coarse_binning", "fine_binning", "fine_volume", "coarse_passes"):
+            if getattr(self, k) is not None:
+                p[k] = getattr(self, k)
+        return p
+
+    def replace(self, **changes) -> "CalibrationSettings":
+        """A copy with ``changes`` (validated)."""
+        return replace(self, **changes)
+
+    def with_prior(self, translation_mm: float, rotation_deg: float) -> "CalibrationSettings":
+        return replace(self, prior_translation_mm=float(translation_mm), prior_rotation_deg=float(rotation_deg))
+
+    def without_prior(self) -> "CalibrationSettings":
+        return self.with_prior(0.0, 0.0)
+
+    def to_dict(self) -> dict:
+        """Field name -> value, as report.json records it."""
+        return to_dict(self)

@@ -1,0 +1,240 @@
+"""The correction job: read a scan bag once, calibrate its geometry, reconstruct, write the results once.
+
+:func:`correct_scan` works in memory on a :class:`~robot_ct_ros.bag.reader.ScanData` and returns
+a :class:`Correction`; :func:`write_correction` writes it (the corrected bag, the volume,
+report.json); :func:`calibrate_bag` does both for a bag path. ``robot-ct calibrate``, the
+recon_service and replay nodes and the demo all run this job.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from robot_ct_ros.bag import format as fmt
+from robot_ct_ros.bag.reader import ScanData, read_scan
+from robot_ct_ros.ct.calibration import CalibrationResult, CalibrationSettings, calibrate
+from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
+from robot_ct_ros.jobs.output import say as _say
+from robot_ct_ros.jobs.output import write_json, write_volume
+
+__all__ = ["Correction", "correct_scan", "write_correction", "calibrate_bag", "scan_grid", "drift_times",
+           "geometry_error", "truth_metrics", "markdown_report"]
+
+
+@dataclass(frozen=True, eq=False)
+class Correction:
+    """A corrected scan in memory: the scan as read, the ROI grid, the calibration's result
+    (for ``none``: the nominal geometry and its FDK) and the report (what report.json holds)."""
+
+    scan: ScanData
+    grid: VolumeGrid
+    result: CalibrationResult
+    report: dict
+
+    @property
+    def geom(self) -> ConeGeometry:
+        return self.result.geom
+
+    @property
+    def volume(self) -> np.ndarray:
+        return self.result.volume
+
+
+def scan_grid(scan: ScanData, voxel_mm=None, shape_xyz=None) -> VolumeGrid:
+    """The ROI grid of a scan: its default (scan_info's ROI, else the field of view), with the
+    voxel size (mm) and the shape (nx, ny, nz) overridden where given."""
+    return scan.default_grid(voxel_size_mm=voxel_mm, shape_zyx=None if shape_xyz is None else tuple(shape_xyz)[::-1])
+
+
+def drift_times(scan: ScanData) -> np.ndarray | None:
+    """The frames' stamps in seconds from the first, the drift model's time axis (a pause in the
+    scan is then a gap in time, not one view's step); None when they do not span any time."""
+    t = (np.asarray(scan.stamps_ns, np.int64) - int(scan.stamps_ns[0])).astype(np.float64) * 1e-9
+    return t if np.ptp(t) > 0 else None
+
+
+def geometry_error(scan: ScanData, geom: ConeGeometry) -> dict | None:
+    """RMS of the 9 parameters between ``geom`` and the bag's true geometry (simulated bags only)."""
+    if scan.geom_true is None:
+        return None
+    d = geom.params_relative_to(scan.geom_true)
+    return {"rms_translation_mm": float(np.sqrt((d[:, :6] ** 2).mean())),
+            "rms_rotation_deg": float(np.rad2deg(np.sqrt((d[:, 6:] ** 2).mean()))),
+            "note": "raw difference to /ct/geometry_true, global (gauge) motion not removed"}
+
+
+def base_report(scan: ScanData, grid: VolumeGrid) -> dict:
+    """What every job's report.json says about the scan it ran on."""
+    return {"bag": str(scan.path), "format": scan.info.get("format"), "n_views": scan.n_views,
+            "detector": [scan.geom.n_rows, scan.geom.n_cols], "projection_units": scan.units,
+            "recovered": scan.recovered, "bag_warnings": list(scan.warnings), "grid": grid.to_dict()}
+
+
+def truth_metrics(scan: ScanData, line_integrals, mask, geom: ConeGeometry, volume, grid: VolumeGrid) -> dict | None:
+    """Figures against the true geometry of a simulated scan (None without /ct/geometry_true).
+
+    Gauge-aligned reprojection error (pixels) of the nominal and of the corrected geometry
+    against /ct/geometry_true on points filling the ROI, and SSIM of the nominal and the
+    corrected reconstruction against the reconstruction with the true geometry (same grid,
+    same FDK).
+    """
+    from robot_ct_ros.ct.metrics import reprojection_error, roi_points, ssim
+    from robot_ct_ros.ct.reconstruction import fdk
+
+    if scan.geom_true is None:
+        return None
+    pts = roi_points(grid)
+    out = {}
+    for name, g in (("nominal", scan.geom), ("corrected", geom)):
+        e = reprojection_error(g, scan.geom_true, pts)
+        out[f"reprojection_error_{name}_px"] = {"mean": e["mean_px"], "p95": e["p95_px"], "max": e["max_px"]}
+    ref = fdk(line_integrals, scan.geom_true, grid, valid_mask=mask)
+    nominal = volume if geom is scan.geom else fdk(line_integrals, scan.geom, grid, valid_mask=mask)
+    rng = float(ref.max() - ref.min())
+    out["ssim_nominal"] = ssim(nominal, ref, data_range=rng)
+    out["ssim_corrected"] = ssim(np.asarray(volume, np.float32), ref, data_range=rng)
+    out["note"] = ("reprojection error: pixels, ROI points, best global rigid motion removed; "
+                   "SSIM against the FDK with /ct/geometry_true on the same grid")
+    return out
+
+
+def correct_scan(scan: ScanData, settings: CalibrationSettings | None = None, grid: VolumeGrid | None = None, *,
+                 evaluate_truth: bool = False, say=_say) -> Correction:
+    """Calibrate the per-view geometry of a scan in memory and reconstruct it on ``grid``.
+
+    Parameters
+    ----------
+    scan : ScanData
+        The scan as read (:func:`robot_ct_ros.bag.read_scan`).
+    settings : CalibrationSettings, optional
+        Method (``none``: the nominal geometry), iterations, prior, ... (default settings).
+    grid : VolumeGrid, optional
+        The ROI grid (default :func:`scan_grid`).
+    evaluate_truth : bool
+        Simulated scans: add :func:`truth_metrics` to the report under ``truth``.
+    say : callable
+        Progress, one line per step.
+
+    Returns
+    -------
+    Correction
+    """
+    t0 = time.perf_counter()
+    settings = CalibrationSettings() if settings is None else settings
+    grid = scan_grid(scan) if grid is None else grid
+    for w in scan.warnings:
+        say(f"warning: {w}")
+    li, mask = scan.to_line_integrals()
+    say(f"{scan.n_views} views, detector {scan.geom.n_rows}x{scan.geom.n_cols}, grid {grid.shape_zyx[::-1]} of "
+        f"{grid.voxel_size_mm[0] * 1000:.1f} um; method {settings.method}"
+        + ("" if settings.method == "none" else f", at most {settings.iterations} iteration(s), schedule "
+                                                 f"{settings.schedule}"))
+    times = drift_times(scan) if settings.drift_order is not None else None
+    result = calibrate(li, scan.geom, grid, settings, valid_mask=mask, drift_times=times, progress=say)
+    used = result.settings
+    report = base_report(scan, grid)
+    report.update({"job": "calibrate", "method": settings.method, "method_used": result.method,
+                   "iterations": used.iterations, "schedule": used.schedule, "settings": used.to_dict(),
+                   "prior_sigma": None if used.prior_sigma is None else list(used.prior_sigma),
+                   "drift_order": used.drift_order, "seed": used.seed, "padding": used.padding,
+                   "ensemble": result.members, "iterations_run": len(result.history),
+                   "history": [dict(h.__dict__) for h in result.history], "notes": list(result.notes)})
+    if result.members > 1:  # the members' spread around their mean: the estimate's sampling noise
+        report["ensemble_spread_px"] = result.spread_px
+    d = result.params
+    report.update({"correction_rms_translation_mm": float(np.sqrt((d[:, :6] ** 2).mean())),
+                   "correction_rms_rotation_deg": float(np.rad2deg(np.sqrt((d[:, 6:] ** 2).mean()))),
+                   "geometry_error_nominal": geometry_error(scan, scan.geom),
+                   "geometry_error_corrected": geometry_error(scan, result.geom)})
+    if evaluate_truth and scan.geom_true is not None:
+        say("comparing with the true geometry")
+        # of the geometry as the corrected bag and /ct/geometry_corrected carry it, to the last bit
+        report["truth"] = truth_metrics(scan, li, mask, fmt.as_transmitted(result.geom), result.volume, grid)
+    report["wall_s"] = time.perf_counter() - t0
+    return Correction(scan, grid, result, report)
+
+
+def write_correction(correction: Correction, out, *, markdown: bool = False, say=_say) -> dict:
+    """Write a :class:`Correction` into the folder ``out``, each file once.
+
+    ``<bag name>_corrected``: every message of the scan bag plus /ct/geometry_corrected (copied
+    from the messages read with the scan when it was read with ``keep_raw``);
+    ``volume.npy``/``.tif``/``_grid.json``; ``report.json`` (the report with ``files`` and
+    ``paths``); with ``markdown`` also ``report.md``. Returns the report as written.
+    """
+    from robot_ct_ros.bag.writer import write_corrected_bag
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    scan, report = correction.scan, dict(correction.report)
+    name = scan.path.name.removesuffix(".mcap")
+    corrected_bag = out / f"{name}_corrected"
+    if corrected_bag.exists():
+        import shutil
+        shutil.rmtree(corrected_bag)
+    write_corrected_bag(scan.raw if scan.raw is not None else scan.path, corrected_bag, correction.geom,
+                        scan.stamps_ns, notes=f"calibrated with {report['method_used']}, "
+                                              f"{report.get('iterations_run', 0)} iteration(s)")
+    files = write_volume(correction.volume, correction.grid, out)
+    report.update({"corrected_bag": str(corrected_bag), "files": files,
+                   "paths": {"input_bag": str(scan.path), "corrected_bag": str(corrected_bag),
+                             "volume_npy": files[0], "volume_tif": files[1], "report_json": str(out / "report.json")}})
+    if markdown:
+        report["paths"]["report_md"] = str(out / "report.md")
+        (out / "report.md").write_text(markdown_report(report))
+    write_json(out / "report.json", report)
+    say(f"wrote {corrected_bag}, {out}/volume.npy, volume.tif, report.json")
+    return report
+
+
+def calibrate_bag(bag, out, settings: CalibrationSettings | None = None, *, voxel_mm=None, shape_xyz=None,
+                  evaluate_truth: bool = False, markdown: bool = False, say=_say) -> Correction:
+    """:func:`correct_scan` of the bag at ``bag`` (read once), written by :func:`write_correction`
+    into ``out``. Returns the correction, its report as written."""
+    scan = read_scan(bag, keep_raw=True)
+    correction = correct_scan(scan, settings, scan_grid(scan, voxel_mm, shape_xyz), evaluate_truth=evaluate_truth,
+                              say=say)
+    report = write_correction(correction, out, markdown=markdown, say=say)
+    return Correction(correction.scan, correction.grid, correction.result, report)
+
+
+def markdown_report(report: dict) -> str:
+    """report.md: the correction's report as a short Markdown page."""
+    settings = report.get("settings") or {}
+    lines = [f"# Reconstruction report: {report.get('scan_id') or report.get('bag')}", "",
+             f"- views: {report.get('n_views')}, detector {report.get('detector')}",
+             f"- method: {report.get('method_used', report.get('method'))}, "
+             + (f"{report['iterations_run']} of " if "iterations_run" in report else "")
+             + f"{report.get('iterations')} iteration(s), "
+             f"{report.get('wall_s', 0.0):.1f} s",
+             f"- grid: {report.get('grid', {}).get('shape_zyx')} voxels (z, y, x) of "
+             f"{[round(float(v) * 1000, 2) for v in report.get('grid', {}).get('voxel_size_mm', [])]} um",
+             f"- correction applied: {report.get('correction_rms_translation_mm', 0.0):.4f} mm RMS translation, "
+             f"{report.get('correction_rms_rotation_deg', 0.0):.4f} deg RMS rotation"]
+    if report.get("ensemble_spread_px") is not None:
+        lines.append(f"- ensemble: the mean of {report['ensemble']} runs with different sampling seeds, which lie "
+                     f"{report['ensemble_spread_px']:.3f} px from it (the estimate's sampling noise)")
+    last, prior = (report.get("history") or [{}])[-1], report.get("prior_sigma")
+    if last.get("independent_fraction") is not None and prior:
+        lines.append(f"- last iteration: projection NCC {last['projection_ncc']:.4f}; independent pixels "
+                     f"{last['independent_fraction']:.3f} (near 0: the data explain little of the projections and "
+                     f"the correction leans on the prior of {prior[0]:.3g} mm / {np.rad2deg(prior[6]):.3g} deg)")
+    for note in report.get("notes") or ():
+        lines.append(f"- {note}")
+    if settings:
+        lines.append("- settings: " + ", ".join(f"{k} {v}" for k, v in settings.items()))
+    t = report.get("truth")
+    if t:
+        n, c = t["reprojection_error_nominal_px"], t["reprojection_error_corrected_px"]
+        lines += ["", "## Against the true geometry (simulation)", "",
+                  "| | nominal | corrected |", "| --- | --- | --- |",
+                  f"| reprojection error, mean (px) | {n['mean']:.3f} | {c['mean']:.3f} |",
+                  f"| reprojection error, p95 (px) | {n['p95']:.3f} | {c['p95']:.3f} |",
+                  f"| SSIM vs true-geometry reconstruction | {t['ssim_nominal']:.4f} | {t['ssim_corrected']:.4f} |",
+                  "", t["note"]]
+    lines += ["", "## Files", ""] + [f"- {k}: `{v}`" for k, v in report.get("paths", {}).items()]
+    return "\n".join(lines) + "\n"

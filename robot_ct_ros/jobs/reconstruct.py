@@ -1,0 +1,54 @@
+"""The reconstruction job: FDK of a scan bag with its nominal or corrected geometry."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from robot_ct_ros.bag.reader import read_scan
+from robot_ct_ros.bag.format import ScanBagError
+from robot_ct_ros.jobs.calibrate import base_report, geometry_error, scan_grid
+from robot_ct_ros.jobs.output import say as _say
+from robot_ct_ros.jobs.output import write_json, write_volume
+
+__all__ = ["reconstruct_bag", "GEOMETRIES"]
+
+GEOMETRIES = ("auto", "nominal", "corrected")
+"""Which geometry :func:`reconstruct_bag` uses: ``auto`` is /ct/geometry_corrected when the bag has it."""
+
+
+def reconstruct_bag(bag, out, *, geometry: str = "auto", voxel_mm=None, shape_xyz=None, say=_say) -> dict:
+    """FDK of a scan bag; writes ``volume.npy``, ``volume.tif``, ``volume_grid.json`` and
+    ``report.json`` into ``out`` and returns the report.
+
+    Raises
+    ------
+    ScanBagError
+        The bag gives no scan, or ``geometry="corrected"`` and it holds no corrected geometry.
+    """
+    from robot_ct_ros.ct.reconstruction import fdk
+
+    if geometry not in GEOMETRIES:
+        raise ValueError(f"geometry must be one of {', '.join(GEOMETRIES)}")
+    t0 = time.perf_counter()
+    out = Path(out)
+    scan = read_scan(bag)
+    for w in scan.warnings:
+        say(f"warning: {w}")
+    if geometry == "corrected" and scan.geom_corrected is None:
+        raise ScanBagError(f"{bag} has no /ct/geometry_corrected")
+    use_corrected = geometry == "corrected" or (geometry == "auto" and scan.geom_corrected is not None)
+    geom = scan.geom_corrected if use_corrected else scan.geom
+    li, mask = scan.to_line_integrals()
+    grid = scan_grid(scan, voxel_mm, shape_xyz)
+    say(f"{scan.n_views} views, detector {geom.n_rows}x{geom.n_cols}; FDK on {grid.shape_zyx[::-1]} voxels of "
+        f"{grid.voxel_size_mm[0] * 1000:.1f} um ({'corrected' if use_corrected else 'nominal'} geometry)")
+    vol = fdk(li, geom, grid, valid_mask=mask)
+    files = write_volume(vol, grid, out)
+    report = base_report(scan, grid)
+    report.update({"job": "reconstruct", "geometry": "corrected" if use_corrected else "nominal",
+                   "geometry_error": geometry_error(scan, geom), "files": files,
+                   "wall_s": time.perf_counter() - t0})
+    write_json(out / "report.json", report)
+    say(f"wrote {out}/volume.npy, volume.tif, report.json ({report['wall_s']:.1f} s)")
+    return report

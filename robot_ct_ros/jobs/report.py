@@ -1,0 +1,90 @@
+"""The comparison job: several calibration methods on one scan bag, figures and a table."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from robot_ct_ros.bag.reader import read_scan
+from robot_ct_ros.ct.calibration import CalibrationSettings, calibrate, get_method
+from robot_ct_ros.jobs.calibrate import drift_times, scan_grid
+from robot_ct_ros.jobs.output import say as _say
+
+__all__ = ["report_bag", "REPORT_METHODS"]
+
+REPORT_METHODS = ("none", "ncc-lle-exact", "gdc-log")
+"""Default columns of ``robot-ct report``: the nominal geometry, this system's method, and the
+strongest published baseline."""
+
+
+def report_bag(bag, out, methods=REPORT_METHODS, settings: CalibrationSettings | None = None, *, voxel_mm=None,
+               shape_xyz=None, say=_say) -> dict:
+    """Compare calibration methods on one scan bag: figures like the NCC-LLE paper's and a table.
+
+    Each of ``methods`` (registry names, ``none`` for the nominal geometry) runs on the same data
+    with ``settings`` (its ``method`` replaced). Added by themselves: ``"bag corrected"`` when the
+    bag holds /ct/geometry_corrected, and ``"true geometry"`` when it holds /ct/geometry_true
+    (simulated scans): then the table also has the gauge-aligned reprojection error and the SSIM
+    against the true-geometry reconstruction, and a figure the per-view parameter error. Writes
+    into ``out`` (:func:`robot_ct_ros.jobs.figures.write_report`, name ``report``). Returns the
+    table rows and the paths.
+
+    Raises
+    ------
+    ValueError
+        An unknown method, or none given.
+    """
+    from robot_ct_ros.ct.calibration.volume import projection_consistency
+    from robot_ct_ros.ct.reconstruction import fdk
+    from robot_ct_ros.jobs.figures import markdown_table, write_report
+
+    methods = tuple(methods)
+    if not methods:
+        raise ValueError("no method given")
+    for m in methods:
+        get_method(m)
+    settings = CalibrationSettings() if settings is None else settings
+    t0 = time.perf_counter()
+    scan = read_scan(bag)
+    for w in scan.warnings:
+        say(f"warning: {w}")
+    li, mask = scan.to_line_integrals()
+    grid = scan_grid(scan, voxel_mm, shape_xyz)
+    times = drift_times(scan) if settings.drift_order is not None else None
+    say(f"{scan.n_views} views, detector {scan.geom.n_rows}x{scan.geom.n_cols}, grid {grid.shape_zyx[::-1]} of "
+        f"{grid.voxel_size_mm[0] * 1000:.1f} um; methods {', '.join(methods)}; at most {settings.iterations} "
+        f"iteration(s), schedule {settings.schedule}")
+
+    def reconstruct(geom):
+        return fdk(li, geom, grid, valid_mask=mask)
+
+    def timed_fdk(geom):
+        t = time.perf_counter()
+        return geom, reconstruct(geom), (), time.perf_counter() - t
+
+    results = {}
+    for method in methods:
+        if method != "none":
+            say(f"{method}:")
+        results[method] = calibrate(li, scan.geom, grid, settings.replace(method=method), valid_mask=mask,
+                                    drift_times=times, progress=lambda m: say(f"  {m}"))
+    if scan.geom_corrected is not None:
+        results["bag corrected"] = timed_fdk(scan.geom_corrected)
+    truth = None
+    if scan.geom_true is not None:
+        results["true geometry"] = timed_fdk(scan.geom_true)
+        truth = (scan.geom_true, results["true geometry"][1], None)
+    initial = projection_consistency(results["none"].volume, grid, scan.geom, li, mask)[0] if "none" in results else None
+    name = Path(bag).name.removesuffix(".mcap")
+    paths = write_report(out, results, grid, truth, scan.geom, name="report", title=f"{name}: {scan.n_views} views",
+                         initial_rmse=initial, reconstruct=reconstruct if truth is not None else None,
+                         notes={"bag": str(bag), "settings": settings.to_dict(), "iterations": settings.iterations,
+                                "schedule": settings.schedule,
+                                "prior_sigma": None if settings.prior_sigma is None else list(settings.prior_sigma),
+                                "drift_order": settings.drift_order, "seed": settings.seed,
+                                "ensemble": settings.ensemble, "padding": settings.padding,
+                                "grid": grid.to_dict(), "bag_warnings": list(scan.warnings)})
+    say("\n" + markdown_table(paths["rows"]))
+    say(f"wrote {', '.join(str(paths[k]) for k in ('slices', 'rmse', 'param_error', 'markdown', 'json') if k in paths)}"
+        f" ({time.perf_counter() - t0:.1f} s)")
+    return paths

@@ -1,0 +1,73 @@
+"""CalibrationSettings (one typed object for code, CLI and ROS) and the method registry."""
+
+import math
+
+import pytest
+
+from robot_ct_ros.ct.calibration import METHODS, NO_CORRECTION, CalibrationSettings, get_method, method_names
+from robot_ct_ros.parameters import from_ros_values, ros_defaults, specs, to_dict
+
+
+def test_every_field_is_described_and_the_defaults_are_valid():
+    s = CalibrationSettings()
+    for spec in specs(s):
+        assert spec.help and spec.ros_name, spec.name
+        spec.check(getattr(s, spec.name))
+    assert s.prior_sigma == pytest.approx((0.3,) * 6 + (math.radians(0.3),) * 3)
+    assert to_dict(s)["method"] == "ncc-lle-exact" and to_dict(s)["drift_order"] is None
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"method": "fdk"}, "method must be one of none, l2-lle"),
+    ({"iterations": 0}, "iterations must be >= 1"),
+    ({"iterations": 2.5}, "iterations must be a whole number"),
+    ({"padding": 0.9}, "padding must be >= 1"),
+    ({"stop_update_px": float("nan")}, "stop_update_px must be finite"),
+    ({"schedule": "fastest"}, "schedule must be one of accurate, fast"),
+    ({"prior_translation_mm": -0.1}, "prior_translation_mm must be >= 0"),
+    ({"ensemble": 0}, "ensemble must be >= 1"),
+    ({"drift_order": -2}, "drift_order must be >= 0"),
+    ({"coarse_passes": 0}, "coarse_passes must be >= 1"),
+    ({"projections": "yes"}, "projections must be one of truncated, complete, auto"),
+])
+def test_bad_values_are_refused_naming_the_field(change, message):
+    with pytest.raises(ValueError, match=message):
+        CalibrationSettings(**change)
+    with pytest.raises(ValueError, match=message):
+        CalibrationSettings().replace(**change)
+
+
+def test_ros_parameters_are_si_and_round_trip():
+    ros = ros_defaults(CalibrationSettings)
+    assert ros["prior_sigma_translation_m"] == pytest.approx(0.3e-3)
+    assert ros["prior_sigma_rotation_rad"] == pytest.approx(math.radians(0.3))
+    assert ros["drift_order"] == -1 and ros["coarse_passes"] == 0 and ros["fine_volume"] == ""  # ROS has no None
+    back = from_ros_values(CalibrationSettings, ros)
+    for k, v in to_dict(CalibrationSettings()).items():
+        assert to_dict(back)[k] == (pytest.approx(v) if isinstance(v, float) else v), k
+    s = from_ros_values(CalibrationSettings, {"prior_sigma_translation_m": 0.0005, "prior_sigma_rotation_rad": 0.01,
+                                              "drift_order": 3})
+    assert s.prior_sigma == pytest.approx((0.5,) * 6 + (0.01,) * 3) and s.drift_order == 3
+    assert from_ros_values(CalibrationSettings, {"prior_sigma_translation_m": 0.0}).prior_sigma is None
+    with pytest.raises(ValueError, match="whole number"):
+        from_ros_values(CalibrationSettings, {"iterations": 1.5})
+
+
+def test_the_registry_names_every_method_once_and_none_is_no_correction():
+    assert method_names()[0] == NO_CORRECTION and set(method_names()) == set(METHODS)
+    assert {s.name: s for s in specs(CalibrationSettings)}["method"].choices == method_names()
+    assert get_method("none").estimate is None
+    assert all(m.estimate is not None and m.configs is not None for n, m in METHODS.items() if n != NO_CORRECTION)
+    with pytest.raises(ValueError, match="unknown calibration method 'fdk'; choose one of none, l2-lle"):
+        get_method("fdk")
+    # the LLE methods draw samples and use the prior; the GDC baselines do neither
+    assert {n for n, m in METHODS.items() if m.samples} == {"l2-lle", "ncc-lle", "ncc-lle-exact"}
+    assert {n for n, m in METHODS.items() if m.uses_prior} == {"l2-lle", "ncc-lle", "ncc-lle-exact"}
+
+
+def test_the_lle_configs_follow_the_settings():
+    coarse, fine = get_method("ncc-lle-exact").configs(CalibrationSettings(seed=7, schedule="fast"))
+    assert coarse.weighting == fine.weighting == "ncc-exact" and coarse.seed == 7
+    assert fine.source_positions == "fixed" and fine.draws == 1  # the fast schedule's finer level
+    assert coarse.prior_sigma == pytest.approx((0.3,) * 6 + (math.radians(0.3),) * 3)
+    assert get_method("l2-lle").configs(CalibrationSettings().without_prior())[0].prior_sigma is None

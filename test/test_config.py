@@ -1,0 +1,29 @@
+"""The shipped parameter files hold every setting the nodes declare, with its default."""
+
+from pathlib import Path
+
+import pytest
+import yaml
+
+from robot_ct_ros.ct.calibration import CalibrationSettings
+from robot_ct_ros.parameters import ros_defaults
+
+CONFIG = Path(__file__).resolve().parents[1] / "config"
+
+
+@pytest.mark.parametrize("node, exclude", [("recon_service", ()), ("replay", ("method",))])
+def test_node_yaml_lists_every_calibration_setting_with_its_default(node, exclude):
+    params = yaml.safe_load((CONFIG / f"{node}.yaml").read_text())[node]["ros__parameters"]
+    for name, default in ros_defaults(CalibrationSettings).items():
+        if name in exclude:
+            continue
+        assert name in params, f"config/{node}.yaml lacks {name}"
+        assert params[name] == (pytest.approx(default) if isinstance(default, float) else default), name
+
+
+def test_recon_service_yaml_lists_the_services_own_settings():
+    from robot_ct_ros.nodes.recon_service import ServiceSettings
+
+    params = yaml.safe_load((CONFIG / "recon_service.yaml").read_text())["recon_service"]["ros__parameters"]
+    for name, default in ros_defaults(ServiceSettings).items():
+        assert params[name] == default, name
