@@ -129,7 +129,8 @@ def declare_settings(node, cls, *, prefix: str = "", **defaults):
     carries the field's help and unit and, for numbers, its range (rclpy then refuses a value
     outside it when set at run time). ``defaults`` override field defaults (core units). A value of
     the wrong type or out of range raises ValueError naming the parameter (never a traceback from
-    rclpy's internals)."""
+    rclpy's internals). List fields (tuple defaults) are double or integer arrays; an optional field
+    (default None, no ``ros_none``) is declared by its type and stays unset unless given."""
     import math
 
     from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
@@ -155,11 +156,25 @@ def declare_settings(node, cls, *, prefix: str = "", **defaults):
                 desc.integer_range = [IntegerRange(from_value=int(max(lo, -2 ** 63)), to_value=int(min(hi, 2 ** 63 - 1)),
                                                    step=1)]
         default = s.to_ros(defaults.get(s.name, s.default))
+        if default is None:  # an optional value with no ROS stand-in: declared by its type, left unset
+            default = _unset_parameter_type(s)
         try:
-            values[s.ros_name] = node.declare_parameter(name, default, desc).value
-        except (InvalidParameterTypeException, InvalidParameterValueException) as exc:
+            values[s.ros_name] = value = node.declare_parameter(name, default, desc).value
+            if (core := s.from_ros(value)) is not None:
+                s.check(core)  # this field alone, so the message names the ROS parameter
+        except (InvalidParameterTypeException, InvalidParameterValueException, ValueError, TypeError) as exc:
             raise ValueError(f"parameter {name}: {exc}") from None
     try:
         return from_ros_values(cls, values)
     except ValueError as exc:
         raise ValueError(f"{node.get_name()} parameters: {exc}") from None
+
+
+def _unset_parameter_type(spec):
+    """The rclpy Parameter.Type to declare an optional setting with (no default value on ROS)."""
+    from rclpy.parameter import Parameter
+
+    T = Parameter.Type
+    if spec.kind is tuple:
+        return T.INTEGER_ARRAY if spec.item_kind is int else T.DOUBLE_ARRAY
+    return {float: T.DOUBLE, int: T.INTEGER, str: T.STRING, bool: T.BOOL}[spec.kind]

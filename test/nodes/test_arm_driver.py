@@ -162,3 +162,17 @@ def test_end_to_end_over_ur_rtde_with_controller_loss(ros):
         assert ros.spin_until(lambda: probe.last_level("detector") == DiagnosticStatus.ERROR)
     finally:
         emu.stop()
+
+
+def test_bad_parameters_are_refused_with_a_clear_error(ros):
+    """A wrong value is a one-line ValueError naming the parameter, before anything starts."""
+    import pytest
+
+    for params, words in (({"role": "elbow"}, ("parameter role", "source, detector")),
+                          ({"speed": "fast"}, ("parameter speed", "DOUBLE")),
+                          ({"sim_sigma_mm": -0.5}, ("parameter sim_sigma_mm",)),
+                          ({"sim_fail_after_moves": -3}, ("parameter sim_fail_after_moves", ">= 0"))):
+        with pytest.raises(ValueError) as err:
+            ArmDriverNode(context=ros.context, parameter_overrides=[Parameter(k, value=v) for k, v in params.items()])
+        message = str(err.value)
+        assert "\n" not in message and all(w in message for w in words), message
