@@ -33,7 +33,7 @@ from std_msgs.msg import Bool
 
 from robot_ct_ros.hardware.arm import ArmError, ArmRunner, ArmSettings, make_arm
 from robot_ct_ros.hardware.simulated_arm import JOINT_NAMES, SimulatedArmSettings
-from robot_ct_ros.nodes.common import declare_settings, run_node
+from robot_ct_ros.nodes.common import declare_settings, run_settings_node
 from robot_ct_ros.parameters import setting, validate
 
 
@@ -236,7 +236,7 @@ class ArmDriverNode(LifecycleNode):
 
 
 def main(argv=None) -> int:
-    return run_node(ArmDriverNode, __doc__.splitlines()[0], argv)
+    return run_settings_node(ArmDriverNode, __doc__.splitlines()[0], argv)
 
 
 if __name__ == "__main__":

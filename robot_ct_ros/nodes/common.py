@@ -178,3 +178,40 @@ def _unset_parameter_type(spec):
     if spec.kind is tuple:
         return T.INTEGER_ARRAY if spec.item_kind is int else T.DOUBLE_ARRAY
     return {float: T.DOUBLE, int: T.INTEGER, str: T.STRING, bool: T.BOOL}[spec.kind]
+
+
+def publish_diagnostic(node, publisher, level, what: str, hardware_id: str, message: str, values) -> None:
+    """Publish one /diagnostics status named ``"<node's fully qualified name>: <what>"``, stamped now.
+
+    ``level`` is a DiagnosticStatus level (OK, WARN, ERROR); ``values`` (key, value) pairs, each value
+    shown as ``str(value)``."""
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+    status = DiagnosticStatus(level=level, name=f"{node.get_fully_qualified_name()}: {what}", hardware_id=hardware_id,
+                              message=message, values=[KeyValue(key=k, value=str(v)) for k, v in values])
+    msg = DiagnosticArray(status=[status])
+    msg.header.stamp = node.get_clock().now().to_msg()
+    publisher.publish(msg)
+
+
+class BadParameters(ValueError):
+    """A node refused its parameters (raised out of :func:`run_settings_node`'s node factory)."""
+
+
+def run_settings_node(node_factory: Callable[[], "object"], description: str, argv: list[str] | None = None) -> int:
+    """:func:`run_node` for a node that validates its parameters as it declares them
+    (:func:`declare_settings`): a bad value ends the executable with that one-line reason on stderr
+    and exit status 2, not a traceback. Any other failure propagates as from :func:`run_node`."""
+    def factory():
+        try:
+            return node_factory()
+        except ValueError as exc:
+            raise BadParameters(str(exc)) from None
+
+    try:
+        return run_node(factory, description, argv)
+    except BadParameters as exc:
+        argv = list(sys.argv if argv is None else argv)
+        prog = argv[0].rsplit("/", 1)[-1] if argv else "node"
+        print(f"{prog}: {exc}", file=sys.stderr)
+        return 2

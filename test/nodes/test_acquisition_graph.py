@@ -254,7 +254,7 @@ def test_beam_drop_mid_exposure_rejects_that_frame(ros, tmp_path):
     estop = g.probe.create_publisher(Bool, "estop", 10)
     assert ros.wait_for_subscribers(estop, count=2)
     g.start()
-    assert ros.spin_until(lambda: g.orch.frames == 2 and g.grabber._pending is not None, timeout_s=30)
+    assert ros.spin_until(lambda: g.orch.frames == 2 and g.grabber.exposures.pending is not None, timeout_s=30)
     assert g.source.interlock.beam_on
     estop.publish(Bool(data=True))
     g.wait_end()
