@@ -36,6 +36,7 @@ from typing import Callable, Protocol
 
 import numpy as np
 
+from robot_ct_ros.bag.format import FRAME_DETECTOR
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
 from robot_ct_ros.ct.hand_eye import HandEye, geometry_from_tool_poses
 from robot_ct_ros.ct.simulation import (DetectorModel, Phantom, battery_phantom, carotid_plaque_phantom,
@@ -319,7 +320,8 @@ class SimulatedDetector:
 # ----------------------------------------------------------------------------- settings and construction
 @dataclass(frozen=True)
 class DetectorSettings:
-    """The detector of the pcd_grabber: driver, read-out grid and exposure (SI units, its parameters).
+    """The detector of the pcd_grabber: driver, read-out grid, exposure, and the frames' frame_id and
+    true geometry output (SI units; its parameters of the same names).
 
     Raises
     ------
@@ -335,6 +337,8 @@ class DetectorSettings:
     exposure_s: float = setting(0.1, "exposure per frame", unit="s", minimum=0.0)
     exposure_timeout_s: float = setting(5.0, "pcd/expose answers failure if no frame within this (> exposure_s)",
                                         unit="s", minimum=0.0)
+    frame_id: str = setting(FRAME_DETECTOR, "frame_id of the published frames")
+    publish_true_geometry: bool = setting(True, "simulated detector: the true geometry of each frame is published")
 
     def __post_init__(self):
         validate(self)

@@ -26,27 +26,26 @@ from dataclasses import dataclass
 import numpy as np
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from scipy.spatial.transform import Rotation
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Bool
 
 from robot_ct_ros.hardware.arm import ArmError, ArmRunner, ArmSettings, make_arm
 from robot_ct_ros.hardware.simulated_arm import JOINT_NAMES, SimulatedArmSettings
-from robot_ct_ros.nodes.common import declare_settings, run_settings_node
+from robot_ct_ros.nodes.common import LifecycleSettings, declare_settings, publish_diagnostic, run_settings_node
 from robot_ct_ros.parameters import setting, validate
 
 
 @dataclass(frozen=True)
 class ArmDriverSettings:
-    """What the node publishes, and how it starts."""
+    """What the node publishes, and where."""
 
     role: str = setting("source", "which arm: topics go to <role>_arm/", choices=("source", "detector"))
     publish_rate_hz: float = setting(50.0, "joint_states, tool_pose and in_position rate", unit="Hz", minimum=0.0)
     base_frame: str = setting("world", "frame_id of tool_pose and of accepted goals")
     tool_frame: str = setting("", "tool frame reported in diagnostics; empty: <role>_arm_tool0")
     joint_prefix: str = setting("", "joint name prefix; empty: <role>_arm_")
-    autostart: bool = setting(True, "configure and activate at start (no lifecycle manager needed)")
 
     def __post_init__(self):
         validate(self)
@@ -75,6 +74,7 @@ class ArmDriverNode(LifecycleNode):
         self.settings = s = declare_settings(self, ArmDriverSettings)
         self.arm_settings = declare_settings(self, ArmSettings)
         self.sim_settings = declare_settings(self, SimulatedArmSettings, prefix="sim_")
+        autostart = declare_settings(self, LifecycleSettings).autostart
         self.role, self.base_frame, self.robot_ip = s.role, s.base_frame, self.arm_settings.robot_ip
         self.tool_frame = s.tool_frame or f"{s.role}_arm_tool0"
         self.joint_prefix = s.joint_prefix or f"{s.role}_arm_"
@@ -93,7 +93,7 @@ class ArmDriverNode(LifecycleNode):
         self.runner = ArmRunner(self.arm_settings, s.publish_rate_hz, self._move_failed)
         self._publish_timer = None
         self.last_error = ""
-        if s.autostart:
+        if autostart:
             self._autostart_timer = self.create_timer(0.0, self._autostart)
 
     # -- lifecycle -------------------------------------------------------------------------
@@ -223,17 +223,10 @@ class ArmDriverNode(LifecycleNode):
         message = self.last_error or (f"{state}, in position" if self.in_position() else state)
         target = self.runner.target
         target = None if target is None else [round(float(v), 6) for v in target]
-        status = DiagnosticStatus(
-            level=level, name=f"{self.get_fully_qualified_name()}: {self.role} arm",
-            hardware_id=self.robot_ip or "simulated_arm", message=message,
-            values=[KeyValue(key=k, value=str(v)) for k, v in (
-                ("lifecycle_state", state), ("connected", self.arm is not None and self.arm.is_connected),
-                ("in_position", self.in_position()), ("moves_completed", self.moves_completed),
-                ("target_pose", target), ("base_frame", self.base_frame), ("tool_frame", self.tool_frame))])
-        msg = DiagnosticArray(status=[status])
-        msg.header.stamp = self.get_clock().now().to_msg()
-        self.diag_pub.publish(msg)
-
+        publish_diagnostic(self, self.diag_pub, level, f"{self.role} arm", self.robot_ip or "simulated_arm", message, (
+            ("lifecycle_state", state), ("connected", self.arm is not None and self.arm.is_connected),
+            ("in_position", self.in_position()), ("moves_completed", self.moves_completed),
+            ("target_pose", target), ("base_frame", self.base_frame), ("tool_frame", self.tool_frame)))
 
 def main(argv=None) -> int:
     return run_settings_node(ArmDriverNode, __doc__.splitlines()[0], argv)

@@ -215,3 +215,20 @@ def run_settings_node(node_factory: Callable[[], "object"], description: str, ar
         prog = argv[0].rsplit("/", 1)[-1] if argv else "node"
         print(f"{prog}: {exc}", file=sys.stderr)
         return 2
+
+
+# -- settings every lifecycle node shares (appended section: its imports are here) -------------------
+from dataclasses import dataclass  # noqa: E402
+
+from robot_ct_ros.parameters import setting, validate  # noqa: E402  (no ROS import)
+
+
+@dataclass(frozen=True)
+class LifecycleSettings:
+    """How a lifecycle node starts: ``autostart`` configures and activates it in its constructor, so a
+    plain ``ros2 run`` works without a lifecycle manager."""
+
+    autostart: bool = setting(True, "configure and activate at start (no lifecycle manager needed)")
+
+    def __post_init__(self):
+        validate(self)

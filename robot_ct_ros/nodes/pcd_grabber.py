@@ -37,14 +37,13 @@ sees no detector; inactive, the orchestrator refuses to start from the lifecycle
 Threads: pcd/expose is served on its own executor thread (nodes/common.ServiceThread) and waits there
 for the acquisition (hardware.exposure.ExposureGate), so the executor spinning this node never waits.
 Parameters (config/pcd_grabber.yaml): hardware.detector.DetectorSettings, sim_*:
-hardware.detector.SimulatedDetectorSettings, PcdGrabberSettings below, hand_eye.* (hand_eye_params).
+hardware.detector.SimulatedDetectorSettings, autostart, and hand_eye.* (nodes/hand_eye_params.py).
 """
 
 from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass
 
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -58,34 +57,22 @@ from robot_ct_ros.bag import format as fmt
 from robot_ct_ros.hardware.detector import (DetectorError, DetectorSettings, Frame, SimulatedDetectorSettings,
                                             TruePoses, make_detector)
 from robot_ct_ros.hardware.exposure import BeamLog, ExposureGate, frame_usable
-from robot_ct_ros.nodes.common import ServiceThread, declare_settings, publish_diagnostic, run_settings_node
+from robot_ct_ros.nodes.common import (LifecycleSettings, ServiceThread, declare_settings, publish_diagnostic,
+                                      run_settings_node)
 from robot_ct_ros.nodes.hand_eye_params import declare_hand_eye, pose_to_matrix_mm, stamp_to_ns
-from robot_ct_ros.parameters import setting, validate
 
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 STREAM = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
 
 
-@dataclass(frozen=True)
-class PcdGrabberSettings:
-    """What the node publishes, and how it starts."""
-
-    frame_id: str = setting(fmt.FRAME_DETECTOR, "frame_id of the published frames")
-    publish_true_geometry: bool = setting(True, "simulated detector: /ct/geometry_true per frame")
-    autostart: bool = setting(True, "configure (build/connect the detector) and activate at start")
-
-    def __post_init__(self):
-        validate(self)
-
-
 class PcdGrabberNode(LifecycleNode):
     def __init__(self, node_name: str = "pcd_grabber", *, detector_factory=None, **kwargs):
         super().__init__(node_name, **kwargs)
-        self.settings = declare_settings(self, PcdGrabberSettings)
         self.detector_settings = d = declare_settings(self, DetectorSettings)
         self.sim = declare_settings(self, SimulatedDetectorSettings, prefix="sim_")
+        autostart = declare_settings(self, LifecycleSettings).autostart
         self.driver, self.exposure_s, self.exposure_timeout_s = d.driver, d.exposure_s, d.exposure_timeout_s
-        self.frame_id, self.config = self.settings.frame_id, d.config
+        self.frame_id, self.config = d.frame_id, d.config
         self.hand_eye = declare_hand_eye(self)
 
         self.frame_pub = self.create_publisher(Image, fmt.TOPIC_PROJECTION, STREAM)
@@ -111,7 +98,7 @@ class PcdGrabberNode(LifecycleNode):
         self.exposures = ExposureGate(self._now_ns, lambda: self.get_logger().warn(
             "a late frame arrived after its request was answered; discarded"))
         self.create_timer(1.0, self._publish_diagnostics)
-        if self.settings.autostart and self.trigger_configure() == TransitionCallbackReturn.SUCCESS:
+        if autostart and self.trigger_configure() == TransitionCallbackReturn.SUCCESS:
             self.trigger_activate()
 
     # -- lifecycle -----------------------------------------------------------------------------
@@ -229,7 +216,7 @@ class PcdGrabberNode(LifecycleNode):
         self.frame_pub.publish(fmt.serialize(fmt.image_from_array(frame.counts, stamp, self.frame_id), fmt.IMAGE))
         self.frames_published += 1
         geom = frame.info.get("geometry")
-        if self.settings.publish_true_geometry and geom is not None:
+        if self.detector_settings.publish_true_geometry and geom is not None:
             msg = fmt.view_pose_array(geom.source_mm[0], geom.detector_mm[0], geom.u[0], geom.v[0], stamp)
             self.true_geom_pub.publish(fmt.serialize(msg, fmt.POSE_ARRAY))
 

@@ -118,7 +118,8 @@ def test_gate_deadline_and_a_hung_detector():
 def test_gate_reports_driver_errors_and_cancellation():
     gate = _gate()
     r = gate.expose(FakeDetector(error=DetectorError("read-out failed")), 0.01, 1.0)
-    assert r.problem == "DetectorError: read-out failed" and r.fault == "exposure failed: DetectorError: read-out failed"
+    assert r.problem == "DetectorError: read-out failed"
+    assert r.fault == "exposure failed: DetectorError: read-out failed"
     det = FakeDetector(delay_s=0.5)
     results = []
     t = threading.Thread(target=lambda: results.append(gate.expose(det, 0.01, 5.0)))
