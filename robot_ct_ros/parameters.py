@@ -37,8 +37,9 @@ def setting(default, help: str, *, unit: str = "", minimum=None, maximum=None, c
     ``ros_scale`` (default ``unit``); ``ros=False`` keeps a field off ROS; ``kind`` is the value
     type when the default is None (e.g. an optional int; ``tuple`` for an optional list).
     List fields (a tuple default, or ``kind=tuple``): ``length`` is the number of items (default:
-    the default's length; None = any), ``item_kind`` float or int (default: int when every item
-    of the default is an int, else float); bounds and ``ros_scale`` apply to each item."""
+    the length of a non-empty default, else any number), ``item_kind`` float or int (default: int
+    when every item of the default is an int, else float); bounds and ``ros_scale`` apply to each
+    item, and an optional list (default None) set to an empty list on ROS counts as unset."""
     return dataclasses.field(default=default, metadata={
         "help": help, "unit": unit, "minimum": minimum, "maximum": maximum, "choices": choices,
         "ros_name": ros_name, "ros_scale": float(ros_scale),

@@ -36,6 +36,8 @@ from robot_ct_ros.hardware.simulated_arm import JOINT_NAMES, SimulatedArmSetting
 from robot_ct_ros.nodes.common import LifecycleSettings, declare_settings, publish_diagnostic, run_settings_node
 from robot_ct_ros.parameters import setting, validate
 
+__all__ = ["ArmDriverNode", "ArmDriverSettings", "pose_msg_to_ur", "ur_to_pose_msg", "main"]
+
 
 @dataclass(frozen=True)
 class ArmDriverSettings:

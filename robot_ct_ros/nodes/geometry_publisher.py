@@ -33,6 +33,8 @@ from robot_ct_ros.nodes.common import declare_settings, publish_diagnostic, run_
 from robot_ct_ros.nodes.hand_eye_params import declare_hand_eye, pose_to_matrix_mm, stamp_to_ns
 from robot_ct_ros.parameters import setting, validate
 
+__all__ = ["GeometryPublisherNode", "GeometryPublisherSettings", "STREAM", "ROLES", "main"]
+
 STREAM = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
 ROLES = ("source", "detector")
 

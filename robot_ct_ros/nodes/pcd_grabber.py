@@ -61,6 +61,8 @@ from robot_ct_ros.nodes.common import (LifecycleSettings, ServiceThread, declare
                                       run_settings_node)
 from robot_ct_ros.nodes.hand_eye_params import declare_hand_eye, pose_to_matrix_mm, stamp_to_ns
 
+__all__ = ["PcdGrabberNode", "LATCHED", "STREAM", "main"]
+
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 STREAM = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
 

@@ -31,6 +31,8 @@ from std_srvs.srv import SetBool, Trigger
 from robot_ct_ros.hardware.xray_source import InterlockedSource, SimulatedXraySource, SourceError, SourceSettings
 from robot_ct_ros.nodes.common import LifecycleSettings, declare_settings, publish_diagnostic, run_settings_node
 
+__all__ = ["SourceControlNode", "LATCHED", "main"]
+
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 
 
