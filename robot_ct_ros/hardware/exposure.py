@@ -189,10 +189,11 @@ class ExposureGate:
         with self._lock:
             refusal = self._refusal(detector, state)
             if refusal is None:
-                exposure = self.pending = _Exposure(self._clock_ns())
+                exposure = _Exposure(self._clock_ns())
                 self._worker = threading.Thread(target=self._acquire, args=(exposure, detector, exposure_s),
                                                 name="pcd_acquire", daemon=True)
                 self._worker.start()
+                self.pending = exposure  # visible once the worker runs: "busy" means acquiring
         if refusal is not None:
             problem, fault = refusal
             return ExposureResult(problem=problem, fault=f"exposure refused: {problem}" if fault else "")

@@ -178,8 +178,9 @@ class PcdGrabberNode(LifecycleNode):
     # -- exposures (the service thread; the gate's worker thread acquires) ---------------------
     def _on_expose(self, request, response):
         result = self.exposures.expose(self.detector, self.exposure_s, self.exposure_timeout_s, self.lifecycle_state)
-        if result.fault:
-            self._failed(result.fault, result.problem)
+        if result.fault:  # a detector fault: counted, and an error on /diagnostics
+            self.failures, self.last_error = self.failures + 1, result.problem
+            self.get_logger().error(result.fault)
         frame = result.frame
         if frame is None:
             response.success, response.message = False, result.problem
@@ -207,11 +208,6 @@ class PcdGrabberNode(LifecycleNode):
         self.frames_rejected += 1
         return (f"beam interrupted: on for {100 * fraction:.0f}% of the exposure; the frame (stamp "
                 f"{frame.stamp_ns}) went to {fmt.TOPIC_PROJECTION_REJECTED}, not {fmt.TOPIC_PROJECTION}")
-
-    def _failed(self, log: str, problem: str) -> None:
-        self.failures += 1
-        self.last_error = problem
-        self.get_logger().error(log)
 
     def _publish_frame(self, frame: Frame) -> None:
         stamp = frame.stamp_ns
