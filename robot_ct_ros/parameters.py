@@ -3,7 +3,10 @@
 A settings class is a frozen dataclass whose fields are made with :func:`setting`. Each field
 carries its help text, unit, bounds or choices, and how it appears as a ROS parameter (REP 103
 SI units at that boundary: ``ros_scale`` multiplies the core value, e.g. 1e-3 for mm -> m;
-``ros_none`` is the ROS value that stands for None, since ROS parameters have no null). The
+``ros_none`` is the ROS value that stands for None, since ROS parameters have no null). A field
+whose default is a tuple is a list of numbers (a ROS double or integer array; ``length`` items,
+each checked against the bounds); an optional field (default None) without ``ros_none`` is
+declared on ROS by its type and left unset. The
 nodes declare their parameters from these fields (:func:`robot_ct_ros.nodes.common.declare_settings`),
 the CLI builds its options from them, and ``to_dict`` goes into report.json, so a new setting
 reaches every front end at once, in the style of generate_parameter_library.
@@ -25,17 +28,23 @@ __all__ = ["setting", "SettingSpec", "specs", "validate", "to_dict", "ros_defaul
 
 def setting(default, help: str, *, unit: str = "", minimum=None, maximum=None, choices=None,
             ros_name: str | None = None, ros_scale: float = 1.0, ros_unit: str | None = None, ros_none=None,
-            ros: bool = True, kind: type | None = None) -> dataclasses.Field:
+            ros: bool = True, kind: type | None = None, length: int | None = None,
+            item_kind: type | None = None) -> dataclasses.Field:
     """A dataclass field with what the front ends need to show, parse and check it.
 
     ``choices`` is a tuple or a zero-argument callable returning one (a registry filled later);
     ``minimum``/``maximum`` are inclusive bounds in core units; ``ros_unit`` the unit after
     ``ros_scale`` (default ``unit``); ``ros=False`` keeps a field off ROS; ``kind`` is the value
-    type when the default is None (e.g. an optional int)."""
+    type when the default is None (e.g. an optional int; ``tuple`` for an optional list).
+    List fields (a tuple default, or ``kind=tuple``): ``length`` is the number of items (default:
+    the length of a non-empty default, else any number), ``item_kind`` float or int (default: int
+    when every item of the default is an int, else float); bounds and ``ros_scale`` apply to each
+    item, and an optional list (default None) set to an empty list on ROS counts as unset."""
     return dataclasses.field(default=default, metadata={
         "help": help, "unit": unit, "minimum": minimum, "maximum": maximum, "choices": choices,
         "ros_name": ros_name, "ros_scale": float(ros_scale),
-        "ros_unit": unit if ros_unit is None else ros_unit, "ros_none": ros_none, "ros": ros, "kind": kind})
+        "ros_unit": unit if ros_unit is None else ros_unit, "ros_none": ros_none, "ros": ros, "kind": kind,
+        "length": length, "item_kind": item_kind})
 
 
 @dataclass(frozen=True)
@@ -55,11 +64,17 @@ class SettingSpec:
     ros_unit: str
     ros_none: Any
     ros: bool
+    length: int | None = None      # list fields: the number of items (None = any)
+    item_kind: type | None = None  # list fields: float or int
 
     def to_ros(self, value):
         """The ROS parameter value of a core value (None -> ``ros_none``)."""
         if value is None:
             return self.ros_none
+        if self.kind is tuple:
+            if self.item_kind is int:
+                return [int(x) for x in value]
+            return [float(x) * self.ros_scale for x in value]
         if self.kind is float:
             return float(value) * self.ros_scale
         return self.kind(value)
@@ -68,6 +83,12 @@ class SettingSpec:
         """The core value of a ROS parameter value (``ros_none`` -> None)."""
         if self.ros_none is not None and value == self.ros_none:
             return None
+        if self.kind is tuple:
+            if value is None or (self.default is None and len(value) == 0):
+                return None  # an optional list left unset (or set to [])
+            if self.item_kind is int:
+                return tuple(int(x) for x in value)
+            return tuple(float(x) / self.ros_scale for x in value)
         if self.kind is float:
             return float(value) / self.ros_scale
         if self.kind is int:
@@ -84,6 +105,9 @@ class SettingSpec:
             if self.default is None:
                 return
             raise ValueError(f"{self.name} must be given")
+        if self.kind is tuple:
+            self._check_items(value)
+            return
         if self.kind in (int, float) and (isinstance(value, bool) or not isinstance(value, (int, float))):
             raise ValueError(f"{self.name} must be a number, got {value!r}")
         if self.kind is int and isinstance(value, float) and not value.is_integer():
@@ -98,6 +122,22 @@ class SettingSpec:
         if self.choices is not None and value not in self.choices:
             raise ValueError(f"{self.name} must be one of {', '.join(map(str, self.choices))}; got {value!r}")
 
+    def _check_items(self, value) -> None:
+        unit = f" {self.unit}" if self.unit else ""
+        what = "whole numbers" if self.item_kind is int else "numbers"
+        if isinstance(value, (str, bytes)) or not hasattr(value, "__len__"):
+            raise ValueError(f"{self.name} must be a list of {what}{unit}, got {value!r}")
+        if self.length is not None and len(value) != self.length:
+            raise ValueError(f"{self.name} needs {self.length} {what}{unit}, got {list(value)!r}")
+        for x in value:
+            if isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x) or (
+                    self.item_kind is int and isinstance(x, float) and not x.is_integer()):
+                raise ValueError(f"{self.name} must be a list of finite {what}{unit}, got {list(value)!r}")
+            if self.minimum is not None and not x >= self.minimum:
+                raise ValueError(f"{self.name}: every item must be >= {self.minimum}{unit}, got {list(value)!r}")
+            if self.maximum is not None and not x <= self.maximum:
+                raise ValueError(f"{self.name}: every item must be <= {self.maximum}{unit}, got {list(value)!r}")
+
 
 def specs(cls_or_obj) -> tuple[SettingSpec, ...]:
     """The :class:`SettingSpec` of every field of a settings class (or instance), in order."""
@@ -108,9 +148,16 @@ def specs(cls_or_obj) -> tuple[SettingSpec, ...]:
             continue
         choices = m["choices"]() if callable(m["choices"]) else m["choices"]
         kind = m["kind"] or type(f.default)
+        length, item_kind = m.get("length"), m.get("item_kind")
+        if kind is tuple:
+            items = f.default if isinstance(f.default, tuple) else ()
+            if length is None and items:
+                length = len(items)
+            if item_kind is None:
+                item_kind = int if items and all(type(x) is int for x in items) else float
         out.append(SettingSpec(f.name, f.default, kind, m["help"], m["unit"], m["minimum"], m["maximum"],
                                None if choices is None else tuple(choices), m["ros_name"] or f.name,
-                               m["ros_scale"], m["ros_unit"], m["ros_none"], m["ros"]))
+                               m["ros_scale"], m["ros_unit"], m["ros_none"], m["ros"], length, item_kind))
     return tuple(out)
 
 

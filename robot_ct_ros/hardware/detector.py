@@ -18,6 +18,11 @@ dead/hot pixels, binning over valid raw pixels). The detector does not know the 
 interlock: the photon flux of a frame is scaled by the fraction of the exposure during which
 the beam was on (another callable), so a frame taken with the beam off is dark.
 
+Settings: :class:`DetectorSettings` (driver, read-out grid, exposure) and
+:class:`SimulatedDetectorSettings` (the simulation: phantom, voxelisation, photon counts, defects,
+faults) are the pcd_grabber's parameters, SI units as there; :func:`make_detector` builds the
+detector they describe, fed by a :class:`TruePoses` store of the arms' true poses.
+
 Units: mm and radians inside (robot_ct_ros.ct conventions), times in integer nanoseconds of
 the owner's clock. No ROS import.
 """
@@ -31,10 +36,16 @@ from typing import Callable, Protocol
 
 import numpy as np
 
+from robot_ct_ros.bag.format import FRAME_DETECTOR
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
 from robot_ct_ros.ct.hand_eye import HandEye, geometry_from_tool_poses
 from robot_ct_ros.ct.simulation import (DetectorModel, Phantom, battery_phantom, carotid_plaque_phantom,
                                         mouse_phantom, raw_geometry, simulate_counts, simulate_flat, voxelize)
+from robot_ct_ros.parameters import setting, validate
+
+__all__ = ["DetectorError", "DetectorTimeout", "DetectorConfig", "Frame", "PhotonCountingDetector", "PHANTOMS",
+           "make_phantom", "SimulatedScene", "build_scene", "warm_up_projector", "SimulatedDetector",
+           "DetectorSettings", "SimulatedDetectorSettings", "TruePoses", "make_detector"]
 
 
 class DetectorError(RuntimeError):
@@ -304,3 +315,167 @@ class SimulatedDetector:
         model = replace(self.model, photons_per_pixel=self.model.photons_per_pixel * beam_fraction)
         counts, _, _ = simulate_counts(li, model, self._rng, flat=self._flat)
         return counts[0]
+
+
+# ----------------------------------------------------------------------------- settings and construction
+@dataclass(frozen=True)
+class DetectorSettings:
+    """The detector of the pcd_grabber: driver, read-out grid, exposure, and the frames' frame_id and
+    true geometry output (SI units; its parameters of the same names).
+
+    Raises
+    ------
+    ValueError
+        A field out of its range, an impossible grid, or not 0 < exposure_s < exposure_timeout_s.
+    """
+
+    driver: str = setting("simulated", "detector driver (only 'simulated' so far)")
+    n_rows: int = setting(272, "read-out (binned) rows, along v", unit="px", minimum=1)
+    n_cols: int = setting(636, "read-out (binned) columns, along u", unit="px", minimum=1)
+    binning: int = setting(2, "raw pixels per read-out pixel, per axis", minimum=1)
+    raw_pixel_m: float = setting(55e-6, "raw pixel pitch", unit="m", minimum=0.0)
+    exposure_s: float = setting(0.1, "exposure per frame", unit="s", minimum=0.0)
+    exposure_timeout_s: float = setting(5.0, "pcd/expose answers failure if no frame within this (> exposure_s)",
+                                        unit="s", minimum=0.0)
+    frame_id: str = setting(FRAME_DETECTOR, "frame_id of the published frames")
+    publish_true_geometry: bool = setting(True, "simulated detector: the true geometry of each frame is published")
+
+    def __post_init__(self):
+        validate(self)
+        self.config  # raises on an impossible grid
+        if not 0 < self.exposure_s < self.exposure_timeout_s:
+            raise ValueError(f"need 0 < exposure_s < exposure_timeout_s, got {self.exposure_s}, "
+                             f"{self.exposure_timeout_s}")
+
+    @property
+    def config(self) -> DetectorConfig:
+        """The read-out grid in the core's units (mm)."""
+        return DetectorConfig(n_rows=self.n_rows, n_cols=self.n_cols, binning=self.binning,
+                              raw_pixel_mm=self.raw_pixel_m * 1e3)
+
+
+@dataclass(frozen=True)
+class SimulatedDetectorSettings:
+    """The simulated detector: phantom, voxelisation, photon-counting model, faults (the ``sim_*``
+    parameters of the pcd_grabber, SI units as there; mount errors in the device frames)."""
+
+    phantom: str = setting("carotid", "simulated phantom", choices=PHANTOMS)
+    phantom_center_m: tuple = setting((0.4, 0.0, 0.3), "where the phantom is centred (world frame)", unit="m")
+    region_center_m: tuple | None = setting(None, "centre of region_size_m and roi_size_m (unset: the phantom "
+                                            "centre)", unit="m", kind=tuple, length=3)
+    phantom_seed: int = setting(0, "seed of the phantom's random structures", minimum=0)
+    voxel_size_m: float = setting(5e-4, "voxels of the whole phantom (or of the region)", unit="m", minimum=0.0)
+    region_size_m: tuple = setting((0.0, 0.0, 0.0), "> 0: only this box around the centre is voxelised",
+                                   unit="m", minimum=0.0)
+    roi_size_m: tuple = setting((0.0, 0.0, 0.0), "> 0: this box around the centre is voxelised finer",
+                                unit="m", minimum=0.0)
+    roi_voxel_size_m: float = setting(5e-5, "voxel size of the finer ROI", unit="m", minimum=0.0)
+    supersample: int = setting(1, "sub-samples per voxel axis when voxelising", minimum=1)
+    photons_per_pixel: float = setting(49000.0, "flat-field counts per read-out pixel per frame", minimum=0.0)
+    chip_size_px: int = setting(256, "raw pixels per chip side; chips are separated by gaps", unit="px", minimum=1)
+    chip_gap_px: int = setting(2, "raw pixels between chips", unit="px", minimum=0)
+    dead_pixel_fraction: float = setting(1e-3, "fraction of dead raw pixels", minimum=0.0, maximum=1.0)
+    hot_pixel_fraction: float = setting(2e-4, "fraction of hot raw pixels", minimum=0.0, maximum=1.0)
+    flat_field_sigma: float = setting(0.03, "relative raw-pixel gain variation", minimum=0.0)
+    flat_frames: int = setting(20, "frames averaged into the flat field", minimum=1)
+    poisson: bool = setting(True, "Poisson counting noise")
+    seed: int = setting(0, "seed of the fixed pattern and the noise", minimum=0)
+    fail: str = setting("none", "fault injection: timeout = no frame is ever read out", choices=("none", "timeout"))
+    readout_s: float = setting(0.0, "extra read-out delay after the exposure", unit="s", minimum=0.0)
+    pose_max_age_s: float = setting(1.0, "true arm poses older than this count as unknown (the frame fails)",
+                                    unit="s", minimum=0.0)
+    source_mount_error_m: tuple = setting((0.0, 0.0, 0.0), "static hand-eye error of the source mount", unit="m",
+                                          ros_name="mount_error.source_translation_m")
+    detector_mount_error_m: tuple = setting((0.0, 0.0, 0.0), "static hand-eye error of the detector mount",
+                                            unit="m", ros_name="mount_error.detector_translation_m")
+    detector_mount_error_rotvec_rad: tuple = setting((0.0, 0.0, 0.0), "static rotation error of the detector "
+                                                     "mount", unit="rad", ros_name="mount_error.detector_rotvec_rad")
+
+    def __post_init__(self):
+        validate(self)
+        if not (self.voxel_size_m > 0 and self.roi_voxel_size_m > 0):
+            raise ValueError(f"voxel sizes must be positive, got {self.voxel_size_m}, {self.roi_voxel_size_m} m")
+
+
+class TruePoses:
+    """The latest true TCP pose of each arm (the simulated detector's pose source), thread-safe.
+
+    Parameters
+    ----------
+    clock_ns : callable() -> int
+        The owner's clock (ns).
+    max_age_s : float
+        A pose older than this (by its stamp) counts as unknown.
+    """
+
+    ROLES = ("source", "detector")
+
+    def __init__(self, clock_ns: Callable[[], int], max_age_s: float):
+        self._clock_ns = clock_ns
+        self.max_age_ns = max_age_s * 1e9
+        self._lock = threading.Lock()
+        self._poses: dict[str, tuple[int, np.ndarray]] = {}
+
+    def update(self, role: str, stamp_ns: int, T: np.ndarray) -> None:
+        """Record the true TCP pose ``T`` (4 x 4, mm) of ``role`` stamped ``stamp_ns``."""
+        with self._lock:
+            self._poses[role] = (int(stamp_ns), T)
+
+    def __len__(self) -> int:
+        with self._lock:
+            return len(self._poses)
+
+    def __call__(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(source, detector) TCP poses, 4 x 4 mm; None while either is unknown or stale."""
+        now = self._clock_ns()
+        with self._lock:
+            poses = [self._poses.get(r) for r in self.ROLES]
+        if any(p is None or now - p[0] > self.max_age_ns for p in poses):
+            return None
+        return poses[0][1], poses[1][1]
+
+
+def make_detector(detector: DetectorSettings, sim: SimulatedDetectorSettings, hand_eye: HandEye,
+                  true_poses: PoseSource, beam_fraction: BeamFraction, clock_ns: Callable[[], int]):
+    """The detector the settings describe (not connected yet).
+
+    Parameters
+    ----------
+    detector, sim : DetectorSettings, SimulatedDetectorSettings
+        The pcd_grabber's parameters.
+    hand_eye : HandEye
+        The nominal mounts; the simulated detector projects through them plus ``sim``'s mount errors.
+    true_poses, beam_fraction, clock_ns : callable
+        As :class:`SimulatedDetector` takes them.
+
+    Returns
+    -------
+    SimulatedDetector
+
+    Raises
+    ------
+    ValueError
+        An unknown driver, or a scene that cannot be built (region outside the phantom, too many voxels).
+    """
+    if detector.driver != "simulated":
+        raise ValueError(f"detector driver {detector.driver!r} is not available (only 'simulated')")
+    config, s = detector.config, sim
+    center_mm = np.asarray(s.phantom_center_m, float) * 1e3
+    region_mm = np.asarray(s.region_center_m, float) * 1e3 if s.region_center_m is not None else center_mm
+    phantom = make_phantom(s.phantom, center_mm, seed=s.phantom_seed)
+    scene = build_scene(phantom, s.voxel_size_m * 1e3, region_center_mm=region_mm,
+                        region_size_mm=np.asarray(s.region_size_m, float) * 1e3, roi_center_mm=region_mm,
+                        roi_size_mm=np.asarray(s.roi_size_m, float) * 1e3,
+                        roi_voxel_size_mm=s.roi_voxel_size_m * 1e3, supersample=s.supersample)
+    model = DetectorModel(photons_per_pixel=s.photons_per_pixel, binning=config.binning,
+                          chip_size_px=s.chip_size_px, chip_gap_px=s.chip_gap_px,
+                          dead_pixel_fraction=s.dead_pixel_fraction, hot_pixel_fraction=s.hot_pixel_fraction,
+                          flat_field_sigma=s.flat_field_sigma, flat_frames=s.flat_frames,
+                          poisson=s.poisson, raw_pitch_mm=config.raw_pixel_mm, seed=s.seed)
+    true_mounts = hand_eye.with_errors(
+        source_translation_mm=np.asarray(s.source_mount_error_m, float) * 1e3,
+        detector_translation_mm=np.asarray(s.detector_mount_error_m, float) * 1e3,
+        detector_rotvec=list(s.detector_mount_error_rotvec_rad))
+    return SimulatedDetector(config, model, scene, true_mounts, true_poses, beam_fraction, clock_ns,
+                             seed=s.seed + 7, fail=s.fail, readout_s=s.readout_s,
+                             pose_wait_s=min(1.0, 0.5 * (detector.exposure_timeout_s - detector.exposure_s)))

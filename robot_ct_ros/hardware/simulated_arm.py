@@ -21,7 +21,11 @@ from typing import Sequence
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from robot_ct_ros.hardware.ur_arm import ArmConnectionError, ArmMotionError, as_pose, pose_distance
+from robot_ct_ros.hardware.arm import ArmConnectionError, ArmMotionError, ArmSnapshot, as_pose, pose_distance
+from robot_ct_ros.parameters import setting, validate
+
+__all__ = ["UR5E_DH", "HOME_Q", "JOINT_NAMES", "pose_to_matrix", "matrix_to_pose", "forward_kinematics",
+           "inverse_kinematics", "SimulatedArmErrors", "SimulatedArmSettings", "SimulatedArm"]
 
 # UR5e standard Denavit-Hartenberg parameters (metres, radians), from Universal Robots.
 UR5E_DH = {
@@ -102,6 +106,32 @@ class SimulatedArmErrors:
     seed: int | None = 0
 
 
+@dataclass(frozen=True)
+class SimulatedArmSettings:
+    """Error model and fault injection of the simulated arm: the arm_driver's ``sim_*`` parameters.
+
+    Units: mm and degrees as the parameter names say (the module docstring defines the errors);
+    ``motion_time_scale`` as in :class:`SimulatedArm`; ``fail_after_moves`` None (-1 on ROS) = never.
+    """
+
+    sigma_mm: float = setting(0.0, "per-move random translation error, per axis", unit="mm", minimum=0.0)
+    sigma_deg: float = setting(0.0, "per-move random rotation error, per axis", unit="deg", minimum=0.0)
+    drift_mm_per_move: float = setting(0.0, "slow drift along a seeded random direction", unit="mm/move")
+    seed: int = setting(0, "seed of the errors and of the drift direction", minimum=0)
+    motion_time_scale: float = setting(0.0, "0: moves complete instantly; else the scale of the motion-time model",
+                                       minimum=0.0)
+    fail_after_moves: int | None = setting(None, "drop the connection at move N + 1 (fault tests)", kind=int,
+                                           minimum=0, ros_none=-1)
+
+    def __post_init__(self):
+        validate(self)
+
+    def errors(self) -> SimulatedArmErrors:
+        """The error model of these settings."""
+        return SimulatedArmErrors(sigma_mm=self.sigma_mm, sigma_deg=self.sigma_deg,
+                                  drift_mm_per_move=self.drift_mm_per_move, seed=self.seed)
+
+
 @dataclass
 class SimulatedArm:
     """A UR-like arm that follows commands instantly or with a simple motion-time model.
@@ -115,6 +145,12 @@ class SimulatedArm:
     initial_q: Sequence[float] = HOME_Q
     motion_time_scale: float = 0.0
     fail_after_moves: int | None = None
+
+    @classmethod
+    def from_settings(cls, settings: SimulatedArmSettings) -> "SimulatedArm":
+        """A simulated arm with the errors and faults of ``settings``."""
+        return cls(errors=settings.errors(), motion_time_scale=settings.motion_time_scale,
+                   fail_after_moves=settings.fail_after_moves)
 
     def __post_init__(self):
         self._lock = threading.Lock()
@@ -200,3 +236,7 @@ class SimulatedArm:
         self._check()
         with self._lock:
             return self._q.copy()
+
+    def snapshot(self) -> ArmSnapshot:
+        """Measured (= commanded) TCP pose, joints, and the true pose (for the simulated detector)."""
+        return ArmSnapshot(self.get_tcp_pose(), self.get_joint_positions(), self.true_tcp_pose())

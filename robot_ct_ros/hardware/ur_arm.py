@@ -1,8 +1,8 @@
-"""Robot arm driver interface and the Universal Robots driver (ur-rtde behind a process wall).
+"""The Universal Robots arm driver (ur-rtde behind a process wall).
 
-Units and conventions (as UR uses them, and SI at ROS interfaces): a TCP pose is the 6-vector
-``[x, y, z, rx, ry, rz]`` -- position in metres and orientation as a rotation vector (axis times
-angle, radians) of the tool frame in the robot base frame; joint positions in radians.
+Units and conventions as in :mod:`robot_ct_ros.hardware.arm` (whose interface :class:`URArm`
+implements; the names imported from there below stay importable from here): a TCP pose is
+``[x, y, z, rx, ry, rz]`` in metres and a rotation vector (radians), joints in radians.
 
 Why a child process: ur-rtde's constructors block forever on a peer that accepts the TCP
 connection and never answers, they hold the GIL while doing so (the Python bindings release it
@@ -19,52 +19,14 @@ from __future__ import annotations
 import itertools
 import multiprocessing
 import threading
-from typing import Protocol, Sequence, runtime_checkable
+from typing import Sequence
 
 import numpy as np
 
+from robot_ct_ros.hardware.arm import (Arm, ArmConnectionError, ArmError, ArmMotionError, ArmSnapshot, as_pose,
+                                       pose_distance)
 
-class ArmError(RuntimeError):
-    """The arm refused or failed a command."""
-
-
-class ArmConnectionError(ArmError):
-    """The controller cannot be reached, stopped answering, or the connection was lost."""
-
-
-class ArmMotionError(ArmError):
-    """A move was refused or did not complete (the connection itself may still be fine)."""
-
-
-@runtime_checkable
-class Arm(Protocol):
-    """What the arm_driver node needs from an arm (real or simulated)."""
-
-    def connect(self) -> None: ...
-    def disconnect(self) -> None: ...
-    def move_linear(self, pose: Sequence[float], speed: float = 0.25, accel: float = 1.2,
-                    timeout_s: float | None = None) -> None: ...
-    def get_tcp_pose(self) -> np.ndarray: ...
-    def get_joint_positions(self) -> np.ndarray: ...
-    @property
-    def is_connected(self) -> bool: ...
-
-
-def as_pose(pose: Sequence[float]) -> np.ndarray:
-    p = np.asarray(pose, dtype=float).reshape(-1)
-    if p.shape != (6,) or not np.all(np.isfinite(p)):
-        raise ValueError(f"a TCP pose is 6 finite numbers [x, y, z, rx, ry, rz], got {pose!r}")
-    return p
-
-
-def pose_distance(a: Sequence[float], b: Sequence[float]) -> tuple[float, float]:
-    """Translation distance (m) and rotation angle (rad) between two TCP poses."""
-    from scipy.spatial.transform import Rotation
-
-    a, b = as_pose(a), as_pose(b)
-    dt = float(np.linalg.norm(a[:3] - b[:3]))
-    rel = Rotation.from_rotvec(b[3:]) * Rotation.from_rotvec(a[3:]).inv()
-    return dt, float(rel.magnitude())
+__all__ = ["URArm", "Arm", "ArmError", "ArmConnectionError", "ArmMotionError", "as_pose", "pose_distance"]
 
 
 class URArm:
@@ -251,6 +213,11 @@ class URArm:
 
     def get_joint_positions(self) -> np.ndarray:
         return np.asarray(self.read_state()["joint_positions"], dtype=float)
+
+    def snapshot(self) -> ArmSnapshot:
+        """Measured TCP pose and joints from one state read (a real arm does not know its true pose)."""
+        state = self.read_state()
+        return ArmSnapshot(np.asarray(state["tcp_pose"]), np.asarray(state["joint_positions"]))
 
     def __enter__(self):
         self.connect()

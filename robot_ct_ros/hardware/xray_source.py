@@ -3,13 +3,19 @@
 Safety rule (enforced here, not in the ROS node): the beam is on only while a scan is
 armed, both arms report in position (recently: a stale report counts as "not in
 position"), and no e-stop is latched. Losing any condition switches the beam off at once.
-Units: kilovolt peak (kVp), watts, seconds.
+Units: kilovolt peak (kVp), watts, seconds. :class:`SourceSettings` are the source_control
+node's parameters. No ROS import.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from typing import Protocol
+
+from robot_ct_ros.parameters import setting, validate
+
+__all__ = ["SourceError", "XraySource", "SimulatedXraySource", "InterlockInputs", "beam_permitted",
+           "InterlockedSource", "SourceSettings"]
 
 
 class SourceError(RuntimeError):
@@ -140,3 +146,26 @@ class InterlockedSource:
     @property
     def beam_on(self) -> bool:
         return self.source.beam_on
+
+
+@dataclass(frozen=True)
+class SourceSettings:
+    """The tube settings and the interlock's report age (the source_control node's parameters).
+
+    The tube range is the source's to check (:meth:`XraySource.configure` refuses what it cannot
+    do, and the node's configure transition fails with the reason), so kvp and power_w have no
+    bounds here.
+    """
+
+    kvp: float = setting(90.0, "tube voltage (60-120 for the simulated source)", unit="kVp")
+    power_w: float = setting(150.0, "tube power (<= 150 for the simulated source)", unit="W")
+    max_report_age_s: float = setting(1.0, "an arm in-position report older than this cuts the beam", unit="s",
+                                      minimum=0.0)
+
+    def __post_init__(self):
+        validate(self)
+
+    def interlocked(self, source: XraySource) -> InterlockedSource:
+        """``source`` configured at these settings, behind the interlock; raises SourceError if it refuses."""
+        source.configure(self.kvp, self.power_w)
+        return InterlockedSource(source, max_report_age_s=self.max_report_age_s)

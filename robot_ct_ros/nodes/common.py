@@ -98,7 +98,8 @@ def declare_settings(node, cls, *, prefix: str = "", exclude=(), **defaults):
     outside it when set at run time). ``exclude``: fields the node declares its own way (they keep
     their defaults here). ``defaults`` override field defaults (core units). A value of
     the wrong type or out of range raises ValueError naming the parameter (never a traceback from
-    rclpy's internals)."""
+    rclpy's internals). List fields (tuple defaults) are double or integer arrays; an optional field
+    (default None, no ``ros_none``) is declared by its type and stays unset unless given."""
     import math
 
     from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
@@ -124,11 +125,79 @@ def declare_settings(node, cls, *, prefix: str = "", exclude=(), **defaults):
                 desc.integer_range = [IntegerRange(from_value=int(max(lo, -2 ** 63)), to_value=int(min(hi, 2 ** 63 - 1)),
                                                    step=1)]
         default = s.to_ros(defaults.get(s.name, s.default))
+        if default is None:  # an optional value with no ROS stand-in: declared by its type, left unset
+            default = _unset_parameter_type(s)
         try:
-            values[s.ros_name] = node.declare_parameter(name, default, desc).value
-        except (InvalidParameterTypeException, InvalidParameterValueException) as exc:
+            values[s.ros_name] = value = node.declare_parameter(name, default, desc).value
+            if (core := s.from_ros(value)) is not None:
+                s.check(core)  # this field alone, so the message names the ROS parameter
+        except (InvalidParameterTypeException, InvalidParameterValueException, ValueError, TypeError) as exc:
             raise ValueError(f"parameter {name}: {exc}") from None
     try:
         return from_ros_values(cls, values)
     except ValueError as exc:
         raise ValueError(f"{node.get_name()} parameters: {exc}") from None
+
+
+def _unset_parameter_type(spec):
+    """The rclpy Parameter.Type to declare an optional setting with (no default value on ROS)."""
+    from rclpy.parameter import Parameter
+
+    T = Parameter.Type
+    if spec.kind is tuple:
+        return T.INTEGER_ARRAY if spec.item_kind is int else T.DOUBLE_ARRAY
+    return {float: T.DOUBLE, int: T.INTEGER, str: T.STRING, bool: T.BOOL}[spec.kind]
+
+
+def publish_diagnostic(node, publisher, level, what: str, hardware_id: str, message: str, values) -> None:
+    """Publish one /diagnostics status named ``"<node's fully qualified name>: <what>"``, stamped now.
+
+    ``level`` is a DiagnosticStatus level (OK, WARN, ERROR); ``values`` (key, value) pairs, each value
+    shown as ``str(value)``."""
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+    status = DiagnosticStatus(level=level, name=f"{node.get_fully_qualified_name()}: {what}", hardware_id=hardware_id,
+                              message=message, values=[KeyValue(key=k, value=str(v)) for k, v in values])
+    msg = DiagnosticArray(status=[status])
+    msg.header.stamp = node.get_clock().now().to_msg()
+    publisher.publish(msg)
+
+
+class BadParameters(ValueError):
+    """A node refused its parameters (raised out of :func:`run_settings_node`'s node factory)."""
+
+
+def run_settings_node(node_factory: Callable[[], "object"], description: str, argv: list[str] | None = None) -> int:
+    """:func:`run_node` for a node that validates its parameters as it declares them
+    (:func:`declare_settings`): a bad value ends the executable with that one-line reason on stderr
+    and exit status 2, not a traceback. Any other failure propagates as from :func:`run_node`."""
+    def factory():
+        try:
+            return node_factory()
+        except ValueError as exc:
+            raise BadParameters(str(exc)) from None
+
+    try:
+        return run_node(factory, description, argv)
+    except BadParameters as exc:
+        argv = list(sys.argv if argv is None else argv)
+        prog = argv[0].rsplit("/", 1)[-1] if argv else "node"
+        print(f"{prog}: {exc}", file=sys.stderr)
+        return 2
+
+
+# -- settings every lifecycle node shares (appended section: its imports are here) -------------------
+from dataclasses import dataclass  # noqa: E402
+
+from robot_ct_ros.parameters import setting, validate  # noqa: E402  (no ROS import)
+
+
+@dataclass(frozen=True)
+class LifecycleSettings:
+    """How a lifecycle node starts: ``autostart`` configures and activates it in its constructor, so a
+    plain ``ros2 run`` works without a lifecycle manager."""
+
+    autostart: bool = setting(True, "configure and activate at start (no lifecycle manager needed)")
+
+    def __post_init__(self):
+        validate(self)

@@ -12,36 +12,52 @@ mounts (robot_ct_ros.ct.hand_eye.geometry_from_tool_poses). This is the nominal 
 coordination errors are invisible here (the calibration estimates them from the data). When a pose
 is missing, further than max_pose_age_s from the frame stamp, or not in world_frame, no geometry is
 published for that frame; the skip is logged and counted on /diagnostics (WARN).
-Parameters: max_pose_age_s (s), history_s (s), world_frame, and the hand_eye.* parameters
-(nodes/hand_eye_params.py).
+Parameters: max_pose_age_s (s), history_s (s), world_frame (GeometryPublisherSettings), and the
+hand_eye.* parameters (nodes/hand_eye_params.py).
 """
 
 from __future__ import annotations
 
 from collections import deque
+from dataclasses import dataclass
 
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseArray, PoseStamped
 from sensor_msgs.msg import Image
 
 from robot_ct_ros.bag import format as fmt
 from robot_ct_ros.ct.hand_eye import geometry_from_tool_poses
-from robot_ct_ros.nodes.common import run_node
+from robot_ct_ros.nodes.common import declare_settings, publish_diagnostic, run_settings_node
 from robot_ct_ros.nodes.hand_eye_params import declare_hand_eye, pose_to_matrix_mm, stamp_to_ns
+from robot_ct_ros.parameters import setting, validate
+
+__all__ = ["GeometryPublisherNode", "GeometryPublisherSettings", "STREAM", "ROLES", "main"]
 
 STREAM = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
 ROLES = ("source", "detector")
 
 
+@dataclass(frozen=True)
+class GeometryPublisherSettings:
+    """How tool poses are matched to frames (SI units)."""
+
+    max_pose_age_s: float = setting(0.2, "a tool pose further than this from the frame stamp is stale: no geometry",
+                                    unit="s", minimum=0.0)
+    history_s: float = setting(5.0, "tool-pose history kept to find the pose nearest to a frame stamp", unit="s",
+                               minimum=0.0)
+    world_frame: str = setting(fmt.FRAME_WORLD, "frame of the tool poses and of /ct/geometry")
+
+    def __post_init__(self):
+        validate(self)
+
+
 class GeometryPublisherNode(Node):
     def __init__(self, node_name: str = "geometry_publisher", **kwargs):
         super().__init__(node_name, **kwargs)
-        p = self.declare_parameter
-        self.max_pose_age_s = float(p("max_pose_age_s", 0.2).value)
-        history_s = float(p("history_s", 5.0).value)
-        self.world_frame = p("world_frame", fmt.FRAME_WORLD).value
+        self.settings = s = declare_settings(self, GeometryPublisherSettings)
+        self.max_pose_age_s, history_s, self.world_frame = s.max_pose_age_s, s.history_s, s.world_frame
         self.hand_eye = declare_hand_eye(self)
         self._history = {r: deque() for r in ROLES}
         self._history_ns = int(history_s * 1e9)
@@ -104,19 +120,14 @@ class GeometryPublisherNode(Node):
         message = "ok" if self._last_frame_ok else f"last frame without geometry: {self.last_problem}"
         ages = {r: (f"{(self.get_clock().now().nanoseconds - self._history[r][-1][0]) * 1e-9:.3f}"
                     if self._history[r] else "none") for r in ROLES}
-        status = DiagnosticStatus(
-            level=level, name=f"{self.get_fully_qualified_name()}: geometry", hardware_id="hand_eye",
-            message=message, values=[KeyValue(key=k, value=str(v)) for k, v in (
-                ("published", self.published), ("skipped", self.skipped), ("last_problem", self.last_problem),
-                ("source_pose_age_s", ages["source"]), ("detector_pose_age_s", ages["detector"]),
-                ("max_pose_age_s", self.max_pose_age_s))])
-        msg = DiagnosticArray(status=[status])
-        msg.header.stamp = self.get_clock().now().to_msg()
-        self.diag_pub.publish(msg)
+        publish_diagnostic(self, self.diag_pub, level, "geometry", "hand_eye", message, (
+            ("published", self.published), ("skipped", self.skipped), ("last_problem", self.last_problem),
+            ("source_pose_age_s", ages["source"]), ("detector_pose_age_s", ages["detector"]),
+            ("max_pose_age_s", self.max_pose_age_s)))
 
 
 def main(argv=None) -> int:
-    return run_node(GeometryPublisherNode, __doc__.splitlines()[0], argv)
+    return run_settings_node(GeometryPublisherNode, __doc__.splitlines()[0], argv)
 
 
 if __name__ == "__main__":

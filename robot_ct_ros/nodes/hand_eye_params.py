@@ -19,6 +19,8 @@ from scipy.spatial.transform import Rotation
 
 from robot_ct_ros.ct.hand_eye import HandEye, mount_from_si
 
+__all__ = ["declare_hand_eye", "stamp_to_ns", "ns_to_stamp", "pose_to_matrix_mm", "matrix_mm_to_pose"]
+
 
 def declare_hand_eye(node, prefix: str = "hand_eye") -> HandEye:
     """Declare the hand-eye parameters on ``node`` and return the mounts (raises ValueError if invalid)."""

@@ -8,7 +8,8 @@ Topics (relative names; namespace the node to place them):
   services    source/set_beam (std_srvs/SetBool), source/estop (std_srvs/Trigger),
               source/reset_estop (std_srvs/Trigger); <node>/change_state, <node>/get_state (lifecycle_msgs)
 Parameters: kvp (kVp, 60-120), power_w (W, <= 150), max_report_age_s (s): an arm report
-older than this counts as "not in position" and cuts the beam; autostart (default true).
+older than this counts as "not in position" and cuts the beam (hardware.xray_source.SourceSettings);
+autostart (default true).
 
 Lifecycle: configure builds the (simulated) source at kvp/power_w behind the interlock, activate
 serves source/set_beam and publishes the beam state, deactivate switches the beam off at once and
@@ -23,12 +24,14 @@ from __future__ import annotations
 
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from std_msgs.msg import Bool
 from std_srvs.srv import SetBool, Trigger
 
-from robot_ct_ros.hardware.xray_source import InterlockedSource, SimulatedXraySource, SourceError
-from robot_ct_ros.nodes.common import run_node
+from robot_ct_ros.hardware.xray_source import InterlockedSource, SimulatedXraySource, SourceError, SourceSettings
+from robot_ct_ros.nodes.common import LifecycleSettings, declare_settings, publish_diagnostic, run_settings_node
+
+__all__ = ["SourceControlNode", "LATCHED", "main"]
 
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 
@@ -36,10 +39,10 @@ LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, relia
 class SourceControlNode(LifecycleNode):
     def __init__(self, node_name: str = "source_control", *, source_factory=None, **kwargs):
         super().__init__(node_name, **kwargs)
-        self.kvp = self.declare_parameter("kvp", 90.0).value
-        self.power_w = self.declare_parameter("power_w", 150.0).value
-        self.max_age_s = self.declare_parameter("max_report_age_s", 1.0).value
-        autostart = self.declare_parameter("autostart", True).value
+        self.settings = declare_settings(self, SourceSettings)
+        s = self.settings
+        self.kvp, self.power_w, self.max_age_s = s.kvp, s.power_w, s.max_report_age_s
+        autostart = declare_settings(self, LifecycleSettings).autostart
         self._source_factory = source_factory or SimulatedXraySource
         self.interlock: InterlockedSource | None = None  # exists between configure and cleanup
         self._active = False
@@ -73,9 +76,7 @@ class SourceControlNode(LifecycleNode):
 
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
         try:
-            source = self._source_factory()
-            source.configure(self.kvp, self.power_w)
-            interlock = InterlockedSource(source, max_report_age_s=self.max_age_s)
+            interlock = self.settings.interlocked(self._source_factory())
         except (SourceError, ValueError, OSError) as exc:
             self.last_error = f"configure failed: {exc}"
             self.get_logger().error(self.last_error)
@@ -214,17 +215,11 @@ class SourceControlNode(LifecycleNode):
             values += [("scan_armed", il.inputs.scan_armed),
                        ("beam_on_seconds", f"{getattr(il.source, 'beam_on_seconds', 0.0):.3f}")]
         message = self.last_error or (il.last_reason if il is not None and self._active else state)
-        status = DiagnosticStatus(
-            level=level, name=f"{self.get_fully_qualified_name()}: x-ray source",
-            hardware_id="simulated_xray_source", message=message,
-            values=[KeyValue(key=k, value=str(v)) for k, v in values])
-        msg = DiagnosticArray(status=[status])
-        msg.header.stamp = self.get_clock().now().to_msg()
-        self.diag_pub.publish(msg)
+        publish_diagnostic(self, self.diag_pub, level, "x-ray source", "simulated_xray_source", message, values)
 
 
 def main(argv=None) -> int:
-    return run_node(SourceControlNode, __doc__.splitlines()[0], argv)
+    return run_settings_node(SourceControlNode, __doc__.splitlines()[0], argv)
 
 
 if __name__ == "__main__":

@@ -61,7 +61,7 @@ def _params(d: dict):
 
 
 def _load_protocol(protocol, out_dir: Path) -> tuple[Path, object]:
-    from robot_ct_ros.nodes.scan_orchestrator import ScanProtocol
+    from robot_ct_ros.hardware.scan_protocol import ScanProtocol
 
     if isinstance(protocol, (str, Path)):
         path = Path(protocol)

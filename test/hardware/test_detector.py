@@ -11,8 +11,10 @@ from robot_ct_ros.ct.hand_eye import HandEye, tool_goals_from_geometry
 from robot_ct_ros.ct.projector import forward_project
 from robot_ct_ros.ct.simulation import DetectorModel, raw_geometry
 from robot_ct_ros.ct.trajectory import SeedSystem, robotic_roi_scan
-from robot_ct_ros.hardware.detector import (DetectorConfig, DetectorError, DetectorTimeout, SimulatedDetector,
-                                            build_scene, make_phantom)
+from robot_ct_ros.hardware.detector import (DetectorConfig, DetectorError, DetectorSettings, DetectorTimeout,
+                                            SimulatedDetector, SimulatedDetectorSettings, TruePoses, build_scene,
+                                            make_detector, make_phantom)
+from robot_ct_ros.parameters import from_ros_values, ros_defaults
 
 CENTER = (400.0, 0.0, 300.0)
 CFG = DetectorConfig(n_rows=12, n_cols=16, binning=2, raw_pixel_mm=0.5)
@@ -142,3 +144,74 @@ def test_read_out_waits_briefly_for_late_true_poses(scene):
     frame = det.acquire(0.01)
     timer.join()
     assert frame.info["geometry"].allclose(geom.subset([0]), atol=1e-6)
+
+
+def test_settings_are_the_grabber_parameters_and_refuse_bad_values():
+    # names and defaults of the pcd_grabber's parameters (config/pcd_grabber.yaml)
+    assert ros_defaults(DetectorSettings) == {"driver": "simulated", "n_rows": 272, "n_cols": 636, "binning": 2,
+                                              "raw_pixel_m": 55e-6, "exposure_s": 0.1, "exposure_timeout_s": 5.0,
+                                              "frame_id": "pcd_detector", "publish_true_geometry": True}
+    sim = ros_defaults(SimulatedDetectorSettings)
+    assert sim["phantom"] == "carotid" and sim["phantom_center_m"] == [0.4, 0.0, 0.3]
+    assert sim["region_center_m"] is None and sim["mount_error.detector_rotvec_rad"] == [0.0, 0.0, 0.0]
+    assert set(sim) == {
+        "phantom", "phantom_center_m", "region_center_m", "phantom_seed", "voxel_size_m", "region_size_m",
+        "roi_size_m", "roi_voxel_size_m", "supersample", "photons_per_pixel", "chip_size_px", "chip_gap_px",
+        "dead_pixel_fraction", "hot_pixel_fraction", "flat_field_sigma", "flat_frames", "poisson", "seed", "fail",
+        "readout_s", "pose_max_age_s", "mount_error.source_translation_m", "mount_error.detector_translation_m",
+        "mount_error.detector_rotvec_rad"}
+    assert sim["photons_per_pixel"] == 49000.0 and sim["fail"] == "none" and sim["roi_voxel_size_m"] == 5e-5
+    assert DetectorSettings(raw_pixel_m=5e-4, binning=2).config == DetectorConfig(272, 636, 2, 0.5)
+    with pytest.raises(ValueError, match="exposure_s must be >= 0"):
+        DetectorSettings(exposure_s=-0.1)
+    with pytest.raises(ValueError, match="need 0 < exposure_s < exposure_timeout_s"):
+        DetectorSettings(exposure_s=6.0)
+    with pytest.raises(ValueError, match="n_rows must be a whole number"):
+        DetectorSettings(n_rows=12.5)
+    with pytest.raises(ValueError, match="phantom must be one of"):
+        SimulatedDetectorSettings(phantom="teapot")
+    with pytest.raises(ValueError, match="region_center_m needs 3"):
+        from_ros_values(SimulatedDetectorSettings, {"region_center_m": [0.4, 0.0]})
+    with pytest.raises(ValueError, match="roi_size_m: every item must be >= 0"):
+        SimulatedDetectorSettings(roi_size_m=(0.01, -0.01, 0.01))
+    with pytest.raises(ValueError, match="voxel sizes must be positive"):
+        SimulatedDetectorSettings(voxel_size_m=0.0)
+    # ROS lists in, tuples out; an empty list is "unset" for the optional region centre
+    s = from_ros_values(SimulatedDetectorSettings, {"region_center_m": [], "roi_size_m": [0.01, 0.01, 0.01],
+                                                    "mount_error.source_translation_m": [0.0, 1e-3, 0.0]})
+    assert s.region_center_m is None and s.roi_size_m == (0.01, 0.01, 0.01)
+    assert s.source_mount_error_m == (0.0, 1e-3, 0.0)
+
+
+def test_true_poses_go_stale():
+    clock = {"ns": 10 * 10 ** 9}
+    poses = TruePoses(lambda: clock["ns"], max_age_s=1.0)
+    S, D = np.eye(4), 2 * np.eye(4)
+    poses.update("source", clock["ns"], S)
+    assert poses() is None and len(poses) == 1  # the detector arm unknown
+    poses.update("detector", clock["ns"] - 5 * 10 ** 8, D)
+    got = poses()
+    assert got is not None and got[0] is S and got[1] is D
+    clock["ns"] += 6 * 10 ** 8  # the detector pose is now 1.1 s old
+    assert poses() is None
+
+
+def test_make_detector_from_settings():
+    settings = DetectorSettings(n_rows=12, n_cols=16, binning=2, raw_pixel_m=5e-4, exposure_s=0.05,
+                                exposure_timeout_s=2.0)
+    sim = SimulatedDetectorSettings(phantom="mouse", phantom_center_m=tuple(np.array(CENTER) * 1e-3),
+                                    voxel_size_m=1e-3, photons_per_pixel=5000.0, chip_size_px=10, chip_gap_px=1,
+                                    seed=3, detector_mount_error_m=(0.0, 0.0, 1e-3))
+    geom = _geom()
+    S, D = tool_goals_from_geometry(geom, HandEye())
+    det = make_detector(settings, sim, HandEye(), lambda: (S[1], D[1]), lambda a, b: 1.0, time.monotonic_ns)
+    assert isinstance(det, SimulatedDetector) and det.config == CFG
+    assert det.model.photons_per_pixel == 5000.0 and det.model.raw_pitch_mm == 0.5 and det.fail == "none"
+    assert det.pose_wait_s == pytest.approx(0.975) and len(det.scene.parts) == 1
+    # the true mounts carry the mount error: the detector sits 1 mm off along its normal
+    true = det.true_geometry(S[1], D[1])
+    np.testing.assert_allclose(true.detector_mm[0] - geom.detector_mm[1],
+                               np.cross(geom.u[1], geom.v[1]), atol=1e-6)
+    with pytest.raises(ValueError, match="not available"):
+        make_detector(DetectorSettings(driver="real"), sim, HandEye(), lambda: None, lambda a, b: 1.0,
+                      time.monotonic_ns)

@@ -2,7 +2,7 @@
 
 import pytest
 
-from robot_ct_ros.hardware.xray_source import (InterlockedSource, SimulatedXraySource, SourceError,
+from robot_ct_ros.hardware.xray_source import (InterlockedSource, SimulatedXraySource, SourceError, SourceSettings,
                                                beam_permitted, InterlockInputs)
 
 ALL_OK = dict(scan_armed=True, source_arm_in_position=True, detector_arm_in_position=True,
@@ -55,3 +55,13 @@ def test_source_limits():
     s.set_beam(True, 0.0)
     with pytest.raises(SourceError):
         s.configure(80.0, 100.0)
+
+
+def test_settings_configure_the_source_behind_the_interlock():
+    interlock = SourceSettings(kvp=80.0, power_w=100.0, max_report_age_s=0.5).interlocked(SimulatedXraySource())
+    assert isinstance(interlock, InterlockedSource) and interlock.max_report_age_s == 0.5
+    assert (interlock.source.kvp, interlock.source.power_w) == (80.0, 100.0) and not interlock.beam_on
+    with pytest.raises(SourceError, match="kVp 200"):  # the source's range, not the settings', decides
+        SourceSettings(kvp=200.0).interlocked(SimulatedXraySource())
+    with pytest.raises(ValueError, match="max_report_age_s must be >= 0"):
+        SourceSettings(max_report_age_s=-1.0)

@@ -23,7 +23,8 @@ from robot_ct_ros.nodes.hand_eye_params import stamp_to_ns
 from robot_ct_ros.nodes.pcd_grabber import PcdGrabberNode
 from robot_ct_ros.nodes.recon_service import ReconServiceNode
 from robot_ct_ros.nodes.recorder import RecorderNode
-from robot_ct_ros.nodes.scan_orchestrator import ScanOrchestratorNode, ScanProtocol
+from robot_ct_ros.hardware.scan_protocol import ScanProtocol
+from robot_ct_ros.nodes.scan_orchestrator import ScanOrchestratorNode
 from robot_ct_ros.nodes.source_control import SourceControlNode
 
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
@@ -124,7 +125,8 @@ class AcquisitionGraph:
     def _ready(self):
         o = self.orch
         return (o.set_beam.service_is_ready() and o.expose.service_is_ready()
-                and all(np.isfinite(t) for t in o._pose_t.values()) and all(np.isfinite(t) for t in o._in_pos_t.values()))
+                and all(np.isfinite(t) for t in o.scan.arm_pose_t.values())
+                and all(np.isfinite(t) for t in o.scan.arm_in_position_t.values()))
 
     def wait_end(self, timeout_s=60.0):
         assert self.ros.spin_until(lambda: self.orch.state in ("done", "aborted"), timeout_s=timeout_s), self.orch.state
@@ -254,7 +256,7 @@ def test_beam_drop_mid_exposure_rejects_that_frame(ros, tmp_path):
     estop = g.probe.create_publisher(Bool, "estop", 10)
     assert ros.wait_for_subscribers(estop, count=2)
     g.start()
-    assert ros.spin_until(lambda: g.orch.frames == 2 and g.grabber._pending is not None, timeout_s=30)
+    assert ros.spin_until(lambda: g.orch.frames == 2 and g.grabber.exposures.pending is not None, timeout_s=30)
     assert g.source.interlock.beam_on
     estop.publish(Bool(data=True))
     g.wait_end()
@@ -294,13 +296,13 @@ def test_start_refuses_an_inactive_detector(ros, tmp_path):
     assert g.grabber.lifecycle_state == "unconfigured"
     g.grabber.trigger_configure()
     assert g.grabber.lifecycle_state == "inactive"
-    assert ros.spin_until(lambda: g._ready() and g.orch._device_state.get("detector", (0, ""))[1] == "inactive",
+    assert ros.spin_until(lambda: g._ready() and g.orch.scan.device_state.get("detector", (0, ""))[1] == "inactive",
                           timeout_s=10.0)
     ok, message = g.orch.start()
     assert not ok and "detector is inactive" in message, message
     assert g.orch.state == "idle" and g.safe()
     g.grabber.trigger_activate()
-    assert ros.spin_until(lambda: g.orch._device_state["detector"][1] == "active", timeout_s=10.0)
+    assert ros.spin_until(lambda: g.orch.scan.device_state["detector"][1] == "active", timeout_s=10.0)
     g.start()
     assert g.orch.running
     g.orch.abort("test over")

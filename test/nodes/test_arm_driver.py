@@ -162,3 +162,31 @@ def test_end_to_end_over_ur_rtde_with_controller_loss(ros):
         assert ros.spin_until(lambda: probe.last_level("detector") == DiagnosticStatus.ERROR)
     finally:
         emu.stop()
+
+
+def test_bad_parameters_are_refused_with_a_clear_error(ros):
+    """A wrong value is a one-line ValueError naming the parameter, before anything starts."""
+    import pytest
+
+    for params, words in (({"role": "elbow"}, ("parameter role", "source, detector")),
+                          ({"speed": "fast"}, ("parameter speed", "DOUBLE")),
+                          ({"sim_sigma_mm": -0.5}, ("parameter sim_sigma_mm",)),
+                          ({"sim_fail_after_moves": -3}, ("parameter sim_fail_after_moves", ">= 0"))):
+        with pytest.raises(ValueError) as err:
+            ArmDriverNode(context=ros.context, parameter_overrides=[Parameter(k, value=v) for k, v in params.items()])
+        message = str(err.value)
+        assert "\n" not in message and all(w in message for w in words), message
+
+
+def test_executable_refuses_a_bad_parameter_without_a_traceback(monkeypatch):
+    """``ros2 run robot_ct_ros arm_driver --ros-args -p speed:=fast`` says why in one line and exits 2."""
+    import os
+    import subprocess
+
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_DOMAIN_ID=str(150 + os.getpid() % 50),
+               PYTHONPATH=str(Path(__file__).resolve().parents[2]))
+    proc = subprocess.run([sys.executable, "-m", "robot_ct_ros.nodes.arm_driver", "--ros-args", "-p", "speed:=fast",
+                           "-p", "autostart:=false"], capture_output=True, text=True, env=env, timeout=60)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert "Traceback" not in proc.stderr and "parameter speed" in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr

@@ -120,3 +120,10 @@ def test_hand_eye_parameters_are_used(ros):
     np.testing.assert_allclose(s, expect.source_mm[0], atol=1e-6)
     np.testing.assert_allclose(d, expect.detector_mm[0], atol=1e-6)
     np.testing.assert_allclose(v, expect.v[0], atol=1e-9)
+
+
+def test_bad_parameter_values_are_refused_with_a_clear_error(ros):
+    import pytest
+
+    with pytest.raises(ValueError, match="parameter max_pose_age_s.*out of range"):
+        GeometryPublisherNode(context=ros.context, parameter_overrides=[Parameter("max_pose_age_s", value=-0.1)])

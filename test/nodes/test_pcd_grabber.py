@@ -66,7 +66,7 @@ class Probe:
     def set_beam(self, ros, node, on):
         assert ros.wait_for_subscribers(self.beam)
         self.beam.publish(Bool(data=on))
-        assert ros.spin_until(lambda: node._beam_log and node._beam_log[-1][1] == on)
+        assert ros.spin_until(lambda: node.beam_log.entries and node.beam_log.entries[-1][1] == on)
 
     def level(self):
         levels = [s.level for a in self.diag for s in a.status if s.name.endswith(": detector")]
@@ -85,7 +85,7 @@ def test_frame_on_request_with_true_geometry_and_latched_maps(ros):
     geom = tiny_geometry()
     S, D = tool_goals_from_geometry(geom, HandEye())
     probe.publish_poses(ros, S[1], D[1])
-    assert ros.spin_until(lambda: len(node._true_pose) == 2)
+    assert ros.spin_until(lambda: len(node.true_poses) == 2)
     probe.set_beam(ros, node, True)
     answer = ros.call(probe.expose, Trigger.Request())
     assert answer.success, answer.message
@@ -122,7 +122,7 @@ def test_requests_never_block_the_executor(ros):
     probe.set_beam(ros, node, True)
     assert ros.wait_for_service(probe.expose)
     first = probe.expose.call_async(Trigger.Request())
-    assert ros.spin_until(lambda: node._pending is not None)
+    assert ros.spin_until(lambda: node.exposures.pending is not None)
     second = probe.expose.call_async(Trigger.Request())
     assert ros.spin_until(second.done)
     assert not first.done()
@@ -185,10 +185,10 @@ def test_lifecycle_configure_activate_deactivate_cleanup(ros):
     geom = tiny_geometry()
     S, D = tool_goals_from_geometry(geom, HandEye())
     probe.publish_poses(ros, S[0], D[0])
-    assert ros.spin_until(lambda: len(node._true_pose) == 2)
+    assert ros.spin_until(lambda: len(node.true_poses) == 2)
     probe.set_beam(ros, node, True)
     call = probe.expose.call_async(Trigger.Request())
-    assert ros.spin_until(lambda: node._pending is not None)
+    assert ros.spin_until(lambda: node.exposures.pending is not None)
     assert _transition(ros, change, Transition.TRANSITION_DEACTIVATE)  # mid-exposure
     assert ros.spin_until(call.done)
     assert not call.result().success and "deactivated" in call.result().message
@@ -218,9 +218,40 @@ def test_beam_coming_on_mid_exposure_rejects_the_frame(ros):
     probe.set_beam(ros, node, False)
     assert ros.wait_for_service(probe.expose)
     call = probe.expose.call_async(Trigger.Request())
-    assert ros.spin_until(lambda: node._pending is not None)
+    assert ros.spin_until(lambda: node.exposures.pending is not None)
     probe.set_beam(ros, node, True)
     assert ros.spin_until(call.done)
     assert not call.result().success and "beam interrupted" in call.result().message
     assert 0.0 < node.last_beam_fraction < 1.0
     assert ros.spin_until(lambda: probe.rejected) and not probe.frames
+
+
+def test_bad_parameters_are_refused_with_a_clear_error(ros):
+    """A negative exposure, a string for a float, an inconsistent pair, a short list: one line naming the
+    parameter, raised before anything is built."""
+    import pytest
+
+    cases = (({"exposure_s": -0.1}, ("parameter exposure_s", "out of range")),
+             ({"exposure_s": "fast"}, ("parameter exposure_s", "STRING", "DOUBLE")),
+             ({"exposure_s": 3.0}, ("exposure_s < exposure_timeout_s",)),
+             ({"sim_phantom": "teapot"}, ("parameter sim_phantom", "mouse, battery, carotid")),
+             ({"sim_region_center_m": [0.4, 0.0]}, ("parameter sim_region_center_m", "needs 3")),
+             ({"sim_roi_size_m": [0.01, -0.01, 0.01]}, ("parameter sim_roi_size_m", ">= 0")))
+    for params, words in cases:
+        with pytest.raises(ValueError) as err:
+            PcdGrabberNode("pcd_bad", context=ros.context, parameter_overrides=[
+                Parameter(k, value=v) for k, v in dict(TINY, **params).items()])
+        message = str(err.value)
+        assert "\n" not in message and all(w in message for w in words), message
+
+
+def test_simulation_settings_reach_the_detector(ros):
+    """The sim_* parameters are one settings object, and the detector is built from it."""
+    node = _grabber(ros, name="pcd_settings", autostart=False, sim_seed=5, sim_readout_s=0.01,
+                    sim_region_center_m=[0.4, 0.0, 0.29])
+    assert node.sim.seed == 5 and node.sim.region_center_m == (0.4, 0.0, 0.29) and node.sim.phantom == "mouse"
+    assert list(node.get_parameter("sim_region_center_m").value) == [0.4, 0.0, 0.29]
+    assert node.trigger_configure().name == "SUCCESS"
+    det = node.detector
+    assert det.readout_s == 0.01 and det.model.seed == 5 and det.model.chip_size_px == 10
+    assert det.config.shape == (12, 16) and det.config.raw_pixel_mm == 0.5

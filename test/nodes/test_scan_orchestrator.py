@@ -19,7 +19,8 @@ from robot_ct_ros.ct.hand_eye import HandEye, tool_goals_from_geometry
 from robot_ct_ros.nodes.arm_driver import ArmDriverNode
 from robot_ct_ros.nodes.common import ServiceThread
 from robot_ct_ros.nodes.hand_eye_params import ns_to_stamp, pose_to_matrix_mm
-from robot_ct_ros.nodes.scan_orchestrator import ScanOrchestratorNode, ScanProtocol
+from robot_ct_ros.hardware.scan_protocol import ScanProtocol
+from robot_ct_ros.nodes.scan_orchestrator import ScanOrchestratorNode
 from robot_ct_ros.nodes.source_control import SourceControlNode
 
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
@@ -113,7 +114,7 @@ class Graph:
     def start(self):
         assert self.ros.spin_until(lambda: all(a.lifecycle_state == "active" for a in self.arms))
         assert self.ros.spin_until(lambda: self.orch.set_beam.service_is_ready() and self.orch.expose.service_is_ready()
-                                   and all(np.isfinite(t) for t in self.orch._pose_t.values()))
+                                   and all(np.isfinite(t) for t in self.orch.scan.arm_pose_t.values()))
         answer = self.ros.call(self.start_client, Trigger.Request())
         assert answer.success, answer.message
         return answer
@@ -245,3 +246,13 @@ def test_abort_service(ros, tmp_path):
     answer = ros.call(g.abort_client, Trigger.Request())  # nothing running: still answers, still safe
     assert answer.success and "no scan running" in answer.message
     g.detector.release(False, "never answered")
+
+
+def test_bad_parameters_are_refused_with_a_clear_error(ros):
+    for params, words in (({"tick_period_s": 0.0}, ("parameter tick_period_s", "out of range")),
+                          ({"frame_timeout_s": "soon"}, ("parameter frame_timeout_s", "DOUBLE")),
+                          ({"autostart": 1}, ("parameter autostart", "BOOL"))):
+        with pytest.raises(ValueError) as err:
+            ScanOrchestratorNode(context=ros.context, parameter_overrides=_params(**params))
+        message = str(err.value)
+        assert "\n" not in message and all(w in message for w in words), message

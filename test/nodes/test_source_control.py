@@ -153,3 +153,14 @@ def test_bad_source_parameters_fail_configure(ros):
     node = ros.add(SourceControlNode(context=ros.context, parameter_overrides=[Parameter("kvp", value=200.0)]))
     assert node.lifecycle_state == "unconfigured" and node.interlock is None  # autostart stopped at configure
     assert "kVp" in node.last_error
+
+
+def test_bad_parameter_values_are_refused_with_a_clear_error(ros):
+    import pytest
+
+    for params, words in (({"max_report_age_s": -1.0}, ("parameter max_report_age_s", "out of range")),
+                          ({"kvp": "high"}, ("parameter kvp", "DOUBLE"))):
+        with pytest.raises(ValueError) as err:
+            SourceControlNode(context=ros.context,
+                              parameter_overrides=[Parameter(k, value=v) for k, v in params.items()])
+        assert "\n" not in str(err.value) and all(w in str(err.value) for w in words), str(err.value)

@@ -1,0 +1,283 @@
+"""Robot arm interface, the arm driver's settings, and the worker threads that drive an arm (no ROS import).
+
+Units and conventions (as UR uses them, and SI at ROS interfaces): a TCP pose is the 6-vector
+``[x, y, z, rx, ry, rz]`` -- position in metres and orientation as a rotation vector (axis times
+angle, radians) of the tool frame in the robot base frame; joint positions in radians.
+
+An arm (:class:`Arm`) is either a Universal Robots arm through ur-rtde
+(:class:`robot_ct_ros.hardware.ur_arm.URArm`) or its simulated twin
+(:class:`robot_ct_ros.hardware.simulated_arm.SimulatedArm`); :func:`make_arm` picks one from the
+settings. What differs between them is behind the interface: :meth:`Arm.snapshot` reads the
+measured state in one call and carries the true pose where the arm knows it (the simulated arm:
+it feeds the simulated detector), and the simulated arm's error injection is its own settings
+(:class:`robot_ct_ros.hardware.simulated_arm.SimulatedArmSettings`).
+
+:class:`ArmRunner` drives a connected arm from two threads, as the arm_driver node needs: one
+polls the state at a fixed rate, the other runs linear moves one at a time (the newest goal
+wins). A lost connection is recorded (:attr:`ArmRunner.lost_reason`) for the owner to act on.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+from typing import Callable, Protocol, Sequence, runtime_checkable
+
+import numpy as np
+
+from robot_ct_ros.parameters import setting, validate
+
+__all__ = ["ArmError", "ArmConnectionError", "ArmMotionError", "ArmSnapshot", "Arm", "as_pose", "pose_distance",
+           "ArmSettings", "make_arm", "ArmRunner"]
+
+
+class ArmError(RuntimeError):
+    """The arm refused or failed a command."""
+
+
+class ArmConnectionError(ArmError):
+    """The controller cannot be reached, stopped answering, or the connection was lost."""
+
+
+class ArmMotionError(ArmError):
+    """A move was refused or did not complete (the connection itself may still be fine)."""
+
+
+@dataclass(frozen=True)
+class ArmSnapshot:
+    """The state of an arm at one moment.
+
+    Attributes
+    ----------
+    tcp_pose : numpy.ndarray
+        Measured TCP pose ``[x, y, z, rx, ry, rz]`` (m, rad) in the base frame.
+    joint_positions : numpy.ndarray
+        Joint positions (rad), shoulder pan first.
+    true_tcp_pose : numpy.ndarray or None
+        Where the tool really is, when the arm knows it (the simulated arm); None for a real arm.
+    """
+
+    tcp_pose: np.ndarray
+    joint_positions: np.ndarray
+    true_tcp_pose: np.ndarray | None = None
+
+
+@runtime_checkable
+class Arm(Protocol):
+    """What the arm_driver node needs from an arm (real or simulated)."""
+
+    def connect(self) -> None: ...
+    def disconnect(self) -> None: ...
+    def move_linear(self, pose: Sequence[float], speed: float = 0.25, accel: float = 1.2,
+                    timeout_s: float | None = None) -> None: ...
+    def get_tcp_pose(self) -> np.ndarray: ...
+    def get_joint_positions(self) -> np.ndarray: ...
+    def snapshot(self) -> ArmSnapshot:
+        """The measured pose and joints read together (and the true pose where known); raises ArmError."""
+    @property
+    def is_connected(self) -> bool: ...
+
+
+def as_pose(pose: Sequence[float]) -> np.ndarray:
+    """A TCP pose as a float array of shape (6,).
+
+    Raises
+    ------
+    ValueError
+        Not 6 finite numbers.
+    """
+    p = np.asarray(pose, dtype=float).reshape(-1)
+    if p.shape != (6,) or not np.all(np.isfinite(p)):
+        raise ValueError(f"a TCP pose is 6 finite numbers [x, y, z, rx, ry, rz], got {pose!r}")
+    return p
+
+
+def pose_distance(a: Sequence[float], b: Sequence[float]) -> tuple[float, float]:
+    """Translation distance (m) and rotation angle (rad) between two TCP poses."""
+    from scipy.spatial.transform import Rotation
+
+    a, b = as_pose(a), as_pose(b)
+    dt = float(np.linalg.norm(a[:3] - b[:3]))
+    rel = Rotation.from_rotvec(b[3:]) * Rotation.from_rotvec(a[3:]).inv()
+    return dt, float(rel.magnitude())
+
+
+@dataclass(frozen=True)
+class ArmSettings:
+    """Connection and motion of one arm (the arm_driver's parameters of the same names, SI units)."""
+
+    robot_ip: str = setting("", "controller address; empty: the simulated arm")
+    connect_timeout_s: float = setting(10.0, "configure fails if the controller does not answer within this",
+                                       unit="s", minimum=0.0)
+    call_timeout_s: float = setting(2.0, "a state read slower than this counts as a lost connection",
+                                    unit="s", minimum=0.0)
+    move_timeout_s: float = setting(60.0, "a move not finished within this fails", unit="s", minimum=0.0)
+    speed: float = setting(0.25, "moveL tool speed", unit="m/s", minimum=0.0)
+    acceleration: float = setting(1.2, "moveL tool acceleration", unit="m/s^2", minimum=0.0)
+    position_tolerance_m: float = setting(1e-4, "in position: measured-to-goal distance at most", unit="m",
+                                          minimum=0.0)
+    orientation_tolerance_rad: float = setting(1e-3, "in position: measured-to-goal angle at most", unit="rad",
+                                               minimum=0.0)
+
+    def __post_init__(self):
+        validate(self)
+
+
+def make_arm(settings: ArmSettings, simulated=None) -> Arm:
+    """The arm the settings name: a UR arm at ``settings.robot_ip``, or a simulated arm when it is empty.
+
+    Parameters
+    ----------
+    settings : ArmSettings
+        Address and timeouts.
+    simulated : SimulatedArmSettings, optional
+        The simulated arm's errors and faults (default: none).
+
+    Returns
+    -------
+    Arm
+        Not yet connected.
+    """
+    if settings.robot_ip:
+        from robot_ct_ros.hardware.ur_arm import URArm
+
+        return URArm(settings.robot_ip, connect_timeout_s=settings.connect_timeout_s,
+                     call_timeout_s=settings.call_timeout_s, move_timeout_s=settings.move_timeout_s)
+    from robot_ct_ros.hardware.simulated_arm import SimulatedArm, SimulatedArmSettings
+
+    return SimulatedArm.from_settings(simulated or SimulatedArmSettings())
+
+
+class ArmRunner:
+    """Drives a connected arm from two daemon threads (module docstring).
+
+    Parameters
+    ----------
+    settings : ArmSettings
+        Speed, acceleration, move timeout and in-position tolerances.
+    rate_hz : float
+        State polling rate (at least 0.1 Hz).
+    on_move_failed : callable(str), optional
+        Called from the move thread with "move failed: <reason>" when a move fails (the
+        connection itself still up).
+
+    Notes
+    -----
+    :meth:`start` and :meth:`stop` are called by the owner's thread; :meth:`command`, the
+    read-outs and :meth:`in_position` from any thread. The last target and snapshot outlive
+    :meth:`stop` (diagnostics show them); in_position is false until a move completes again.
+    """
+
+    def __init__(self, settings: ArmSettings, rate_hz: float, on_move_failed: Callable[[str], None] | None = None):
+        self.settings = settings
+        self.period_s = 1.0 / max(float(rate_hz), 0.1)
+        self._on_move_failed = on_move_failed or (lambda message: None)
+        self.arm = None
+        self.active = False
+        self.snapshot: ArmSnapshot | None = None
+        self.target: np.ndarray | None = None
+        self.lost_reason: str | None = None
+        self.moves_completed = 0
+        self._lock = threading.Lock()
+        self._moving = False
+        self._move_ok = False
+        self._next_goal: np.ndarray | None = None
+        self._goal_event = threading.Event()
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+
+    def start(self, arm: Arm) -> None:
+        """Start polling and accepting goals for ``arm`` (connected)."""
+        self.arm, self.lost_reason = arm, None
+        self._stop.clear()
+        self.active = True
+        self._threads = [threading.Thread(target=self._poll_loop, name="arm_poll", daemon=True),
+                         threading.Thread(target=self._move_loop, name="arm_move", daemon=True)]
+        for t in self._threads:
+            t.start()
+
+    def stop(self) -> bool:
+        """Stop both threads (a move in flight ends on its own timeout; never waited for here).
+
+        Returns
+        -------
+        bool
+            Whether the runner was active.
+        """
+        was_active, self.active = self.active, False
+        self._stop.set()
+        self._goal_event.set()
+        for t in self._threads:
+            t.join(0.2 if t.name == "arm_move" else 2.0)
+        self._threads = []
+        with self._lock:
+            self._moving, self._move_ok, self._next_goal = False, False, None
+        return was_active
+
+    def command(self, goal: np.ndarray) -> None:
+        """Move to ``goal`` (TCP pose, m and rad) next; a goal not started yet is replaced."""
+        with self._lock:
+            self.target = goal
+            self._next_goal = goal
+            self._moving, self._move_ok = True, False
+            self._goal_event.set()
+
+    def in_position(self) -> bool:
+        """The last commanded move completed and the measured pose is within tolerance of it."""
+        with self._lock:
+            if self._moving or not self._move_ok or self.target is None or self.snapshot is None:
+                return False
+            dt, dr = pose_distance(self.snapshot.tcp_pose, self.target)
+        s = self.settings
+        return dt <= s.position_tolerance_m and dr <= s.orientation_tolerance_rad
+
+    def latest(self) -> ArmSnapshot | None:
+        with self._lock:
+            return self.snapshot
+
+    # -- threads ------------------------------------------------------------------------------
+    def _poll_loop(self) -> None:
+        arm = self.arm
+        while not self._stop.is_set():
+            t0 = time.monotonic()
+            try:
+                snap = arm.snapshot()
+            except ArmError as exc:
+                self._connection_lost(str(exc), arm)
+                return
+            with self._lock:
+                self.snapshot = snap
+            self._stop.wait(max(0.0, self.period_s - (time.monotonic() - t0)))
+
+    def _move_loop(self) -> None:
+        arm, s = self.arm, self.settings
+        while not self._stop.is_set():
+            self._goal_event.wait()
+            with self._lock:
+                goal, self._next_goal = self._next_goal, None
+                self._goal_event.clear()
+            if goal is None or self._stop.is_set():
+                continue
+            try:
+                arm.move_linear(goal, s.speed, s.acceleration, timeout_s=s.move_timeout_s)
+                with self._lock:
+                    if self._next_goal is None:
+                        self._moving, self._move_ok = False, True
+                self.moves_completed += 1
+            except ArmConnectionError as exc:
+                self._connection_lost(str(exc), arm)
+                return
+            except ArmError as exc:
+                self._on_move_failed(f"move failed: {exc}")
+                with self._lock:
+                    if self._next_goal is None:
+                        self._moving, self._move_ok = False, False
+
+    def _connection_lost(self, reason: str, arm) -> None:
+        with self._lock:
+            if arm is not self.arm or not self.active:
+                return  # a late failure of an arm we already let go of
+            if self.lost_reason is None:
+                self.lost_reason = reason
+            self._moving, self._move_ok = False, False

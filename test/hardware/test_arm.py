@@ -1,0 +1,145 @@
+"""The arm interface without ROS: settings, make_arm, snapshots, and the ArmRunner's threads."""
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from robot_ct_ros.hardware.arm import (Arm, ArmConnectionError, ArmMotionError, ArmRunner, ArmSettings, ArmSnapshot,
+                                       make_arm)
+from robot_ct_ros.hardware.simulated_arm import HOME_Q, SimulatedArm, SimulatedArmSettings, forward_kinematics
+from robot_ct_ros.hardware.ur_arm import URArm
+from robot_ct_ros.parameters import from_ros_values, ros_defaults
+
+
+def _wait(predicate, timeout_s=5.0):
+    end = time.monotonic() + timeout_s
+    while not predicate():
+        if time.monotonic() > end:
+            return False
+        time.sleep(0.005)
+    return True
+
+
+def test_settings_defaults_and_refusals():
+    assert ros_defaults(ArmSettings) == {
+        "robot_ip": "", "connect_timeout_s": 10.0, "call_timeout_s": 2.0, "move_timeout_s": 60.0, "speed": 0.25,
+        "acceleration": 1.2, "position_tolerance_m": 1e-4, "orientation_tolerance_rad": 1e-3}
+    assert ros_defaults(SimulatedArmSettings) == {"sigma_mm": 0.0, "sigma_deg": 0.0, "drift_mm_per_move": 0.0,
+                                                  "seed": 0, "motion_time_scale": 0.0, "fail_after_moves": -1}
+    with pytest.raises(ValueError, match="speed must be >= 0"):
+        ArmSettings(speed=-0.1)
+    with pytest.raises(ValueError, match="connect_timeout_s must be a number"):
+        ArmSettings(connect_timeout_s="soon")
+    # -1 on ROS is "never"; a count is kept as given
+    assert from_ros_values(SimulatedArmSettings, {"fail_after_moves": -1}).fail_after_moves is None
+    assert from_ros_values(SimulatedArmSettings, {"fail_after_moves": 3}).fail_after_moves == 3
+    with pytest.raises(ValueError, match="sigma_mm"):
+        SimulatedArmSettings(sigma_mm=-1.0)
+
+
+def test_make_arm_by_address():
+    arm = make_arm(ArmSettings(), SimulatedArmSettings(sigma_mm=0.3, seed=4, fail_after_moves=2))
+    assert isinstance(arm, SimulatedArm) and isinstance(arm, Arm)
+    assert arm.errors.sigma_mm == 0.3 and arm.errors.seed == 4 and arm.fail_after_moves == 2
+    ur = make_arm(ArmSettings(robot_ip="192.0.2.1", connect_timeout_s=3.0, move_timeout_s=7.0))
+    assert isinstance(ur, URArm) and isinstance(ur, Arm) and not ur.is_connected
+    assert (ur.host, ur.connect_timeout_s, ur.move_timeout_s) == ("192.0.2.1", 3.0, 7.0)
+
+
+def test_simulated_snapshot_carries_the_true_pose():
+    arm = SimulatedArm.from_settings(SimulatedArmSettings(sigma_mm=0.5, seed=1))
+    arm.connect()
+    goal = forward_kinematics(HOME_Q) + np.array([0.01, 0.0, -0.01, 0, 0, 0])
+    arm.move_linear(goal)
+    snap = arm.snapshot()
+    np.testing.assert_allclose(snap.tcp_pose, goal)
+    np.testing.assert_allclose(snap.true_tcp_pose, arm.true_tcp_pose())
+    assert 0.0 < np.linalg.norm(snap.true_tcp_pose[:3] - goal[:3]) < 5e-3
+    assert snap.joint_positions.shape == (6,)
+    arm.disconnect()
+    with pytest.raises(ArmConnectionError):
+        arm.snapshot()
+
+
+def test_runner_moves_and_reports_in_position():
+    arm = SimulatedArm()
+    arm.connect()
+    runner = ArmRunner(ArmSettings(), rate_hz=200.0)
+    runner.start(arm)
+    try:
+        assert _wait(lambda: runner.latest() is not None)
+        assert not runner.in_position()  # nothing commanded
+        goal = runner.latest().tcp_pose + np.array([0.02, 0.0, 0.01, 0, 0, 0])
+        runner.command(goal)
+        assert not runner.in_position()  # moving
+        assert _wait(runner.in_position)
+        assert runner.moves_completed == 1
+        np.testing.assert_allclose(runner.latest().tcp_pose, goal)
+    finally:
+        assert runner.stop()
+    assert not runner.in_position() and not runner.stop()
+    np.testing.assert_allclose(runner.target, goal)  # kept for diagnostics
+
+
+class _FlakyArm:
+    """An arm whose state reads fail after ``reads`` successes, and whose moves fail as told."""
+
+    def __init__(self, reads=3, move_error=None):
+        self.reads, self.move_error, self.is_connected = reads, move_error, True
+        self.pose = forward_kinematics(HOME_Q)
+
+    def snapshot(self):
+        if self.reads <= 0:
+            raise ArmConnectionError("controller gone")
+        self.reads -= 1
+        return ArmSnapshot(self.pose.copy(), np.zeros(6))
+
+    def move_linear(self, pose, speed=0.25, accel=1.2, timeout_s=None):
+        if self.move_error is not None:
+            raise self.move_error
+        self.pose = np.asarray(pose, float)
+
+
+def test_runner_records_a_lost_connection_and_move_failures():
+    failures = []
+    runner = ArmRunner(ArmSettings(), rate_hz=100.0, on_move_failed=failures.append)
+    runner.start(_FlakyArm(reads=3, move_error=ArmMotionError("protective stop")))
+    try:
+        assert _wait(lambda: runner.latest() is not None)
+        runner.command(runner.latest().tcp_pose)
+        assert _wait(lambda: failures)
+        assert failures == ["move failed: protective stop"] and runner.moves_completed == 0
+        assert _wait(lambda: runner.lost_reason == "controller gone")
+        assert not runner.in_position()
+    finally:
+        runner.stop()
+    # a failure of an arm the runner has let go of is not recorded
+    late = ArmRunner(ArmSettings(), rate_hz=100.0)
+    late._connection_lost("too late", object())
+    assert late.lost_reason is None
+
+
+def test_runner_newest_goal_wins():
+    gate = threading.Event()
+
+    class SlowArm(_FlakyArm):
+        def move_linear(self, pose, speed=0.25, accel=1.2, timeout_s=None):
+            gate.wait(2.0)
+            super().move_linear(pose)
+
+    arm = SlowArm(reads=10 ** 6)
+    runner = ArmRunner(ArmSettings(), rate_hz=200.0)
+    runner.start(arm)
+    try:
+        assert _wait(lambda: runner.latest() is not None)
+        first, second = arm.pose + [0.01, 0, 0, 0, 0, 0], arm.pose + [0.02, 0, 0, 0, 0, 0]
+        runner.command(first)
+        time.sleep(0.05)  # the first move is under way
+        runner.command(second)
+        gate.set()
+        assert _wait(runner.in_position)
+        np.testing.assert_allclose(arm.pose, second)
+    finally:
+        runner.stop()

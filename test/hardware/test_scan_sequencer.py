@@ -1,0 +1,310 @@
+"""The scan state machine without ROS: a scripted graph (fake ports, futures and clock) drives it."""
+
+import json
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import yaml
+
+from robot_ct_ros.ct.hand_eye import HandEye, tool_goals_from_geometry
+from robot_ct_ros.hardware.scan_protocol import ScanProtocol
+from robot_ct_ros.hardware.scan_sequencer import ScanSequencer, ScanSequencerSettings
+
+PROTOCOL = {"name": "seq", "n_views": 2, "roi_center_m": [0.4, 0.0, 0.3], "fov_diameter_m": 0.004,
+            "detector": {"n_rows": 6, "n_cols": 8, "binning": 2, "raw_pixel_m": 0.0005},
+            "exposure_s": 0.02, "settle_s": 0.05, "move_timeout_s": 5.0, "exposure_timeout_s": 1.0}
+
+
+class Future:
+    def __init__(self):
+        self._result, self._done = None, False
+
+    def set(self, success=True, message=""):
+        self._result, self._done = SimpleNamespace(success=success, message=message), True
+
+    def done(self):
+        return self._done
+
+    def result(self):
+        return self._result
+
+
+class Ports:
+    """Records what the sequencer does; every service and subscriber present."""
+
+    def __init__(self):
+        self.logs, self.goals, self.armed, self.status, self.info = [], [], [], [], []
+        self.beam_calls, self.expose_calls = [], []
+        self.ready = True
+
+    def log(self, level, message):
+        self.logs.append((level, message))
+
+    def publish_goals(self, goals):
+        self.goals.append(goals)
+
+    def publish_armed(self, armed):
+        self.armed.append(armed)
+
+    def publish_status(self, status):
+        self.status.append(status)
+
+    def publish_scan_info(self, info):
+        self.info.append(info)
+
+    def call_set_beam(self, on):
+        self.beam_calls.append((on, Future()))
+        return self.beam_calls[-1][1]
+
+    def call_expose(self):
+        self.expose_calls.append(Future())
+        return self.expose_calls[-1]
+
+    def beam_service_ready(self):
+        return self.ready
+
+    def expose_service_ready(self):
+        return self.ready
+
+    def armed_subscribers(self):
+        return 1 if self.ready else 0
+
+    def goal_subscribers(self, role):
+        return 1 if self.ready else 0
+
+
+class Rig:
+    def __init__(self, tmp_path, protocol=None, **settings):
+        path = tmp_path / "protocol.yaml"
+        path.write_text(yaml.safe_dump({"scan_protocol": dict(PROTOCOL, **(protocol or {}))}))
+        self.t = 100.0
+        self.ports = Ports()
+        self.seq = ScanSequencer(ScanSequencerSettings(protocol_file=str(path), **settings), HandEye(), self.ports,
+                                 clock=lambda: self.t)
+
+    def advance(self, dt=0.01, n=1):
+        for _ in range(n):
+            self.t += dt
+            self.seq.tick()
+
+    def report_arms(self, in_position=True):
+        """Both arms report, their measured poses at the current goals."""
+        goals = self.ports.goals[-1] if self.ports.goals else {}
+        for role in ("source", "detector"):
+            if role in goals:
+                self.seq.on_tool_pose(role, goals[role])
+            else:
+                self.seq.on_tool_pose(role, np.eye(4))
+            self.seq.on_in_position(role, in_position)
+
+    def arrive(self):
+        self.report_arms(False)
+        self.report_arms(True)
+
+    def run_view(self, stamp):
+        """From moving to the next view (or finishing), every answer positive."""
+        s, p = self.seq, self.ports
+        self.arrive()
+        self.advance()
+        assert s.state == "settling"
+        self.advance(0.03, 2)
+        assert s.state == "beam_on" and p.beam_calls[-1][0] is True
+        p.beam_calls[-1][1].set(True, "beam on")
+        s.on_beam(True)
+        self.advance()
+        assert s.state == "exposing"
+        p.expose_calls[-1].set(True, json.dumps({"stamp_ns": stamp, "exposure_s": 0.02}))
+        self.advance()
+        assert s.state == "beam_off" and p.beam_calls[-1][0] is False
+        s.on_beam(False)
+        p.beam_calls[-1][1].set(True, "beam off")
+        self.advance()
+        assert s.state == "waiting_frame"
+        s.on_frame(stamp, (6, 8))
+        self.advance()
+
+
+def test_a_scan_start_to_end(tmp_path):
+    rig = Rig(tmp_path)
+    s, p = rig.seq, rig.ports
+    assert p.armed == [False] and p.status[-1]["state"] == "idle" and p.status[-1]["n_views"] == 2
+    rig.report_arms(False)
+    ok, msg = s.start()
+    assert ok and "2 views (seq)" in msg and s.state == "moving" and p.armed[-1] is True
+    assert p.info[-1]["n_views"] == 2 and p.info[-1]["notes"]["scan_id"] == s.scan_id
+    # the goals are the protocol's trajectory through the inverse hand-eye transform
+    src, det = tool_goals_from_geometry(ScanProtocol.from_dict(PROTOCOL).geometry(), HandEye())
+    np.testing.assert_allclose(p.goals[0]["source"], src[0])
+    np.testing.assert_allclose(p.goals[0]["detector"], det[0])
+    assert s.start() == (False, "a scan is running (moving, view 0)")
+
+    rig.report_arms(True)  # in position without having left it: an old report, not an arrival
+    rig.advance()
+    assert s.state == "moving"
+    rig.run_view(1000)
+    assert s.view == 1 and s.frames == 1 and s.state == "moving" and len(p.goals) == 2
+    np.testing.assert_allclose(p.goals[1]["detector"], det[1])
+    rig.run_view(2000)
+    assert s.state == "finishing" and s.frame_stamps == [1000, 2000]
+    s.on_geometry(1000)
+    s.on_geometry(2000)
+    rig.advance()
+    assert s.state == "done" and s.message == "scan complete: 2 frames, 2 with geometry"
+    assert p.armed[-1] is False and s.health()[0] == "ok"
+    states = [st["state"] for st in p.status]
+    for state in ("moving", "settling", "beam_on", "exposing", "beam_off", "waiting_frame", "finishing", "done"):
+        assert state in states
+    assert [on for on, _ in p.beam_calls] == [True, False, True, False]
+
+
+def _started(tmp_path, **kw):
+    rig = Rig(tmp_path, **kw)
+    rig.report_arms(False)
+    assert rig.seq.start()[0]
+    return rig
+
+
+def _aborted(rig, *words):
+    s = rig.seq
+    assert s.state == "aborted", s.state
+    assert all(w in s.message for w in words), s.message
+    assert s.last_abort_reason == s.message and s.health()[0] == "error"
+    assert rig.ports.armed[-1] is False and rig.ports.beam_calls[-1][0] is False  # beam off requested
+
+
+def test_start_refused_until_the_graph_is_there(tmp_path):
+    rig = Rig(tmp_path)
+    rig.ports.ready = False
+    ok, msg = rig.seq.start()
+    assert not ok
+    for what in ("source/set_beam", "pcd/expose", "scan/armed", "source arm not reporting",
+                 "detector arm not reporting"):
+        assert what in msg
+    rig.ports.ready = True
+    rig.report_arms(False)
+    rig.seq.on_diagnostics([("/pcd_grabber: detector", False, "", "inactive")])
+    ok, msg = rig.seq.start()
+    assert not ok and "detector is inactive" in msg
+    rig.t += 5.0  # that report is too old to count either way (and the arms went silent)
+    rig.report_arms(False)
+    assert rig.seq.start()[0]
+
+
+def test_bad_protocol_is_refused_and_flagged(tmp_path):
+    rig = Rig(tmp_path, protocol={"n_views": 0})
+    assert rig.seq.protocol is None and rig.ports.logs[0][0] == "error"
+    assert rig.seq.health()[0] == "warn"
+    ok, msg = rig.seq.start()
+    assert not ok and msg.startswith("protocol:") and rig.seq.state == "idle"
+
+
+def test_arm_leaving_its_position_aborts(tmp_path):
+    rig = _started(tmp_path)
+    rig.arrive()
+    rig.advance()
+    assert rig.seq.state == "settling"
+    rig.seq.on_in_position("detector", False)
+    _aborted(rig, "detector arm left its position", "settling")
+
+
+def test_arm_falling_silent_or_never_arriving_aborts(tmp_path):
+    rig = _started(tmp_path)
+    rig.advance(0.6, 2)
+    _aborted(rig, "source arm silent")
+    rig = _started(tmp_path, protocol={"move_timeout_s": 0.5})
+    for _ in range(8):
+        rig.report_arms(True)
+        rig.advance(0.1)
+    _aborted(rig, "not in position within 0.5 s")
+
+
+def test_beam_refused_lost_or_unexpected_aborts(tmp_path):
+    rig = _started(tmp_path)
+    rig.arrive()
+    rig.advance(0.03, 3)
+    rig.ports.beam_calls[-1][1].set(False, "beam refused: e-stop latched")
+    rig.advance()
+    _aborted(rig, "beam refused", "e-stop")
+
+    rig = _started(tmp_path)
+    rig.arrive()
+    rig.advance(0.03, 3)
+    rig.ports.beam_calls[-1][1].set(True)
+    rig.seq.on_beam(True)
+    rig.advance()
+    assert rig.seq.state == "exposing"
+    rig.seq.on_beam(False)
+    _aborted(rig, "beam lost during view 0")
+
+    rig = _started(tmp_path)
+    rig.seq.on_beam(True)  # nobody asked for it
+    _aborted(rig, "beam on outside an exposure")
+
+
+def test_detector_failures_abort(tmp_path):
+    for answer, words in (((False, "detector timeout"), ("detector: detector timeout",)),
+                          ((True, "no json"), ("without a frame stamp",))):
+        rig = _started(tmp_path)
+        rig.arrive()
+        rig.advance(0.03, 3)
+        rig.ports.beam_calls[-1][1].set(True)
+        rig.seq.on_beam(True)
+        rig.advance()
+        rig.ports.expose_calls[-1].set(*answer)
+        rig.advance()
+        _aborted(rig, *words)
+
+
+def _waiting_frame(tmp_path, stamp):
+    rig = _started(tmp_path)
+    rig.arrive()
+    rig.advance(0.03, 3)
+    rig.ports.beam_calls[-1][1].set(True)
+    rig.seq.on_beam(True)
+    rig.advance()
+    rig.ports.expose_calls[-1].set(True, json.dumps({"stamp_ns": stamp}))
+    rig.advance()
+    rig.seq.on_beam(False)
+    rig.ports.beam_calls[-1][1].set(True)
+    rig.advance()
+    assert rig.seq.state == "waiting_frame"
+    return rig
+
+
+def test_frame_of_the_wrong_size_or_missing_aborts(tmp_path):
+    rig = _waiting_frame(tmp_path, 7)
+    rig.seq.on_frame(8, (6, 8))  # another frame: not the one exposed
+    rig.seq.on_frame(7, (4, 8))
+    rig.report_arms(True)
+    rig.advance()
+    _aborted(rig, "frame is 4 x 8", "6 x 8")
+    assert rig.seq.frames == 0
+    rig = _waiting_frame(tmp_path, 7)
+    for _ in range(5):
+        rig.report_arms(True)
+        rig.advance(0.5)
+    _aborted(rig, "frame of view 0 not received")
+
+
+def test_arm_driver_error_and_estop_abort(tmp_path):
+    rig = _started(tmp_path)
+    rig.seq.on_diagnostics([("/source_arm_driver: source arm", True, "connection lost", "unconfigured")])
+    _aborted(rig, "arm driver error", "connection lost")
+    rig = _started(tmp_path)
+    rig.seq.on_estop(True)
+    _aborted(rig, "e-stop")
+
+
+def test_autostart_retries_until_the_graph_is_up(tmp_path):
+    rig = Rig(tmp_path, autostart=True)
+    rig.ports.ready = False
+    rig.advance()
+    assert rig.seq.state == "idle" and rig.ports.logs[-1][1].startswith("autostart waiting: cannot start")
+    rig.ports.ready = True
+    rig.report_arms(False)
+    rig.advance(0.5)
+    assert rig.seq.state == "idle"  # tries once a second
+    rig.report_arms(False)
+    rig.advance(0.6)
+    assert rig.seq.state == "moving"
