@@ -1,4 +1,4 @@
-"""Scan bags: the rosbag2/MCAP recording of a CT scan (contract: README.md ("Bag format")).
+"""Scan bags: the rosbag2/MCAP recording of a CT scan (contract: docs/bag-format.md).
 
 ``ScanBagWriter`` / ``write_scan`` write, ``read_scan`` reads (recovering damaged bags),
 ``robot_ct_ros.bag.format`` holds the topics, message layouts and unit conversions.

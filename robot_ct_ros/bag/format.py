@@ -1,7 +1,7 @@
 """The scan bag contract (``robot_ct_ros.scan/1``): topics, message layouts, units, conversions.
 
 A scan bag is a rosbag2 bag (MCAP storage, CDR, ``ros2msg`` schemas) whose topics carry
-standard ROS 2 Jazzy messages; README.md ("Bag format") is the normative
+standard ROS 2 Jazzy messages; docs/bag-format.md is the normative
 text. This module is the only place where ROS units (metres, REP 103) meet the core's
 millimetres (robot_ct_ros.ct.geometry): every conversion happens here.
 

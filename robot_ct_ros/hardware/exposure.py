@@ -8,7 +8,7 @@ A request is refused while the gate is inactive or busy, and (a detector fault) 
 previous acquisition still hangs or the detector is not connected. :meth:`ExposureGate.cancel`
 answers an exposure in flight with failure and drops its frame (lifecycle deactivate).
 
-Beam-interrupted frames (README "Bag format"): a frame is usable when the beam was on throughout
+Beam-interrupted frames (docs/bag-format.md): a frame is usable when the beam was on throughout
 its exposure (a projection), or off throughout and already off at the request (a dark frame);
 any other frame (the beam dropped, or came on, during the exposure: the interlock or an e-stop
 cut it) is not (:func:`frame_usable`). The beam state is known by the reception times of the

@@ -18,7 +18,7 @@ Topics (contract names from robot_ct_ros.bag.format; relative names follow the n
               "n_cols"}) or with success false and the reason (detector timeout: no frame within
               exposure_timeout_s of the request; busy; not active; driver error; beam interrupted).
               <node>/change_state, <node>/get_state (lifecycle_msgs)
-Beam-interrupted frames (README "Bag format"; the rule: robot_ct_ros.hardware.exposure): a frame
+Beam-interrupted frames (docs/bag-format.md; the rule: robot_ct_ros.hardware.exposure): a frame
 neither a projection (beam on throughout) nor a dark frame (off throughout and at the request) is
 published on /ct/projection_rejected (same layout, no true geometry) and never on /ct/projection, so
 no geometry is made for it and neither the recorder's scan nor recon_service pairs it; pcd/expose

@@ -1,4 +1,4 @@
-"""recorder: records the scan topics into a scan bag (rosbag2 MCAP, README.md ("Bag format")).
+"""recorder: records the scan topics into a scan bag (rosbag2 MCAP, docs/bag-format.md).
 
 Subscribes (serialized, written unchanged)
   /ct/scan_info (std_msgs/String), /ct/flat_field, /ct/dead_pixels (sensor_msgs/Image): transient-local

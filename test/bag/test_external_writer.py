@@ -1,4 +1,4 @@
-"""Another lab's bag: written with rosbags alone, following README.md ("Bag format"), then read and calibrated.
+"""Another lab's bag: written with rosbags alone, following docs/bag-format.md, then read and calibrated.
 
 The writing part imports nothing from robot_ct_ros.bag (only the simulation, to have data).
 """
@@ -14,7 +14,7 @@ from scipy.spatial.transform import Rotation
 
 
 def _write_like_the_docs(path, frames, flat, stamps_ns, sources_m, detectors_m, us, vs, info):
-    # --- the recipe of README.md ("Bag format"), "Writing a scan bag with rosbags alone" ---
+    # --- the recipe of docs/bag-format.md, "Writing a scan bag with rosbags alone" ---
     ts = get_typestore(Stores.ROS2_JAZZY)
     T = ts.types
     String, Image, PoseArray = T["std_msgs/msg/String"], T["sensor_msgs/msg/Image"], T["geometry_msgs/msg/PoseArray"]

@@ -84,7 +84,7 @@ def test_line_integral_bag_needs_no_flat(tmp_path, tiny_scan):
 
 
 def test_rejected_frames_are_never_projections(tmp_path, tiny_scan, check_bag):
-    """A stamp on /ct/projection_rejected (README "Bag format") is not a view, even if a writer
+    """A stamp on /ct/projection_rejected (docs/bag-format.md) is not a view, even if a writer
     also put that frame and a geometry for it on /ct/projection and /ct/geometry."""
     geom, frames, flat, _ = tiny_scan
     stamps = default_stamps(12)
