@@ -217,6 +217,16 @@ def validate_scan_info(info) -> dict:
     for k in ("roi_size_m", "voxel_size_m"):
         if info.get(k) is not None and np.any(_vec3(info, k) <= 0):
             raise ScanBagError(f"/ct/scan_info: {k} must be positive")
+    d = info.get("roi_direction")
+    if d is not None:
+        try:
+            D = np.asarray(d, dtype=np.float64).reshape(3, 3)
+        except (TypeError, ValueError):
+            D = None
+        if D is None or not np.all(np.isfinite(D)) or np.abs(D.T @ D - np.eye(3)).max() > 1e-6 \
+                or np.linalg.det(D) < 0:
+            raise ScanBagError("/ct/scan_info: roi_direction must be 9 numbers, a rotation matrix row by row "
+                               "(its columns are the ROI grid's x, y, z axes in the world)")
     return info
 
 

@@ -339,19 +339,33 @@ class ScanData:
         except np.linalg.LinAlgError:
             return g.source_mm.mean(axis=0)
 
+    def grid_direction(self) -> np.ndarray:
+        """The reconstruction grid's direction: scan_info's ``roi_direction`` (9 values, row-major,
+        columns = the grid's x, y, z axes in the world) where given, else the frame whose z axis is
+        the scan axis (:func:`robot_ct_ros.ct.geometry.axis_frame`; the identity for a scan about z)."""
+        d = self.info.get("roi_direction")
+        if d is not None:
+            return np.asarray(d, dtype=np.float64).reshape(3, 3)
+        from robot_ct_ros.ct.geometry import axis_frame
+        from robot_ct_ros.ct.reconstruction import estimate_scan_axis
+
+        return axis_frame(estimate_scan_axis(self.geom))
+
     def default_grid(self, voxel_size_mm=None, shape_zyx=None) -> VolumeGrid:
-        """The reconstruction grid: scan_info's ROI (``roi_center_m``, ``roi_size_m``,
-        ``voxel_size_m``) where given, else the field of view of the scan centred on
-        :meth:`scan_center_mm` with voxels of pitch / magnification."""
+        """The reconstruction grid: scan_info's ROI (``roi_center_m``, ``roi_size_m`` along the
+        grid's own axes, ``voxel_size_m``, ``roi_direction``) where given, else the field of view of
+        the scan centred on :meth:`scan_center_mm` with voxels of pitch / magnification; its z axis
+        follows the scan axis (:meth:`grid_direction`)."""
         g = self.geom
         c = self.scan_center_mm()
+        D = self.grid_direction()
         mag = float(np.median(g.magnification(c)))
         if voxel_size_mm is None:
             voxel_size_mm = fmt.info_mm(self.info, "voxel_size_m")
         vs = (np.full(3, min(g.row_pitch_mm, g.col_pitch_mm) / mag) if voxel_size_mm is None
               else np.broadcast_to(np.asarray(voxel_size_mm, float), (3,)).copy())
         if shape_zyx is not None:
-            return VolumeGrid.centered(tuple(int(s) for s in shape_zyx), vs, c)
+            return VolumeGrid.centered(tuple(int(s) for s in shape_zyx), vs, c, D)
         size = fmt.info_mm(self.info, "roi_size_m")
         if size is None:
             # transaxial: up to the farther detector edge from the principal point; axial: rows
@@ -363,13 +377,9 @@ class ScanData:
             sdd = float(np.median(g.sdd_mm))
             radius = sod * reach / math.hypot(sdd, reach)
             axial = g.n_rows * g.row_pitch_mm / mag
-            axis = np.abs(np.median(g.v, axis=0))
-            size = np.full(3, 2 * radius)
-            k = int(np.argmax(axis))
-            if axis[k] > 0.9:
-                size[k] = axial
+            size = np.array([2 * radius, 2 * radius, axial])  # across, across, along the scan axis
         n = np.maximum(1, np.round(np.asarray(size) / vs).astype(int))
-        return VolumeGrid.centered(tuple(n[::-1]), vs, c)
+        return VolumeGrid.centered(tuple(n[::-1]), vs, c, D)
 
 
 def _decode(raw: RawBag, topic: str, msgtype: str, warnings: list) -> list:

@@ -5,8 +5,12 @@ Conventions (stated once, used everywhere in ``robot_ct_ros.ct``):
 * World frame: right-handed, millimetres, radians. Geometry is float64, images float32.
 * Volumes are numpy arrays indexed ``volume[k, j, i]`` (z, y, x; x fastest in memory).
   A :class:`VolumeGrid` maps index (i, j, k) to the world point
-  ``origin_mm + (i * dx, j * dy, k * dz)``: ``origin_mm`` is the centre of voxel
-  [0, 0, 0] (ITK's convention). ``voxel_size_mm`` and ``origin_mm`` are (x, y, z).
+  ``origin_mm + D @ (i * dx, j * dy, k * dz)``: ``origin_mm`` is the centre of voxel
+  [0, 0, 0] and the columns of the rotation ``D`` (``direction``) are the world directions
+  of the grid's x, y and z axes (ITK's convention; identity by default). ``voxel_size_mm``
+  and ``origin_mm`` are (x, y, z). No world axis is special: a scan about any axis is
+  reconstructed on a grid whose z axis follows it (:meth:`VolumeGrid.centered`'s
+  ``direction``), and the kernels work in the grid's own frame.
 * Projections are arrays ``proj[view, row, col]``. Column index c runs along the unit
   vector ``u`` (a detector row), row index r along the unit vector ``v`` (a detector
   column). The centre of pixel (r, c) lies at
@@ -52,17 +56,23 @@ def _normalized(a: np.ndarray) -> np.ndarray:
     return a / np.linalg.norm(a, axis=-1, keepdims=True)
 
 
+_IDENTITY = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+
+
 @dataclass(frozen=True)
 class VolumeGrid:
     """A regular voxel grid in the world frame.
 
     ``shape_zyx`` is the numpy array shape (nz, ny, nx); ``voxel_size_mm`` and
-    ``origin_mm`` are (x, y, z); ``origin_mm`` is the centre of voxel [0, 0, 0].
+    ``origin_mm`` are (x, y, z); ``origin_mm`` is the centre of voxel [0, 0, 0];
+    ``direction`` the 3 x 3 rotation (row-major, 9 values) whose columns are the world
+    directions of the grid's x, y and z axes (identity: axis-aligned).
     """
 
     shape_zyx: tuple[int, int, int]
     voxel_size_mm: tuple[float, float, float]
     origin_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    direction: tuple = _IDENTITY
 
     def __post_init__(self):
         object.__setattr__(self, "shape_zyx", tuple(int(s) for s in self.shape_zyx))
@@ -72,14 +82,33 @@ class VolumeGrid:
             raise ValueError(f"shape_zyx must be 3 positive ints, got {self.shape_zyx}")
         if len(self.voxel_size_mm) != 3 or min(self.voxel_size_mm) <= 0:
             raise ValueError(f"voxel_size_mm must be 3 positive numbers, got {self.voxel_size_mm}")
+        D = np.asarray(self.direction, dtype=np.float64).reshape(-1)
+        if D.size != 9 or not np.all(np.isfinite(D)):
+            raise ValueError("direction must be a 3 x 3 rotation matrix")
+        D = D.reshape(3, 3)
+        if np.abs(D.T @ D - np.eye(3)).max() > 1e-6 or np.linalg.det(D) < 0:
+            raise ValueError("direction must be a proper rotation (orthonormal columns, determinant +1)")
+        object.__setattr__(self, "direction", tuple(float(x) for x in D.reshape(-1)))
 
     @classmethod
-    def centered(cls, shape_zyx: Sequence[int], voxel_size_mm, center_mm=(0.0, 0.0, 0.0)) -> "VolumeGrid":
-        """A grid of ``shape_zyx`` voxels whose centre lies at ``center_mm`` (x, y, z)."""
+    def centered(cls, shape_zyx: Sequence[int], voxel_size_mm, center_mm=(0.0, 0.0, 0.0),
+                 direction=None) -> "VolumeGrid":
+        """A grid of ``shape_zyx`` voxels whose centre lies at ``center_mm`` (x, y, z), its axes
+        along the columns of ``direction`` (default: the world axes)."""
         vs = np.broadcast_to(np.asarray(voxel_size_mm, dtype=np.float64), (3,))
+        D = np.eye(3) if direction is None else np.asarray(direction, dtype=np.float64).reshape(3, 3)
         nxyz = np.array(shape_zyx[::-1], dtype=np.float64)
-        origin = np.asarray(center_mm, dtype=np.float64) - 0.5 * (nxyz - 1) * vs
-        return cls(tuple(shape_zyx), tuple(vs), tuple(origin))
+        origin = np.asarray(center_mm, dtype=np.float64) - D @ (0.5 * (nxyz - 1) * vs)
+        return cls(tuple(shape_zyx), tuple(vs), tuple(origin), tuple(D.reshape(-1)))
+
+    @property
+    def direction_matrix(self) -> np.ndarray:
+        """(3, 3) rotation: columns are the world directions of the grid's x, y, z axes."""
+        return np.asarray(self.direction, dtype=np.float64).reshape(3, 3)
+
+    @property
+    def axis_aligned(self) -> bool:
+        return self.direction == _IDENTITY
 
     @property
     def shape_xyz(self) -> tuple[int, int, int]:
@@ -87,37 +116,72 @@ class VolumeGrid:
 
     @property
     def center_mm(self) -> np.ndarray:
-        return np.asarray(self.origin_mm) + 0.5 * (np.array(self.shape_xyz) - 1) * np.asarray(self.voxel_size_mm)
+        return self.index_to_world(0.5 * (np.array(self.shape_xyz) - 1))
 
     @property
     def extent_mm(self) -> np.ndarray:
-        """Edge-to-edge size (x, y, z) in mm."""
+        """Edge-to-edge size along the grid's own x, y, z axes, in mm."""
         return np.array(self.shape_xyz) * np.asarray(self.voxel_size_mm)
 
+    def index_to_world(self, index_xyz) -> np.ndarray:
+        """World points (..., 3) of (fractional) voxel indices (..., 3) in (i, j, k) = (x, y, z) order."""
+        idx = np.asarray(index_xyz, dtype=np.float64)
+        return np.asarray(self.origin_mm) + (idx * np.asarray(self.voxel_size_mm)) @ self.direction_matrix.T
+
+    def world_to_index(self, points_mm) -> np.ndarray:
+        """Fractional voxel indices (..., 3) in (x, y, z) order of world points (..., 3)."""
+        p = np.asarray(points_mm, dtype=np.float64) - np.asarray(self.origin_mm)
+        return (p @ self.direction_matrix) / np.asarray(self.voxel_size_mm)
+
     def bounds_mm(self) -> tuple[np.ndarray, np.ndarray]:
-        """World (x, y, z) of the outer faces: lower and upper corners of the voxel box."""
-        lo = np.asarray(self.origin_mm) - 0.5 * np.asarray(self.voxel_size_mm)
-        return lo, lo + self.extent_mm
+        """World (x, y, z) lower and upper corners of the box that holds every voxel (the voxel
+        box itself for an axis-aligned grid)."""
+        half = 0.5 * self.extent_mm
+        reach = np.abs(self.direction_matrix) @ half
+        return self.center_mm - reach, self.center_mm + reach
 
     def axes_mm(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """World coordinates of the voxel centres along x, y and z."""
-        return tuple(
-            self.origin_mm[a] + self.voxel_size_mm[a] * np.arange(self.shape_xyz[a]) for a in range(3)
-        )
+        """Coordinates of the voxel centres along the grid's x, y and z axes: world coordinates
+        for an axis-aligned grid, else relative to the grid's own frame (``origin_mm`` rotated)."""
+        o = self.direction_matrix.T @ np.asarray(self.origin_mm)
+        return tuple(o[a] + self.voxel_size_mm[a] * np.arange(self.shape_xyz[a]) for a in range(3))
+
+    def resized(self, shape_zyx: Sequence[int], voxel_size_mm=None) -> "VolumeGrid":
+        """Another grid with the same centre and direction: ``shape_zyx`` voxels of
+        ``voxel_size_mm`` (default: this grid's)."""
+        return VolumeGrid.centered(tuple(shape_zyx), self.voxel_size_mm if voxel_size_mm is None else voxel_size_mm,
+                                   self.center_mm, self.direction_matrix)
 
     def binned(self, factor: int) -> "VolumeGrid":
         """The grid with ``factor``-times larger voxels covering the same box."""
         shape = tuple(max(1, s // factor) for s in self.shape_zyx)
-        vs = tuple(v * factor for v in self.voxel_size_mm)
-        return VolumeGrid.centered(shape, vs, self.center_mm)
+        return self.resized(shape, tuple(v * factor for v in self.voxel_size_mm))
+
+    def in_own_frame(self) -> tuple["VolumeGrid", np.ndarray]:
+        """This grid axis-aligned in its own frame, and the rotation R (= direction transposed)
+        that takes world coordinates into that frame: a kernel that assumes an axis-aligned grid
+        runs on (grid, geometry rotated by R) unchanged."""
+        R = self.direction_matrix.T
+        return VolumeGrid(self.shape_zyx, self.voxel_size_mm, tuple(R @ np.asarray(self.origin_mm))), R
+
+    def moved(self, rotation, translation_mm=(0.0, 0.0, 0.0)) -> "VolumeGrid":
+        """The grid after the rigid motion x -> rotation @ x + translation_mm (3 x 3, 3)."""
+        Rm = np.asarray(rotation, dtype=np.float64).reshape(3, 3)
+        return VolumeGrid(self.shape_zyx, self.voxel_size_mm,
+                          tuple(Rm @ np.asarray(self.origin_mm) + np.asarray(translation_mm, dtype=np.float64)),
+                          tuple((Rm @ self.direction_matrix).reshape(-1)))
 
     def to_dict(self) -> dict:
-        return {"shape_zyx": list(self.shape_zyx), "voxel_size_mm": list(self.voxel_size_mm),
-                "origin_mm": list(self.origin_mm)}
+        d = {"shape_zyx": list(self.shape_zyx), "voxel_size_mm": list(self.voxel_size_mm),
+             "origin_mm": list(self.origin_mm)}
+        if not self.axis_aligned:
+            d["direction"] = list(self.direction)
+        return d
 
     @classmethod
     def from_dict(cls, d: dict) -> "VolumeGrid":
-        return cls(tuple(d["shape_zyx"]), tuple(d["voxel_size_mm"]), tuple(d["origin_mm"]))
+        return cls(tuple(d["shape_zyx"]), tuple(d["voxel_size_mm"]), tuple(d["origin_mm"]),
+                   tuple(d.get("direction", _IDENTITY)))
 
 
 @dataclass(frozen=True, eq=False)
@@ -311,6 +375,14 @@ class ConeGeometry:
         rot = Rotation.from_rotvec(np.einsum("vij,vj->vi", B, p[:, 6:9]))
         return self.replace(source_mm=src, detector_mm=det, u=rot.apply(np.array(self.u)), v=rot.apply(np.array(self.v)))
 
+    def moved(self, rotation, translation_mm=(0.0, 0.0, 0.0)) -> "ConeGeometry":
+        """Every view after the rigid motion x -> rotation @ x + translation_mm (3 x 3, 3). The
+        9-DOF parameters relative to a geometry are invariant under it (local frames)."""
+        Rm = np.asarray(rotation, dtype=np.float64).reshape(3, 3)
+        t = np.asarray(translation_mm, dtype=np.float64)
+        return self.replace(source_mm=self.source_mm @ Rm.T + t, detector_mm=self.detector_mm @ Rm.T + t,
+                            u=self.u @ Rm.T, v=self.v @ Rm.T)
+
     def params_relative_to(self, nominal: "ConeGeometry") -> np.ndarray:
         """The 9-DOF parameters (n, 9) that take ``nominal`` to this geometry."""
         if nominal.n_views != self.n_views:
@@ -368,6 +440,22 @@ class ConeGeometry:
         return cls(source_mm=vec[:, 0:3], detector_mm=vec[:, 3:6], u=vec[:, 6:9] / cu[:, None],
                    v=vec[:, 9:12] / rv[:, None], n_rows=n_rows, n_cols=n_cols,
                    row_pitch_mm=float(rv[0]), col_pitch_mm=float(cu[0]))
+
+
+def axis_frame(axis) -> np.ndarray:
+    """A grid direction (3 x 3 rotation, columns x, y, z) whose z axis is the scan ``axis``: the
+    smallest rotation taking the world z axis there, the axis' sign chosen so that its largest
+    component is positive (a scan about +-z gets the identity, one about y a quarter turn about x)."""
+    a = np.asarray(axis, dtype=np.float64)
+    a = a / np.linalg.norm(a)
+    if a[np.argmax(np.abs(a))] < 0:
+        a = -a
+    v = np.cross([0.0, 0.0, 1.0], a)
+    c = float(a[2])
+    if np.linalg.norm(v) < 1e-12:
+        return np.eye(3)
+    vx = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    return np.eye(3) + vx + vx @ vx / (1.0 + c)
 
 
 def bin_projections(proj: np.ndarray, factor: int, mean: bool = False) -> np.ndarray:

@@ -107,11 +107,12 @@ def gauge_aligned_reprojection_error(est_geom: ConeGeometry, true_geom: ConeGeom
 
 
 def roi_points(grid: VolumeGrid, per_axis: int = 5, inner_fraction: float = 0.8) -> np.ndarray:
-    """A ``per_axis``^3 lattice of points spanning the inner part of ``grid`` (mm)."""
-    lo, hi = grid.bounds_mm()
-    c, half = 0.5 * (lo + hi), 0.5 * inner_fraction * (hi - lo)
-    axes = [np.linspace(c[a] - half[a], c[a] + half[a], per_axis) for a in range(3)]
-    return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    """A ``per_axis``^3 lattice of world points (mm) spanning the inner part of ``grid``, along
+    the grid's own axes."""
+    centre_idx = 0.5 * (np.array(grid.shape_xyz) - 1)
+    half_idx = 0.5 * inner_fraction * np.array(grid.shape_xyz)
+    axes = [np.linspace(centre_idx[a] - half_idx[a], centre_idx[a] + half_idx[a], per_axis) for a in range(3)]
+    return grid.index_to_world(np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3))
 
 
 # ----------------------------------------------------------------------------- projections
@@ -201,7 +202,7 @@ def edge_sharpness(volume, mask=None, percentile: float = 99.0) -> float:
 def sample_volume(volume, grid: VolumeGrid, points_mm, order: int = 1) -> np.ndarray:
     """Interpolated volume values at world points (..., 3); 0 outside."""
     pts = np.asarray(points_mm, np.float64)
-    idx = (pts - np.asarray(grid.origin_mm)) / np.asarray(grid.voxel_size_mm)  # (x, y, z) index
+    idx = grid.world_to_index(pts)  # (x, y, z) index
     coords = np.stack([idx[..., 2], idx[..., 1], idx[..., 0]]).reshape(3, -1)
     vals = ndimage.map_coordinates(np.asarray(volume, np.float32), coords, order=order, mode="constant")
     return vals.reshape(pts.shape[:-1])
@@ -294,7 +295,7 @@ def cap_thickness_mm(volume, grid: VolumeGrid, cap, step_mm: float = 0.005, n_li
     offs = np.linspace(-span, span, n_lines)
     pts = start[None, None, :] + r[None, :, None] * d + offs[:, None, None] * axis
     at_cap = start + 0.5 * cap.thickness_mm * d + offs[:, None] * axis
-    idx = (at_cap - np.asarray(grid.origin_mm)) / np.asarray(grid.voxel_size_mm)
+    idx = grid.world_to_index(at_cap)
     inside = np.all((idx >= 0) & (idx <= np.asarray(grid.shape_xyz) - 1), axis=1)
     if not inside.any():
         raise ValueError("no measurement line of the cap lies inside the grid")

@@ -47,18 +47,19 @@ def ray_geometry(geom: ConeGeometry, grid: VolumeGrid) -> np.ndarray:
     """Per-view ray table (n_views, 12) float64 in voxel-index units (x, y, z).
 
     Columns: source, centre of pixel (0, 0), step per column, step per row. Index
-    coordinates are ``(world_mm - origin_mm) / voxel_size_mm``.
+    coordinates are ``grid.world_to_index(world_mm)``: the grid's own frame, whatever its
+    direction, so the kernels only ever see an axis-aligned grid.
     """
-    origin = np.asarray(grid.origin_mm, dtype=np.float64)
+    D = grid.direction_matrix
     vs = np.asarray(grid.voxel_size_mm, dtype=np.float64)
     c0 = 0.5 * (geom.n_cols - 1) * geom.col_pitch_mm
     r0 = 0.5 * (geom.n_rows - 1) * geom.row_pitch_mm
     p00 = geom.detector_mm - c0 * geom.u - r0 * geom.v
     out = np.empty((geom.n_views, _NGEO), dtype=np.float64)
-    out[:, 0:3] = (geom.source_mm - origin) / vs
-    out[:, 3:6] = (p00 - origin) / vs
-    out[:, 6:9] = geom.u * geom.col_pitch_mm / vs
-    out[:, 9:12] = geom.v * geom.row_pitch_mm / vs
+    out[:, 0:3] = grid.world_to_index(geom.source_mm)
+    out[:, 3:6] = grid.world_to_index(p00)
+    out[:, 6:9] = (geom.u @ D) * geom.col_pitch_mm / vs
+    out[:, 9:12] = (geom.v @ D) * geom.row_pitch_mm / vs
     return out
 
 

@@ -590,12 +590,14 @@ def fdk_backproject(filtered: np.ndarray, geom: ConeGeometry, grid: VolumeGrid,
         raise ValueError(f"filtered projections must have shape {(geom.n_views,) + geom.det_shape}")
     if geom.n_rows < 2 or geom.n_cols < 2:
         raise ValueError("FDK back-projection needs at least 2 detector rows and columns")
-    # express P in coordinates relative to the grid centre: smaller numbers for float32
+    # express P in the grid's own frame, relative to its centre: axis-aligned voxels, and small
+    # numbers for float32
     centre = grid.center_mm
     T = np.eye(4)
+    T[:3, :3] = grid.direction_matrix
     T[:3, 3] = centre
     pm = np.ascontiguousarray(geom.projection_matrices() @ T)
-    origin = np.asarray(grid.origin_mm) - centre
+    origin = -0.5 * (np.array(grid.shape_xyz) - 1) * np.asarray(grid.voxel_size_mm)
     dx, dy, dz = grid.voxel_size_mm
     vol = np.zeros(grid.shape_zyx, dtype=np.float32)
     _fdk_backproject_kernel(q, pm, vol, float(origin[0]), float(origin[1]), float(origin[2]),
@@ -716,12 +718,14 @@ def cgls(line_integrals: np.ndarray, geom: ConeGeometry, grid: VolumeGrid, n_ite
 def resample(volume: np.ndarray, src: VolumeGrid, dst: VolumeGrid) -> np.ndarray:
     """Trilinear resampling of ``volume`` (on ``src``) at the voxel centres of ``dst``.
 
-    Both grids are axis-aligned in the world frame; a ``dst`` voxel outside ``src`` takes the
-    nearest border value (a coarse grid covering the same box as a fine one has its outer
-    voxel centres half a coarse voxel inside the box).
+    The grids may have any directions; a ``dst`` voxel outside ``src`` takes the nearest border
+    value (a coarse grid covering the same box as a fine one has its outer voxel centres half a
+    coarse voxel inside the box).
     """
-    scale = np.asarray(dst.voxel_size_mm) / np.asarray(src.voxel_size_mm)  # x, y, z
-    offset = (np.asarray(dst.origin_mm) - np.asarray(src.origin_mm)) / np.asarray(src.voxel_size_mm)
-    out = ndimage.affine_transform(np.asarray(volume, dtype=np.float32), scale[::-1], offset=offset[::-1],
+    # src index = A @ dst index + b, in (x, y, z) order; affine_transform works in (z, y, x)
+    A = (src.direction_matrix.T @ dst.direction_matrix) * np.asarray(dst.voxel_size_mm)[None, :] \
+        / np.asarray(src.voxel_size_mm)[:, None]
+    b = src.world_to_index(dst.origin_mm)
+    out = ndimage.affine_transform(np.asarray(volume, dtype=np.float32), A[::-1, ::-1], offset=b[::-1],
                                    output_shape=dst.shape_zyx, order=1, mode="nearest")
     return out.astype(np.float32, copy=False)

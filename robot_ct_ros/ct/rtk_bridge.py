@@ -135,13 +135,6 @@ def rtk_projection_matrices(geom: ConeGeometry) -> np.ndarray:
 
 
 # -------------------------------------------------------------------- images
-def _check_identity_direction(image) -> None:
-    itk, _ = _rtk()
-    d = itk.array_from_matrix(image.GetDirection())
-    if not np.allclose(d, np.eye(3), atol=1e-12):
-        raise ValueError("only images with identity direction are supported")
-
-
 def volume_to_itk(volume: np.ndarray, grid: VolumeGrid):
     """``itk.Image[F, 3]`` (size nx, ny, nz) holding a copy of ``volume[k, j, i]`` placed by ``grid``."""
     itk, _ = _rtk()
@@ -151,16 +144,18 @@ def volume_to_itk(volume: np.ndarray, grid: VolumeGrid):
     img = itk.image_from_array(vol.copy())
     img.SetSpacing([float(s) for s in grid.voxel_size_mm])
     img.SetOrigin([float(o) for o in grid.origin_mm])
+    if not grid.axis_aligned:  # ITK's direction has the same meaning: columns = the index axes in the world
+        img.SetDirection(itk.matrix_from_array(np.ascontiguousarray(grid.direction_matrix)))
     return img
 
 
 def itk_to_volume(image) -> tuple[np.ndarray, VolumeGrid]:
     """A float32 copy ``volume[k, j, i]`` of an ITK 3D image and its :class:`VolumeGrid`."""
     itk, _ = _rtk()
-    _check_identity_direction(image)
     vol = np.array(itk.array_from_image(image), dtype=np.float32, copy=True)
+    direction = np.array(itk.array_from_matrix(image.GetDirection()), dtype=np.float64)
     grid = VolumeGrid(vol.shape, tuple(float(s) for s in image.GetSpacing()),
-                      tuple(float(o) for o in image.GetOrigin()))
+                      tuple(float(o) for o in image.GetOrigin()), tuple(direction.reshape(-1)))
     return vol, grid
 
 

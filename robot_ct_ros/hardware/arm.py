@@ -6,7 +6,7 @@ angle, radians) of the tool frame in the robot base frame; joint positions in ra
 
 An arm (:class:`Arm`) is either a Universal Robots arm through ur-rtde
 (:class:`robot_ct_ros.hardware.ur_arm.URArm`) or its simulated twin
-(:class:`robot_ct_ros.hardware.simulated_arm.SimulatedArm`); :func:`make_arm` picks one from the
+(:class:`robot_ct_ros.hardware.simulated_arm.SimulatedArm`); :func:`robot_ct_ros.hardware.arms.make_arm` picks one from the
 settings. What differs between them is behind the interface: :meth:`Arm.snapshot` reads the
 measured state in one call and carries the true pose where the arm knows it (the simulated arm:
 it feeds the simulated detector), and the simulated arm's error injection is its own settings
@@ -29,7 +29,7 @@ import numpy as np
 from robot_ct_ros.parameters import setting, validate
 
 __all__ = ["ArmError", "ArmConnectionError", "ArmMotionError", "ArmSnapshot", "Arm", "as_pose", "pose_distance",
-           "ArmSettings", "make_arm", "ArmRunner"]
+           "ArmSettings", "ArmRunner"]
 
 
 class ArmError(RuntimeError):
@@ -122,31 +122,6 @@ class ArmSettings:
 
     def __post_init__(self):
         validate(self)
-
-
-def make_arm(settings: ArmSettings, simulated=None) -> Arm:
-    """The arm the settings name: a UR arm at ``settings.robot_ip``, or a simulated arm when it is empty.
-
-    Parameters
-    ----------
-    settings : ArmSettings
-        Address and timeouts.
-    simulated : SimulatedArmSettings, optional
-        The simulated arm's errors and faults (default: none).
-
-    Returns
-    -------
-    Arm
-        Not yet connected.
-    """
-    if settings.robot_ip:
-        from robot_ct_ros.hardware.ur_arm import URArm
-
-        return URArm(settings.robot_ip, connect_timeout_s=settings.connect_timeout_s,
-                     call_timeout_s=settings.call_timeout_s, move_timeout_s=settings.move_timeout_s)
-    from robot_ct_ros.hardware.simulated_arm import SimulatedArm, SimulatedArmSettings
-
-    return SimulatedArm.from_settings(simulated or SimulatedArmSettings())
 
 
 class ArmRunner:

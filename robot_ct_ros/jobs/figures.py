@@ -139,7 +139,7 @@ def _slices(volume, grid: VolumeGrid, center_mm, half_mm):
     """Zoomed axial (y, x at the centre z) and sagittal (z, y at the centre x) slices and their extents."""
     vol = np.asarray(volume, np.float32)
     ax = grid.axes_mm()
-    c = np.asarray(center_mm, float)
+    c = grid.direction_matrix.T @ np.asarray(center_mm, float)  # the grid's own frame, as axes_mm
     idx = [int(np.clip(np.argmin(np.abs(ax[a] - c[a])), 0, len(ax[a]) - 1)) for a in range(3)]
     sel = [np.flatnonzero(np.abs(ax[a] - c[a]) <= half_mm[a] + 1e-9) for a in range(3)]
     sel = [s if s.size else np.arange(len(ax[a])) for a, s in enumerate(sel)]

@@ -31,7 +31,8 @@ from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Bool
 
-from robot_ct_ros.hardware.arm import ArmError, ArmRunner, ArmSettings, make_arm
+from robot_ct_ros.hardware.arm import ArmError, ArmRunner, ArmSettings
+from robot_ct_ros.hardware.arms import make_arm
 from robot_ct_ros.hardware.simulated_arm import JOINT_NAMES, SimulatedArmSettings
 from robot_ct_ros.nodes.common import LifecycleSettings, declare_settings, publish_diagnostic, run_settings_node
 from robot_ct_ros.parameters import setting, validate

@@ -6,8 +6,8 @@ import time
 import numpy as np
 import pytest
 
-from robot_ct_ros.hardware.arm import (Arm, ArmConnectionError, ArmMotionError, ArmRunner, ArmSettings, ArmSnapshot,
-                                       make_arm)
+from robot_ct_ros.hardware.arm import Arm, ArmConnectionError, ArmMotionError, ArmRunner, ArmSettings, ArmSnapshot
+from robot_ct_ros.hardware.arms import make_arm
 from robot_ct_ros.hardware.simulated_arm import HOME_Q, SimulatedArm, SimulatedArmSettings, forward_kinematics
 from robot_ct_ros.hardware.ur_arm import URArm
 from robot_ct_ros.parameters import from_ros_values, ros_defaults

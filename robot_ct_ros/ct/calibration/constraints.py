@@ -84,7 +84,7 @@ def focus_conjugate_modes(line_integrals, nominal: ConeGeometry, params: np.ndar
             for trig, f in (("cos", np.cos), ("sin", np.sin)):
                 basis.append((name, int(k), trig, index, unit * f(k * t)))
     nz, ny, nx = grid.shape_zyx
-    slab = VolumeGrid.centered((min(nz, focus_slices), ny, nx), grid.voxel_size_mm, grid.center_mm)
+    slab = grid.resized((min(nz, focus_slices), ny, nx))
     fdk_kwargs = dict(fdk_kwargs or {})
 
     # only the inner part counts: the truncation ring and what lies near the edge of the field

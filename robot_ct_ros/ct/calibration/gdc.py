@@ -37,7 +37,7 @@ import numpy as np
 from scipy import ndimage
 
 from robot_ct_ros.ct.calibration.kernels import blas_single_threaded, detector_homographies, warp_projections
-from robot_ct_ros.ct.calibration.masks import as_view_mask, roi_support_mask
+from robot_ct_ros.ct.calibration.masks import as_view_mask, roi_support_mask, usable_views, view_chunks
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
 
 GDC_METHODS = ("gdc", "gdc-log")
@@ -201,8 +201,7 @@ def estimate_views_gdc(measured: np.ndarray, nominal: ConeGeometry, params0: np.
         if r > 0:
             # erode the mask by r pixels (squares of side 2r+1): LoG responses to masked edges are dropped
             mask = ~ndimage.binary_dilation(~mask, structure=np.ones((1, 2 * r + 1, 2 * r + 1), bool))
-    if np.any(mask.reshape(n, -1).sum(axis=1) < 10):
-        raise ValueError("a view has fewer than 10 usable pixels after masking")
+    views = usable_views(mask)  # the others keep their geometry
     fd = np.asarray(config.fd_step)
     scale = np.asarray(config.param_scale)
     cap = np.asarray(config.max_step)
@@ -212,11 +211,11 @@ def estimate_views_gdc(measured: np.ndarray, nominal: ConeGeometry, params0: np.
     cost = np.full(n, np.nan)
     cost_start = np.full(n, np.nan)
     prior_w = np.zeros(n)
-    info = {"metric": "l2" if sigma is None else f"log(sigma={sigma:g} px)", "cost": [], "accepted": []}
+    info = {"metric": "l2" if sigma is None else f"log(sigma={sigma:g} px)", "cost": [], "accepted": [],
+            "skipped_views": [int(v) for v in np.setdiff1d(np.arange(n), views)]}
     for it in range(config.iterations):
         accepted = np.zeros(n, bool)
-        for v0 in range(0, n, config.chunk_views):
-            idx = np.arange(v0, min(n, v0 + config.chunk_views))
+        for idx in view_chunks(views, config.chunk_views):
             nom_c, g = nominal.subset(idx), params[idx]
             pred, J, on_virtual = _jacobian_chunk(vol, grid, nom_c, g, fd, sigma)
             m = mask[idx] & on_virtual
@@ -248,9 +247,9 @@ def estimate_views_gdc(measured: np.ndarray, nominal: ConeGeometry, params0: np.
             accepted[idx] = ok
             cost[idx] = np.where(ok, cost_new, cost_cur)
         if it == 0:
-            info["cost"].append(float(np.mean(cost_start)))
-        info["cost"].append(float(np.mean(cost)))
-        info["accepted"].append(float(accepted.mean()))
+            info["cost"].append(float(np.nanmean(cost_start)) if views.size else float("nan"))
+        info["cost"].append(float(np.nanmean(cost)) if views.size else float("nan"))
+        info["accepted"].append(float(accepted[views].mean()) if views.size else 0.0)
         if progress is not None:
             progress(it, config.iterations, info)
     return params, info

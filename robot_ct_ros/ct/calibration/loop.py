@@ -169,6 +169,7 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
             fine_volume = "sirt"
     params = np.zeros((nominal.n_views, 9))
     history = []
+    skipped = set()  # views that saw too little of the grid to be estimated at some level
     # the coarse level's reconstruction with the geometry entering each iteration: its volume
     # for the coarse estimate, its FDK's NCC for undo_inconsistent, its SIRT correction for a
     # fine level without SIRT
@@ -186,7 +187,8 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
             cfg = narrowed(coarse_cfg, it)
             if rep:
                 cfg = method.fresh_samples(cfg, rep)
-            params, _ = estimate(li_c, nom_c, params, rec_c.volume, grid_c, cfg, mask_c)
+            params, coarse_info = estimate(li_c, nom_c, params, rec_c.volume, grid_c, cfg, mask_c)
+            skipped.update(coarse_info.get("skipped_views", ()))
             moved = moved_px(nom_c, params, before, points)
             say(f"iteration {it + 1}/{n_iter}: coarse estimate {rep + 1} done, views moved {moved:.3f} coarse px "
                 f"({time.perf_counter() - t0:.1f} s)")
@@ -197,6 +199,7 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
                                          sirt_iterations if fine_volume == "sirt" else 0, fdk_kwargs,
                                          inner_f, correction=correction, measure_fdk=False).volume
         params, fine_info = estimate(li_f, nom_f, params, vol, grid_f, narrowed(fine_cfg, it), mask_f)
+        skipped.update(fine_info.get("skipped_views", ()))
         params = remove_gauge(nominal.perturbed(params), nominal, points).params_relative_to(nominal)
         params = hold_magnification(nominal, params, points)
         if drift_order is not None:
@@ -237,5 +240,10 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
             break
     geom = nominal.perturbed(params)
     volume = fdk(li, geom, grid, valid_mask=mask, **fdk_kwargs)
+    notes = ()
+    if skipped:
+        notes = (f"{len(skipped)} view(s) saw too little of the grid to be estimated and kept their geometry: "
+                 f"{sorted(skipped)[:20]}{' ...' if len(skipped) > 20 else ''}",)
+        say(notes[0])
     return CalibrationResult(method.name, params, geom, volume, tuple(history), time.perf_counter() - t_start,
-                             settings=settings)
+                             settings=settings, notes=notes)

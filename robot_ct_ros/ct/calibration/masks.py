@@ -6,7 +6,12 @@ import numpy as np
 
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
 
-__all__ = ["roi_support_mask", "as_view_mask", "usable_data", "bin_masked"]
+__all__ = ["roi_support_mask", "as_view_mask", "usable_data", "bin_masked", "usable_views", "view_chunks",
+           "MIN_VIEW_PIXELS"]
+
+MIN_VIEW_PIXELS = 16
+"""A view with fewer usable pixels than this (its rays barely cross the grid, or its detector is
+mostly dead) is not estimated: it keeps its current geometry, i.e. the nominal one or the prior's."""
 
 
 def roi_support_mask(nominal: ConeGeometry, params: np.ndarray, grid: VolumeGrid, fraction: float,
@@ -22,11 +27,10 @@ def roi_support_mask(nominal: ConeGeometry, params: np.ndarray, grid: VolumeGrid
     from robot_ct_ros.ct.projector import forward_project
 
     geom = nominal.perturbed(params)
-    coarse = VolumeGrid.centered(tuple(max(2, s // 4) for s in grid.shape_zyx),
-                                 tuple(e / max(2, s // 4) for e, s in zip(grid.extent_mm, grid.shape_xyz)),
-                                 grid.center_mm)
+    coarse = grid.resized(tuple(max(2, s // 4) for s in grid.shape_zyx),
+                          tuple(e / max(2, s // 4) for e, s in zip(grid.extent_mm, grid.shape_xyz)))
     nz, ny, nx = coarse.shape_zyx
-    tall = VolumeGrid.centered((3 * nz, ny, nx), coarse.voxel_size_mm, coarse.center_mm)
+    tall = coarse.resized((3 * nz, ny, nx))
     chord = forward_project(np.ones(coarse.shape_zyx, np.float32), coarse, geom)
     chord_tall = forward_project(np.ones(tall.shape_zyx, np.float32), tall, geom)
     peak = chord.reshape(chord.shape[0], -1).max(axis=1)
@@ -55,3 +59,16 @@ def bin_masked(line_integrals: np.ndarray, valid_mask: np.ndarray, factor: int) 
     total = bin_projections(np.where(m > 0, line_integrals, 0.0).astype(np.float32), factor)
     count = bin_projections(m, factor)
     return (total / np.maximum(count, 1.0)).astype(np.float32), count > 0
+
+
+def usable_views(mask: np.ndarray, minimum: int = MIN_VIEW_PIXELS) -> np.ndarray:
+    """Indices of the views of an (n, rows, cols) pixel mask with at least ``minimum`` usable pixels."""
+    m = np.asarray(mask, bool)
+    return np.flatnonzero(m.reshape(m.shape[0], -1).sum(axis=1) >= minimum)
+
+
+def view_chunks(views: np.ndarray, size: int):
+    """The view indices ``views`` in consecutive chunks of at most ``size``."""
+    views = np.asarray(views, np.int64)
+    for v0 in range(0, views.size, max(1, int(size))):
+        yield views[v0:v0 + size]

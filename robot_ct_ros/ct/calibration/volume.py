@@ -99,5 +99,4 @@ def estimation_grid(grid: VolumeGrid, padding: float) -> VolumeGrid:
     """``grid`` widened ``padding`` times across (x and y, same voxels and centre): room for
     the part of the object outside the ROI that the truncated rays still cross."""
     nz, ny, nx = grid.shape_zyx
-    return VolumeGrid.centered((nz, int(round(ny * padding)), int(round(nx * padding))), grid.voxel_size_mm,
-                               grid.center_mm)
+    return grid.resized((nz, int(round(ny * padding)), int(round(nx * padding))))

@@ -96,6 +96,13 @@ class Primitive:
         c = np.asarray(self.center_mm)
         return c - ext, c + ext
 
+    def moved(self, rotation, translation_mm=(0.0, 0.0, 0.0)) -> "Primitive":
+        """The primitive after the rigid motion x -> rotation @ x + translation_mm."""
+        R = np.asarray(rotation, dtype=np.float64).reshape(3, 3)
+        c = R @ np.asarray(self.center_mm) + np.asarray(translation_mm, dtype=np.float64)
+        rotvec = Rotation.from_matrix(R @ self.rotation).as_rotvec()
+        return Primitive(self.kind, tuple(c), tuple(rotvec), self.params, self.value, self.mode, self.name)
+
     def analytic_volume_mm3(self) -> float:
         """Exact volume (mm^3) of the primitive (spiral: arc length x thickness x height)."""
         p = self.params
@@ -196,6 +203,12 @@ class Phantom:
         """World bounding box of all primitives (lower, upper corner)."""
         b = [p.bounds_mm() for p in self.primitives]
         return np.min([x[0] for x in b], axis=0), np.max([x[1] for x in b], axis=0)
+
+    def moved(self, rotation, translation_mm=(0.0, 0.0, 0.0)) -> "Phantom":
+        """The phantom after the rigid motion x -> rotation @ x + translation_mm (its cap, if any,
+        is dropped: a cap's measurement lines are given in the original frame)."""
+        return Phantom(self.name, tuple(p.moved(rotation, translation_mm) for p in self.primitives), self.background,
+                       None, dict(self.info))
 
     def grid(self, voxel_size_mm, margin_mm: float = 0.0) -> VolumeGrid:
         """A grid covering the whole phantom with the given voxel size."""
@@ -375,6 +388,9 @@ def voxelize(phantom, grid: VolumeGrid, supersample: int = 2) -> np.ndarray:
         phantom = Phantom("primitives", tuple(phantom))
     if supersample < 1:
         raise ValueError("supersample must be >= 1")
+    if not grid.axis_aligned:  # voxelise in the grid's own frame
+        grid, R = grid.in_own_frame()
+        phantom = phantom.moved(R)
     kind, mode, center, rot, par, value, bbox = phantom._arrays()
     nz, ny, nx = grid.shape_zyx
     return _voxelize_kernel(nz, ny, nx, np.asarray(grid.origin_mm, float), np.asarray(grid.voxel_size_mm, float),

@@ -10,7 +10,7 @@ from robot_ct_ros.ct.calibration.kernels import blas_single_threaded, warp_proje
 from robot_ct_ros.ct.calibration.lle.sampling import (best_fit_fraction, ranking, score_samples, score_warped,
                                                       source_offsets, virtual_margin_px)
 from robot_ct_ros.ct.calibration.lle.weights import WEIGHTINGS, background_basis, lle_weights, view_distances
-from robot_ct_ros.ct.calibration.masks import as_view_mask, roi_support_mask
+from robot_ct_ros.ct.calibration.masks import as_view_mask, roi_support_mask, usable_views, view_chunks
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
 
 __all__ = ["LLEConfig", "estimate_views", "default_lle_configs", "narrowed", "DEFAULT_BACKGROUND", "DRAWS",
@@ -91,7 +91,6 @@ def _shift_search(measured, nominal, params, vol, grid, config, mask_all):
     right period.
     """
     R = int(np.ceil(config.shift_search_px))
-    n = nominal.n_views
     pitch = np.array([nominal.col_pitch_mm, nominal.row_pitch_mm])
     out = params.copy()
     for step, reach in ((1.0, R), (0.5, 1)):
@@ -100,8 +99,7 @@ def _shift_search(measured, nominal, params, vol, grid, config, mask_all):
         offsets = np.stack([du, dv], axis=1) * pitch  # mm, includes (0, 0)
         S = offsets.shape[0]
         margin = (int(np.ceil(reach * step)) + 2, int(np.ceil(reach * step)) + 2)
-        for v0 in range(0, n, config.chunk_views):
-            idx = np.arange(v0, min(n, v0 + config.chunk_views))
+        for idx in view_chunks(usable_views(mask_all), config.chunk_views):
             c = idx.size
             sample_params = np.repeat(out[idx][:, None, :], S, axis=1)
             sample_params[:, :, 3:5] += offsets
@@ -148,15 +146,16 @@ def estimate_views(measured: np.ndarray, nominal: ConeGeometry, params0: np.ndar
         params = _shift_search(measured, nominal, params, vol, grid, config, mask_all)
     rng = np.random.default_rng(config.seed)
     h0 = np.asarray(config.half_width, dtype=np.float64)
-    info = {"best_distance": [], "chosen_distance": [], "independent_fraction": []}
+    views = usable_views(mask_all)  # the others keep their geometry (they lean on the prior)
+    info = {"best_distance": [], "chosen_distance": [], "independent_fraction": [],
+            "skipped_views": [int(v) for v in np.setdiff1d(np.arange(n), views)]}
     for level in range(config.levels):
         h = h0 * config.shrink ** level
         src_offsets = source_offsets(config.source_positions, h)
         n_src = src_offsets.shape[0]
         margin = virtual_margin_px(nominal, h)
         best_d, chosen_d, fractions = [], [], []
-        for v0 in range(0, n, config.chunk_views):
-            idx = np.arange(v0, min(n, v0 + config.chunk_views))
+        for idx in view_chunks(views, config.chunk_views):
             c = idx.size
             nom_c, g = nominal.subset(idx), params[idx]
             # one ray-cast per source position; samples: a source position each, detector pose
@@ -223,7 +222,7 @@ def estimate_views(measured: np.ndarray, nominal: ConeGeometry, params0: np.ndar
                 chosen_d.append(d_new)
             params[idx] = g_new
             best_d.append(d_best)
-        info["best_distance"].append(float(np.mean(np.concatenate(best_d))))
+        info["best_distance"].append(float(np.mean(np.concatenate(best_d))) if best_d else float("nan"))
         if chosen_d:
             info["chosen_distance"].append(float(np.mean(np.concatenate(chosen_d))))
         if fractions:
