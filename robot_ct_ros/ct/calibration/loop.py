@@ -92,7 +92,8 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
     say = progress or (lambda message: None)
     if not method.uses_prior and settings.prior_sigma is not None:
         settings = settings.without_prior()
-        say(f"{method.name} has no prior: the robots' error (prior_sigma) is not used")
+        if method.estimate is not None:
+            say(f"{method.name} has no prior: the robots' error (prior_sigma) is not used")
     kw = dict(valid_mask=valid_mask, drift_times=drift_times, gauge_points_mm=gauge_points_mm, configs=configs,
               focus_modes=focus_modes, fdk_kwargs=fdk_kwargs, progress=progress, on_iteration=on_iteration)
     if settings.ensemble <= 1 or not method.samples or configs is not None:

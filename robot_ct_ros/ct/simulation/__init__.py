@@ -46,13 +46,14 @@ from robot_ct_ros.ct.simulation.detector import (DetectorModel, counts_to_line_i
 from robot_ct_ros.ct.simulation.errors import (GeometryErrorModel, SumOfErrorModels, detector_drift,
                                                robot_coordination, static_misalignment)
 from robot_ct_ros.ct.simulation.phantoms import (MU, CapGeometry, Phantom, Primitive, battery_phantom, box,
+                                                 interior_neck_phantom,
                                                  carotid_plaque_phantom, ellipsoid, elliptic_cylinder, mouse_phantom,
                                                  spiral, voxelize)
 from robot_ct_ros.ct.simulation.scan import (SimulatedScan, irradiated_bounds_mm, project_parts, raw_geometry,
                                              scan_volumes, simulate_scan)
 
 __all__ = ["MU", "Primitive", "Phantom", "CapGeometry", "ellipsoid", "elliptic_cylinder", "box", "spiral", "voxelize",
-           "mouse_phantom", "battery_phantom", "carotid_plaque_phantom", "DetectorModel", "simulate_flat",
+           "mouse_phantom", "battery_phantom", "carotid_plaque_phantom", "interior_neck_phantom", "DetectorModel", "simulate_flat",
            "simulate_counts", "counts_to_line_integrals", "GeometryErrorModel", "SumOfErrorModels",
            "robot_coordination", "detector_drift", "static_misalignment", "raw_geometry", "irradiated_bounds_mm",
            "scan_volumes", "SimulatedScan", "project_parts", "simulate_scan"]

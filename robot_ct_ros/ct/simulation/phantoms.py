@@ -594,3 +594,62 @@ def carotid_plaque_phantom(cap_thickness_mm: float = 0.065, lumen_radius_mm: flo
     return Phantom("carotid_plaque", tuple(P), cap=cap,
                    info={"cap_thickness_mm": cap_thickness_mm, "cap_mu": cap_mu, "lumen_mu": lumen_mu,
                          "seed": seed, "tangent": tuple(t)})
+
+
+def interior_neck_phantom(seed: int = 0, body_width_mm: float = 41.0) -> Phantom:
+    """A neck of additive ellipsoids for interior scans, with a carotid plaque at the origin.
+
+    The body is ``body_width_mm`` wide (an interior scan's field of view of ~6.6 mm sees a sixth
+    of it); outside the ROI: vertebrae (cortex, trabecular bone, neural arch, a transverse
+    process), trachea, muscles, a vein, a mandible-like bone and random blobs at all heights;
+    inside: the vessel wall and lumen, a plaque, a calcification, a rod and micro-calcifications.
+    The neck runs along z. Every primitive is an additive ellipsoid, so RTK's analytic projector
+    gives exact line integrals of the same object
+    (:func:`robot_ct_ros.ct.rtk_bridge.rtk_ellipsoid_projections`).
+    """
+    s = body_width_mm / 41.0
+    c = np.array([-9.0, -3.0, 0.0]) * s
+
+    def e(center, axes, density, name, about_y_deg=0.0, about_z_deg=0.0):
+        rot = Rotation.from_euler("zy", [about_z_deg, about_y_deg], degrees=True).as_rotvec()
+        return ellipsoid(tuple(center), tuple(axes), density, rotvec=tuple(rot), mode="add", name=name)
+
+    prims = [
+        e(c, (20.5 * s, 15.5 * s, 90.0), 0.018, "body (fat)"),
+        e(c, (18.5 * s, 13.5 * s, 90.0), 0.0025, "body (soft)"),
+        e(c + [0, -13 * s, 3.0], (7.5 * s, 5.5 * s, 7.0), 0.027, "vertebral cortex"),
+        e(c + [0, -13 * s, 3.0], (6.8 * s, 4.8 * s, 6.3), -0.017, "vertebral trabecular bone"),
+        e(c + [0, -13 * s, -13.0], (7.5 * s, 5.5 * s, 7.0), 0.027, "vertebral cortex 2"),
+        e(c + [0, -13 * s, -13.0], (6.8 * s, 4.8 * s, 6.3), -0.017, "vertebral trabecular bone 2"),
+        e(c + [0, -21.5 * s, 3.0], (4.5 * s, 2.8 * s, 5.0), 0.026, "neural arch"),
+        e(c + [5.5 * s, -12.5 * s, 0.0], (1.8 * s, 3.5 * s, 30.0), 0.02, "transverse process", about_y_deg=25.0),
+        e(c + [0, 10.0 * s, 0], (7.5 * s, 6.0 * s, 90.0), 0.002, "trachea wall"),
+        e(c + [0, 10.0 * s, 0], (6.5 * s, 5.0 * s, 90.0), -0.0225, "trachea air"),
+        e([2.0 * s, 7.5 * s, 0.0], (9.0 * s, 3.0 * s, 90.0), 0.0012, "muscle"),
+        e(c + [-11.0 * s, 6.0 * s, 0], (6.0 * s, 4.0 * s, 90.0), 0.0012, "muscle 2"),
+        e([5.5 * s, 3.2 * s, 0.0], (2.6 * s, 2.0 * s, 90.0), 0.0003, "jugular vein"),
+        e([7.0 * s, -6.5 * s, 0.0], (2.0 * s, 3.0 * s, 60.0), 0.010, "mandible-like bone", about_y_deg=15.0),
+    ]
+    rng = np.random.default_rng(seed)
+    while sum(p.name.startswith("blob") for p in prims) < 8:  # outside the field of view, all heights
+        p = c + rng.uniform([-17 * s, -12 * s, -8], [17 * s, 12 * s, 8])
+        if np.hypot(p[0], p[1]) < 5.0 or np.hypot((p[0] - c[0]) / (17 * s), (p[1] - c[1]) / (12 * s)) > 1.0:
+            continue
+        prims.append(e(p, rng.uniform(0.8, 3.0, 3), float(rng.choice([-1, 1]) * rng.uniform(0.003, 0.012)),
+                       f"blob {len(prims)}", about_y_deg=float(rng.uniform(-60, 60))))
+    prims += [
+        e([0.0, 0.0, 0.0], (2.7, 2.7, 90.0), 0.0015, "vessel wall"),
+        e([0.0, 0.0, 0.0], (2.0, 2.0, 90.0), -0.0013, "lumen"),
+        e([0.0, -2.3, 0.3], (1.8, 0.8, 2.5), 0.006, "plaque"),
+        e([1.2, -1.9, -0.5], (0.35, 0.25, 0.8), 0.05, "calcification", about_y_deg=30.0),
+        e([-0.3, 0.2, 0.6], (0.15, 0.15, 1.0), 0.02, "rod", about_y_deg=40.0),
+    ]
+    n = 0
+    while n < 7:
+        p = rng.uniform([-2.6, -2.6, -1.5], [2.6, 2.6, 1.5])
+        if np.hypot(p[0], p[1]) > 2.8:
+            continue
+        prims.append(e(p, rng.uniform(0.08, 0.2, 3), float(rng.uniform(0.02, 0.05)), f"micro-calcification {n}",
+                       about_y_deg=float(rng.uniform(-90, 90))))
+        n += 1
+    return Phantom("interior neck", tuple(prims), info={"body_width_mm": body_width_mm})
