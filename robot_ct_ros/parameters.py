@@ -202,8 +202,8 @@ def yaml_lines(cls, indent: int = 4, exclude=()) -> list[str]:
         if not s.ros or s.name in exclude:
             continue
         v = s.to_ros(s.default)
-        text = ("true" if v else "false") if isinstance(v, bool) else json.dumps(v) if isinstance(v, str) else (
-            repr(round(v, 9)) if isinstance(v, float) else str(v))
+        text = ("true" if v else "false") if isinstance(v, bool) else json.dumps(v) if isinstance(v, (str, list, tuple)) \
+            else (repr(round(v, 9)) if isinstance(v, float) else str(v))
         unit = f" [{s.ros_unit}]" if s.ros_unit else ""
         off = f"; {json.dumps(s.ros_none) if isinstance(s.ros_none, str) else s.ros_none} = off" if s.ros_none is not None \
             else ""

@@ -22,7 +22,7 @@ def test_node_yaml_lists_every_calibration_setting_with_its_default(node, exclud
 
 
 def test_recon_service_yaml_lists_the_services_own_settings():
-    from robot_ct_ros.nodes.recon_service import ServiceSettings
+    from robot_ct_ros.jobs.online import ServiceSettings
 
     params = yaml.safe_load((CONFIG / "recon_service.yaml").read_text())["recon_service"]["ros__parameters"]
     for name, default in ros_defaults(ServiceSettings).items():

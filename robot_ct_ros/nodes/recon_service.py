@@ -9,7 +9,7 @@ as ``robot-ct calibrate`` corrects a recorded bag. Publishes recon/progress, /ct
 recon/report and /diagnostics. every_n_views > 0 also corrects the frames so far every N frames
 during the scan, into ``<output_dir>/partial_NNNN`` (not published on /ct/geometry_corrected).
 Parameters: the calibration settings (robot_ct_ros.ct.calibration.CalibrationSettings, SI units)
-and the service's own (:class:`ServiceSettings`, plus roi_shape). Reference: docs/nodes.md.
+and the service's own (robot_ct_ros.jobs.online.ServiceSettings). Reference: docs/nodes.md.
 """
 
 from __future__ import annotations
@@ -17,11 +17,10 @@ from __future__ import annotations
 import json
 import threading
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseArray
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -32,28 +31,15 @@ from std_srvs.srv import Trigger
 from robot_ct_ros.bag import format as fmt
 from robot_ct_ros.bag.collector import PER_FRAME, ScanCollector
 from robot_ct_ros.ct.calibration import CalibrationSettings
-from robot_ct_ros.nodes.common import declare_settings, run_node
+from robot_ct_ros.jobs.online import RunPlanner, ServiceSettings
+from robot_ct_ros.nodes.common import declare_settings, publish_diagnostic, run_settings_node
 from robot_ct_ros.nodes.recorder import message_class
-from robot_ct_ros.parameters import setting
 
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 STREAM = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
 STATUS = QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 SLICES = ("axial", "sagittal", "coronal")
 PUBLISH_BATCH = 10  # corrected geometries per 50 ms tick: subscribers keep up, their depth-100 history never overflows
-
-
-@dataclass(frozen=True)
-class ServiceSettings:
-    """The recon_service's own parameters (the calibration's are CalibrationSettings)."""
-
-    voxel_size_m: float = setting(0.0, "voxel size (0: scan_info's, else pitch / magnification)", unit="m",
-                                  minimum=0.0, maximum=0.01)
-    output_dir: str = setting("recon_out", "folder of the correction's outputs")
-    auto_run: bool = setting(True, "correct when scan/status says the scan is done")
-    every_n_views: int = setting(0, "also correct every N frames during the scan (0: off)", minimum=0)
-    bag_path: str = setting("", "correct this bag instead of the collected topics (empty: the topics)")
-    evaluate_truth: bool = setting(True, "simulated scans: error against /ct/geometry_true in the report")
 
 
 def mid_slices(volume: np.ndarray) -> dict:
@@ -67,9 +53,6 @@ class ReconServiceNode(Node):
         super().__init__(node_name, **kwargs)
         self.settings = declare_settings(self, CalibrationSettings)
         self.service = declare_settings(self, ServiceSettings)
-        shape = [int(x) for x in self.declare_parameter("roi_shape", [0, 0, 0]).value]
-        self.shape = tuple(shape) if len(shape) == 3 and min(shape) > 0 else None
-        self.voxel_mm = self.service.voxel_size_m * 1e3 if self.service.voxel_size_m > 0 else None
         self.output_dir = Path(self.service.output_dir)
 
         self.scan = ScanCollector()
@@ -97,11 +80,7 @@ class ReconServiceNode(Node):
         self._lock = threading.Lock()
         self._done_gc = self.create_guard_condition(self._on_job_done)
         self._to_publish: list[bytes] = []
-        self._auto_pending: tuple[str, int, float] | None = None  # (scan_id, frames, deadline)
-        self._auto_done: set[str] = set()
-        self._scans_over: set[str] = set()  # scan ids scan/status reported done or aborted
-        self._full_run_started = False      # a whole-scan run of this collection started: no more partial runs
-        self._next_partial = self.service.every_n_views
+        self.planner = RunPlanner(self.service.auto_run, self.service.every_n_views)
         self._t_run = 0.0
         self.create_timer(0.05, self._tick)
         self.create_timer(1.0, self._publish_diagnostics)
@@ -124,7 +103,7 @@ class ReconServiceNode(Node):
     def _on_latched(self, topic: str, data: bytes) -> None:
         if self.scan.add_latched(topic, data):
             self.get_logger().info("collection reset: a new scan_info: new scan")
-            self._next_partial, self._full_run_started = self.service.every_n_views, False
+            self.planner.new_scan()
 
     def _on_frame(self, topic: str, data: bytes) -> None:
         if not self.scan.add_frame_message(topic, data):
@@ -132,17 +111,9 @@ class ReconServiceNode(Node):
 
     def _on_status(self, msg: String) -> None:
         try:
-            status = json.loads(msg.data)
-        except ValueError:
+            self.planner.on_status(json.loads(msg.data))
+        except (ValueError, AttributeError):
             return
-        sid = str(status.get("scan_id", ""))
-        if status.get("state") in ("done", "aborted"):
-            self._scans_over.add(sid)  # no partial run after the scan: the whole-scan run follows
-        if not self.service.auto_run or status.get("state") != "done":
-            return
-        if sid in self._auto_done or (self._auto_pending and self._auto_pending[0] == sid):
-            return
-        self._auto_pending = (sid, int(status.get("frames", 0)), time.monotonic() + 5.0)
 
     def _tick(self) -> None:
         if self._to_publish:  # corrected geometries, in batches
@@ -152,22 +123,15 @@ class ReconServiceNode(Node):
                 self.corrected_published += 1
         if self.running:
             return
-        if self._auto_pending is not None:
-            sid, frames, deadline = self._auto_pending
-            if self.n_paired >= frames or time.monotonic() > deadline:
-                self._auto_pending = None
-                self._auto_done.add(sid)
-                if self.n_paired == 0 and not self.service.bag_path:
-                    self.get_logger().info(f"scan {sid} done but no frame was collected here; nothing to correct")
-                    return
-                ok, why = self.start_run()
-                if not ok:
-                    self.get_logger().error(f"automatic correction not started: {why}")
-            return
-        every = self.service.every_n_views
-        if every > 0 and self.n_paired >= self._next_partial and not self._full_run_started \
-                and self.scan.scan_id not in self._scans_over:
-            self._next_partial = (self.n_paired // every + 1) * every
+        run = self.planner.next_run(self.n_paired, self.scan.scan_id)
+        if run == "full":
+            if self.n_paired == 0 and not self.service.bag_path:
+                self.get_logger().info("scan done but no frame was collected here; nothing to correct")
+                return
+            ok, why = self.start_run()
+            if not ok:
+                self.get_logger().error(f"automatic correction not started: {why}")
+        elif run == "partial":
             self.start_run(partial=True)
 
     # -- runs ---------------------------------------------------------------------------------------
@@ -195,7 +159,7 @@ class ReconServiceNode(Node):
         self.run_partial = partial
         self.partial_runs += partial
         self.full_runs += not partial
-        self._full_run_started |= not partial
+        self.planner.full_started |= not partial
         self.state, self.error, self._t_run = "running", "", time.monotonic()
         self.message = f"run {self.runs}: {n if n is not None else 'bag'} views, {self.method}"
         self._progress("start", self.message, self.runs, n)
@@ -220,7 +184,8 @@ class ReconServiceNode(Node):
             self.get_logger().info(line)
             self._progress("calibrate", line, run, n)
         try:
-            correction = calibrate_bag(bag, out, self.settings, voxel_mm=self.voxel_mm, shape_xyz=self.shape,
+            correction = calibrate_bag(bag, out, self.settings, voxel_mm=self.service.voxel_mm,
+                                       shape_xyz=self.service.shape_xyz,
                                        evaluate_truth=self.service.evaluate_truth, markdown=True, say=say)
             report = correction.report | {"partial": partial, "scan_id": self.scan.scan_id}
             result = (run, report, correction, None)
@@ -269,17 +234,13 @@ class ReconServiceNode(Node):
 
     # -- health -------------------------------------------------------------------------------------
     def _publish_diagnostics(self) -> None:
-        level = DiagnosticStatus.ERROR if self.state == "failed" else DiagnosticStatus.OK
         values = [("state", self.state), ("method", self.method), ("iterations", self.settings.iterations),
                   ("frames", self.scan.n_frames), ("paired", self.n_paired), ("runs", self.runs),
                   ("output_dir", self.output_dir), ("last_error", self.error),
                   ("report", (self.report or {}).get("paths", {}).get("report_json", ""))]
-        status = DiagnosticStatus(level=level, name=f"{self.get_fully_qualified_name()}: reconstruction",
-                                  hardware_id="recon_service", message=self.error or self.message,
-                                  values=[KeyValue(key=k, value=str(v)) for k, v in values])
-        msg = DiagnosticArray(status=[status])
-        msg.header.stamp = self.get_clock().now().to_msg()
-        self.diag_pub.publish(msg)
+        level = DiagnosticStatus.ERROR if self.state == "failed" else DiagnosticStatus.OK
+        publish_diagnostic(self, self.diag_pub, level, "reconstruction", "recon_service", self.error or self.message,
+                           values)
 
     def destroy_node(self):
         if self._worker is not None and self._worker.is_alive():
@@ -288,7 +249,7 @@ class ReconServiceNode(Node):
 
 
 def main(argv=None) -> int:
-    return run_node(ReconServiceNode, __doc__.splitlines()[0], argv)
+    return run_settings_node(ReconServiceNode, __doc__.splitlines()[0], argv)
 
 
 if __name__ == "__main__":
