@@ -549,8 +549,10 @@ def _fdk_backproject_kernel(q, pm, vol, ox, oy, oz, dx, dy, dz, view_chunk):
                 # voxels whose projection lies on the detector (pixel centres +- 1/2)
                 l1, h1 = _affine_ratio_range(au, bu, aw, bw, -0.5, nc - 0.5, nx)
                 l2, h2 = _affine_ratio_range(av, bv, aw, bw, -0.5, nr - 0.5, nx)
-                i0 = int(math.ceil(max(l1, l2)))
-                i1 = int(math.floor(min(h1, h2))) + 1
+                # clamp in floating point before converting: a view nearly parallel to a grid axis gives
+                # bounds near +-1e19, whose int() would overflow and wrap the loop's trip count
+                i0 = int(math.ceil(min(max(max(l1, l2), 0.0), nx * 1.0)))
+                i1 = int(math.floor(max(min(min(h1, h2), nx - 1.0), -1.0))) + 1
                 fau = np.float32(au)
                 fbu = np.float32(bu)
                 fav = np.float32(av)

@@ -332,3 +332,27 @@ def test_resample_reproduces_a_linear_field_between_grids():
     inner = (slice(1, -1),) * 3  # the outermost fine voxels lie outside the coarse centres (border value)
     np.testing.assert_allclose(up[inner], linear(fine)[inner], atol=1e-4)
     np.testing.assert_allclose(resample(linear(fine), fine, coarse), linear(coarse), atol=1e-4)
+
+
+def test_fdk_of_axis_aligned_views_with_tiny_residues_on_a_tall_grid_stays_in_bounds():
+    """A view at 180 degrees whose u is (-1, 1.2e-16, 0), on a grid taller than the cone: the
+    back-projection bounds of a voxel row reach +-1e19 and once overflowed the kernel's loop."""
+    import subprocess
+    import sys
+
+    code = """
+import numpy as np
+from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
+from robot_ct_ros.ct.reconstruction import fdk
+# four views of a circle about z; the one at 180 degrees has u = (-1, 1.2e-16, 0)
+g = ConeGeometry(source_mm=[[100.0, 0.0, 0.0], [0.0, 100.0, 0.0], [-100.0, 0.0, 0.0], [0.0, -100.0, 0.0]],
+                 detector_mm=[[-50.0, 0.0, 0.0], [0.0, -50.0, 0.0], [50.0, 0.0, 0.0], [0.0, 50.0, 0.0]],
+                 u=[[0.0, 1.0, 0.0], [-1.0, 1.2e-16, 0.0], [0.0, -1.0, 1e-17], [1.0, 0.0, 0.0]],
+                 v=[[0.0, 0.0, 1.0]] * 4, n_rows=8, n_cols=16, row_pitch_mm=0.5, col_pitch_mm=0.5)
+vol = fdk(np.ones((4, 8, 16), np.float32), g, VolumeGrid.centered((300, 24, 24), 0.3), truncation=None)
+assert np.isfinite(vol).all()
+print("ok")
+"""
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                          env={**__import__("os").environ, "NUMBA_BOUNDSCHECK": "1"})
+    assert proc.returncode == 0 and "ok" in proc.stdout, proc.stdout[-2000:] + proc.stderr[-2000:]
