@@ -7,7 +7,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 export PYTHONPATH := $(CURDIR)$(if $(PYTHONPATH),:$(PYTHONPATH))
 
-.PHONY: venv demo test bench bench-calibration bench-calibration-speed clean
+.PHONY: venv demo test bench bench-calibration bench-calibration-speed bench-interior bench-sweep clean
 
 venv: $(STAMP)
 
@@ -32,6 +32,12 @@ bench-calibration: $(STAMP)
 
 bench-calibration-speed: $(STAMP)
 	$(PY) bench/bench_calibration_speed.py --json docs/results/speed.json
+
+bench-interior: $(STAMP)
+	$(PY) bench/bench_interior.py --out docs/results
+
+bench-sweep: $(STAMP)
+	$(PY) bench/bench_truncation_sweep.py --out docs/results
 
 clean:
 	rm -rf out build install log .pytest_cache
