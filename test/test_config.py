@@ -17,7 +17,7 @@ def test_node_yaml_lists_every_calibration_setting_with_its_default(node, exclud
     for name, default in ros_defaults(CalibrationSettings).items():
         if name in exclude:
             continue
-        assert name in params, f"config/{node}.yaml lacks {name}"
+        assert name in params, f"config/{node}.yaml lacks {name}: python -m robot_ct_ros.nodes.config_files"
         assert params[name] == (pytest.approx(default) if isinstance(default, float) else default), name
 
 

@@ -37,6 +37,7 @@ import numpy as np
 from scipy import ndimage
 
 from robot_ct_ros.ct.calibration.kernels import blas_single_threaded, detector_homographies, warp_projections
+from robot_ct_ros.ct.calibration.model import as_model, project
 from robot_ct_ros.ct.calibration.masks import as_view_mask, roi_support_mask, usable_views, view_chunks
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
 
@@ -78,7 +79,7 @@ class GDCConfig:
     lambda_down: float = 0.3
     ridge: float = 1e-4
     prior: float = 0.05
-    roi_support_fraction: float = 0.3
+    roi_support_fraction: float | None = 0.3
     chunk_views: int = 8
 
     def __post_init__(self):
@@ -129,8 +130,6 @@ def _residual_cost(pred_f, meas_f, mask):
 
 def _jacobian_chunk(vol, grid, nom_c: ConeGeometry, g: np.ndarray, fd: np.ndarray, sigma):
     """Current filtered prediction (c, R, C) and central-difference Jacobian (c, 9, R, C)."""
-    from robot_ct_ros.ct.projector import forward_project
-
     c = nom_c.n_views
     R, C = nom_c.det_shape
     # virtual ray-casts: current source and +-fd along each source axis (7 per view)
@@ -142,7 +141,7 @@ def _jacobian_chunk(vol, grid, nom_c: ConeGeometry, g: np.ndarray, fd: np.ndarra
     src_params = (g[:, None, :] + src_off[None]).reshape(-1, 9)
     rep = nom_c.subset(np.repeat(np.arange(c), 7))
     virtual = rep.perturbed(src_params).with_detector(R + 2 * mr, C + 2 * mc)
-    images = forward_project(vol, grid, virtual)
+    images = project(vol, grid, virtual)
     # samples per view: 0 = current; 1..6 = source +-; 7..18 = detector params 3..8 +-
     samp_off = np.zeros((19, 9))
     img_of = np.zeros(19, np.int64)
@@ -180,17 +179,16 @@ def estimate_views_gdc(measured: np.ndarray, nominal: ConeGeometry, params0: np.
     after each iteration, index 0 = start), ``accepted`` (fraction of views whose step was
     kept, per iteration) and ``metric``.
     """
-    from robot_ct_ros.ct.projector import forward_project
-
     n = nominal.n_views
     meas = np.ascontiguousarray(measured, dtype=np.float32)
     if meas.shape != (n,) + nominal.det_shape:
         raise ValueError(f"measured {meas.shape} does not match the geometry ({n}, {nominal.det_shape})")
     params = np.array(params0, dtype=np.float64).reshape(n, 9)
-    vol = np.ascontiguousarray(volume, dtype=np.float32)
+    vol = as_model(volume)
     sigma = config.log_sigma_px
     valid = as_view_mask(valid_mask, meas.shape) & np.isfinite(meas)
-    mask = valid & roi_support_mask(nominal, params, grid, config.roi_support_fraction)
+    mask = valid if config.roi_support_fraction is None else (
+        valid & roi_support_mask(nominal, params, grid, config.roi_support_fraction))
     if sigma is None:
         meas_f = np.where(valid, meas, 0.0).astype(np.float32)
     else:
@@ -236,7 +234,7 @@ def estimate_views_gdc(measured: np.ndarray, nominal: ConeGeometry, params0: np.
             step = -np.linalg.solve(A + (damp + pw[:, None])[:, :, None] * np.eye(9), rhs[..., None])[..., 0] * scale
             step = np.clip(step, -cap, cap)
             trial = np.clip(g + step, start[idx] - dev, start[idx] + dev)
-            p_new = _filter(forward_project(vol, grid, nom_c.perturbed(trial)), sigma)
+            p_new = _filter(project(vol, grid, nom_c.perturbed(trial)), sigma)
             cost_new = _residual_cost(p_new, meas_f[idx], mask[idx]) + pw * ((trial / scale) ** 2).sum(axis=1)
             cost_cur = _residual_cost(pred, meas_f[idx], mask[idx]) + pw * (x ** 2).sum(axis=1)
             ok = cost_new < cost_cur

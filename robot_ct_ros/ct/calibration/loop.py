@@ -9,18 +9,22 @@ measurements behind the defaults: docs/calibration.md.
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import numpy as np
 
 from robot_ct_ros.ct.calibration.constraints import fit_drift, focus_conjugate_modes, hold_magnification, moved_px
 from robot_ct_ros.ct.calibration.ensemble import average_estimates, member_seeds
+from robot_ct_ros.ct.calibration.exterior import reconstruct_with_exterior
+from robot_ct_ros.ct.calibration.guard import plausibility_guard
 from robot_ct_ros.ct.calibration.kernels import blas_single_threaded
 from robot_ct_ros.ct.calibration.masks import bin_masked, usable_data
 from robot_ct_ros.ct.calibration.registry import get_method
 from robot_ct_ros.ct.calibration.result import CalibrationResult, IterationRecord
 from robot_ct_ros.ct.calibration.settings import CalibrationSettings
-from robot_ct_ros.ct.calibration.volume import (TRUNCATED_ABOVE, estimation_grid, projection_consistency,
-                                                reconstruct_for_estimation, truncation_level)
+from robot_ct_ros.ct.calibration.volume import (EXTERIOR_ABOVE, TRUNCATED_ABOVE, EstimationVolume, estimation_grid,
+                                                projection_consistency, reconstruct_for_estimation,
+                                                truncation_level)
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
 from robot_ct_ros.ct.metrics import remove_gauge, roi_points
 
@@ -90,12 +94,14 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
     settings = settings_with(settings, changes)
     method = get_method(settings.method)
     say = progress or (lambda message: None)
+    accuracy = settings.prior_sigma  # the robots' stated accuracy: the guard's reference, prior or not
     if not method.uses_prior and settings.prior_sigma is not None:
         settings = settings.without_prior()
         if method.estimate is not None:
             say(f"{method.name} has no prior: the robots' error (prior_sigma) is not used")
     kw = dict(valid_mask=valid_mask, drift_times=drift_times, gauge_points_mm=gauge_points_mm, configs=configs,
-              focus_modes=focus_modes, fdk_kwargs=fdk_kwargs, progress=progress, on_iteration=on_iteration)
+              focus_modes=focus_modes, fdk_kwargs=fdk_kwargs, progress=progress, on_iteration=on_iteration,
+              accuracy=accuracy)
     if settings.ensemble <= 1 or not method.samples or configs is not None:
         return _calibrate_once(line_integrals, nominal, grid, settings, **kw)
     runs = []
@@ -111,7 +117,7 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
 @blas_single_threaded
 def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, settings: CalibrationSettings, *,
                     valid_mask, drift_times, gauge_points_mm, configs, focus_modes, fdk_kwargs, progress,
-                    on_iteration) -> CalibrationResult:
+                    on_iteration, accuracy) -> CalibrationResult:
     """One run of the loop (the body of :func:`calibrate`).
 
     Each outer iteration reconstructs with the current geometry (FDK, then SIRT on a truncated
@@ -156,6 +162,25 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
     estimate, narrowed = method.estimate, method.narrow
     coarse_cfg, fine_cfg = configs if configs is not None else method.configs(settings)
     fdk_kwargs = dict(fdk_kwargs or {})
+    exterior = settings.exterior == "on"
+    if settings.exterior == "auto":
+        level = truncation_level(li, mask)
+        exterior = level > EXTERIOR_ABOVE
+        say(f"truncation level {level:.3f}: {'the object outside the ROI is modelled' if exterior else 'ROI model'}")
+    if exterior:  # every ray is modelled: no ROI support mask
+        coarse_cfg, fine_cfg = (replace(c, roi_support_fraction=None) for c in (coarse_cfg, fine_cfg))
+
+    def rebuild(li_l, geom_l, grid_l, mask_l, sirt_n, inner, correction=None, measure_fdk=True):
+        """The volume a level registers against: the ROI with the exterior, or FDK (+ SIRT) of the ROI."""
+        if exterior:
+            parts = reconstruct_with_exterior(li_l, geom_l, grid_l, mask_l, voxel_mm=settings.exterior_voxel_mm,
+                                              half_width_mm=settings.exterior_half_width_mm,
+                                              iterations=settings.exterior_iterations,
+                                              subsets=settings.exterior_subsets)
+            return EstimationVolume(parts, float("nan"), None)
+        return reconstruct_for_estimation(li_l, geom_l, grid_l, mask_l, sirt_n, fdk_kwargs, inner, correction=correction,
+                                          measure_fdk=measure_fdk)
+
     points = roi_points(grid) if gauge_points_mm is None else np.asarray(gauge_points_mm, float)
     grid_e = estimation_grid(grid, settings.padding)
     has_coarse = coarse_binning > fine_binning
@@ -174,7 +199,7 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
     # the coarse level's reconstruction with the geometry entering each iteration: its volume
     # for the coarse estimate, its FDK's NCC for undo_inconsistent, its SIRT correction for a
     # fine level without SIRT
-    rec_c = reconstruct_for_estimation(li_c, nom_c, grid_c, mask_c, sirt_iterations, fdk_kwargs, inner_c)
+    rec_c = rebuild(li_c, nom_c, grid_c, mask_c, sirt_iterations, inner_c)
     for it in range(n_iter):
         t0 = time.perf_counter()
         start = params.copy()
@@ -182,8 +207,7 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
         n_passes = (coarse_passes if it == 0 else 1) if has_coarse else 0
         for rep in range(n_passes):
             if rep:  # a warm-up pass: the coarse volume again, with the geometry of the last pass
-                rec_c = reconstruct_for_estimation(li_c, nom_c.perturbed(params), grid_c, mask_c, sirt_iterations,
-                                                   fdk_kwargs, inner_c)
+                rec_c = rebuild(li_c, nom_c.perturbed(params), grid_c, mask_c, sirt_iterations, inner_c)
             before = params
             cfg = narrowed(coarse_cfg, it)
             if rep:
@@ -195,10 +219,9 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
                 f"({time.perf_counter() - t0:.1f} s)")
             if moved < coarse_tol_px:
                 break
-        correction = (rec_c.volume - rec_c.fdk, grid_c) if fine_volume == "fdk+coarse-sirt" else None
-        vol = reconstruct_for_estimation(li_f, nom_f.perturbed(params), grid_f, mask_f,
-                                         sirt_iterations if fine_volume == "sirt" else 0, fdk_kwargs,
-                                         inner_f, correction=correction, measure_fdk=False).volume
+        correction = (rec_c.volume - rec_c.fdk, grid_c) if fine_volume == "fdk+coarse-sirt" and not exterior else None
+        vol = rebuild(li_f, nom_f.perturbed(params), grid_f, mask_f, sirt_iterations if fine_volume == "sirt" else 0,
+                      inner_f, correction=correction, measure_fdk=False).volume
         params, fine_info = estimate(li_f, nom_f, params, vol, grid_f, narrowed(fine_cfg, it), mask_f)
         skipped.update(fine_info.get("skipped_views", ()))
         params = remove_gauge(nominal.perturbed(params), nominal, points).params_relative_to(nominal)
@@ -213,8 +236,7 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
         moved = moved_px(nominal, params, start, points)
         last = it + 1 == n_iter or moved < stop_update_px
         # the next iteration's coarse volume (and the consistency check): not after the last
-        rec_next = (reconstruct_for_estimation(li_c, nom_c.perturbed(params), grid_c, mask_c, sirt_iterations,
-                                               fdk_kwargs, inner_c)
+        rec_next = (rebuild(li_c, nom_c.perturbed(params), grid_c, mask_c, sirt_iterations, inner_c)
                     if undo_inconsistent or not last else None)
         rmse, corr = projection_consistency(vol, grid_f, nom_f.perturbed(params), li_f, mask_f)
         step = params - start
@@ -222,7 +244,7 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
         rec = IterationRecord(it + 1, rmse, corr, float(np.sqrt((step[:, :6] ** 2).mean())),
                               float(np.rad2deg(np.sqrt((step[:, 6:] ** 2).mean()))), time.perf_counter() - t0,
                               fractions[-1], moved)
-        if undo_inconsistent and not rec_next.fdk_ncc > rec_in.fdk_ncc:
+        if undo_inconsistent and not exterior and not rec_next.fdk_ncc > rec_in.fdk_ncc:
             say(f"iteration {it + 1}/{n_iter}: data consistency fell ({rec_in.fdk_ncc:.5f} -> {rec_next.fdk_ncc:.5f}); "
                 f"undone, stopping")
             params = start
@@ -239,12 +261,23 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
             say(f"converged: the views moved less than {stop_update_px:g} px; stopping after {rec.iteration} of "
                 f"{n_iter} iterations")
             break
+    notes = []
+    if skipped:
+        notes.append(f"{len(skipped)} view(s) saw too little of the grid to be estimated and kept their geometry: "
+                     f"{sorted(skipped)[:20]}{' ...' if len(skipped) > 20 else ''}")
+    if exterior:
+        notes.append("the object outside the ROI was modelled (exterior model)")
+    if settings.guard and accuracy is not None:
+        checked = plausibility_guard(nominal, params, points, accuracy, max_ratio=settings.guard_max_ratio,
+                                     view_quantile=settings.guard_view_quantile, seed=settings.seed)
+        params = checked.params
+        notes.append(checked.note(settings.guard_max_ratio))
+    elif settings.guard:
+        notes.append("guard off: no robot accuracy stated (prior 0)")
+    for note in notes:
+        say(note)
     geom = nominal.perturbed(params)
     volume = fdk(li, geom, grid, valid_mask=mask, **fdk_kwargs)
-    notes = ()
-    if skipped:
-        notes = (f"{len(skipped)} view(s) saw too little of the grid to be estimated and kept their geometry: "
-                 f"{sorted(skipped)[:20]}{' ...' if len(skipped) > 20 else ''}",)
-        say(notes[0])
+    notes = tuple(notes)
     return CalibrationResult(method.name, params, geom, volume, tuple(history), time.perf_counter() - t_start,
                              settings=settings, notes=notes)

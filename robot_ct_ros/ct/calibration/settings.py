@@ -15,7 +15,7 @@ from dataclasses import dataclass, replace
 from robot_ct_ros.ct.calibration.lle.estimator import DRAWS
 from robot_ct_ros.parameters import setting, to_dict, validate
 
-__all__ = ["CalibrationSettings", "SCHEDULES", "FINE_VOLUMES", "PROJECTION_KINDS", "DEFAULT_PADDING",
+__all__ = ["CalibrationSettings", "SCHEDULES", "FINE_VOLUMES", "PROJECTION_KINDS", "EXTERIOR_MODES", "DEFAULT_PADDING",
            "DEFAULT_PRIOR_MM", "DEFAULT_PRIOR_DEG", "DEFAULT_PRIOR_SIGMA", "prior_sigma_from"]
 
 
@@ -49,6 +49,9 @@ full-size FDK in both. Evidence: docs/calibration.md, "Schedules"."""
 FINE_VOLUMES = ("sirt", "fdk+coarse-sirt", "fdk")
 """The volume the finer level registers against on a truncated scan: its own FDK + SIRT, its
 FDK plus the coarse level's SIRT correction resampled, or its FDK alone."""
+
+EXTERIOR_MODES = ("off", "on", "auto")
+"""Whether the estimation volume models the object outside the ROI (robot_ct_ros.ct.calibration.exterior)."""
 
 PROJECTION_KINDS = ("truncated", "complete", "auto")
 """Whether the projections are truncated (estimation volumes FDK + SIRT) or see the whole object
@@ -124,6 +127,21 @@ class CalibrationSettings:
     coarse_tol_px: float = setting(0.1, "the coarse passes stop when one moves the views less than this", unit="px",
                                    minimum=0.0)
     undo_inconsistent: bool = setting(False, "undo an iteration that lowers the data consistency, and stop")
+    exterior: str = setting("off", "model the object outside the ROI with a coarse grid reconstructed with it (strongly "
+                            "truncated interior scans); auto: when the truncation level exceeds "
+                            "calibration.volume.EXTERIOR_ABOVE", choices=EXTERIOR_MODES)
+    exterior_voxel_mm: float = setting(0.5, "voxel of the exterior grid", unit="mm", minimum=0.01, maximum=10.0)
+    exterior_half_width_mm: float = setting(0.0, "how far the exterior grid reaches from the ROI centre across the scan "
+                                            "axis (0: up to the sources)", unit="mm", minimum=0.0)
+    exterior_iterations: int = setting(15, "ordered-subsets SIRT passes of the ROI and exterior model", minimum=1,
+                                       maximum=1000)
+    exterior_subsets: int = setting(10, "ordered subsets of that SIRT", minimum=1, maximum=1000)
+    guard: bool = setting(True, "keep the nominal geometry where the correction moves the views further than the "
+                          "robots' stated accuracy (the prior) explains")
+    guard_max_ratio: float = setting(1.5, "the scan keeps its nominal geometry when the correction moves the views this "
+                                     "many times as far as the stated accuracy does", minimum=1.0)
+    guard_view_quantile: float = setting(0.999, "a view moved beyond this quantile of the stated accuracy's "
+                                         "displacements keeps its nominal geometry", minimum=0.5, maximum=1.0)
 
     def __post_init__(self):
         validate(self)

@@ -7,18 +7,17 @@ from typing import NamedTuple
 import numpy as np
 
 from robot_ct_ros.ct.calibration.masks import as_view_mask
+from robot_ct_ros.ct.calibration.model import project
 from robot_ct_ros.ct.geometry import VolumeGrid
 from robot_ct_ros.ct.metrics import ncc
 
 __all__ = ["EstimationVolume", "reconstruct_for_estimation", "projection_consistency", "estimation_grid",
-           "truncation_level", "TRUNCATED_ABOVE"]
+           "truncation_level", "TRUNCATED_ABOVE", "EXTERIOR_ABOVE"]
 
 
 def projection_consistency(volume, grid, geom, measured, mask) -> tuple[float, float]:
     """Masked RMSE and mean NCC between the reprojection of ``volume`` and ``measured``."""
-    from robot_ct_ros.ct.projector import forward_project
-
-    pred = forward_project(volume, grid, geom)
+    pred = project(volume, grid, geom)
     mk = as_view_mask(mask, measured.shape) & np.isfinite(measured)
     diff = np.where(mk, pred - measured, 0.0)
     rmse = float(np.sqrt((diff.astype(np.float64) ** 2).sum() / max(mk.sum(), 1)))
@@ -79,6 +78,10 @@ def reconstruct_for_estimation(line_integrals, geom, grid, mask, sirt_iterations
 
 TRUNCATED_ABOVE = 0.01
 """:func:`truncation_level` above which :func:`calibrate` treats a scan as truncated."""
+
+EXTERIOR_ABOVE = 0.3
+""":func:`truncation_level` above which ``exterior="auto"`` models the object outside the ROI
+(docs/calibration.md, "The exterior model")."""
 
 
 def truncation_level(line_integrals: np.ndarray, valid_mask=None, edge_px: int = 2) -> float:

@@ -10,6 +10,7 @@ from robot_ct_ros.ct.calibration.kernels import blas_single_threaded, warp_proje
 from robot_ct_ros.ct.calibration.lle.sampling import (best_fit_fraction, ranking, score_samples, score_warped,
                                                       source_offsets, virtual_margin_px)
 from robot_ct_ros.ct.calibration.lle.weights import WEIGHTINGS, background_basis, lle_weights, view_distances
+from robot_ct_ros.ct.calibration.model import as_model, project
 from robot_ct_ros.ct.calibration.masks import as_view_mask, roi_support_mask, usable_views, view_chunks
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
 
@@ -54,7 +55,7 @@ class LLEConfig:
     levels: int = 3
     shrink: float = 0.5
     reg: float = 1e-3
-    roi_support_fraction: float = 0.3
+    roi_support_fraction: float | None = 0.3
     safeguard: bool = True
     virtual_oversample: int = 1
     shift_search_px: float = 0.0
@@ -130,17 +131,16 @@ def estimate_views(measured: np.ndarray, nominal: ConeGeometry, params0: np.ndar
     with a prior, the median over views of :func:`effective_pixel_fraction`
     (``independent_fraction``).
     """
-    from robot_ct_ros.ct.projector import forward_project
-
     n = nominal.n_views
     measured = np.ascontiguousarray(measured, dtype=np.float32)
     if measured.shape != (n,) + nominal.det_shape:
         raise ValueError(f"measured {measured.shape} does not match the geometry ({n}, {nominal.det_shape})")
     params = np.array(params0, dtype=np.float64).reshape(n, 9)
-    vol = np.ascontiguousarray(volume, dtype=np.float32)
+    vol = as_model(volume)
     metric = "l2" if config.weighting == "l2" else "ncc"
     mask_all = as_view_mask(valid_mask, measured.shape) & np.isfinite(measured)
-    mask_all = mask_all & roi_support_mask(nominal, params, grid, config.roi_support_fraction)
+    if config.roi_support_fraction is not None:  # None: every ray is modelled (the exterior model)
+        mask_all = mask_all & roi_support_mask(nominal, params, grid, config.roi_support_fraction)
     measured = np.where(mask_all, measured, np.float32(0.0))  # dead pixels may be nan or inf: see score_warped
     if config.shift_search_px > 0:
         params = _shift_search(measured, nominal, params, vol, grid, config, mask_all)
@@ -207,7 +207,7 @@ def estimate_views(measured: np.ndarray, nominal: ConeGeometry, params0: np.ndar
                     d_new = score_warped(images, virtual, nom_c, g_new[:, None, :], np.arange(c), measured[idx],
                                           mask_c, config)[0][:, 0]
                 else:
-                    p_new = forward_project(vol, grid, nom_c.perturbed(g_new))
+                    p_new = project(vol, grid, nom_c.perturbed(g_new))
                     d_new = view_distances(p_new, measured[idx], mask_c, metric, config.background)
                 if config.prior_sigma is None:
                     worse = ~(d_new <= d_best)

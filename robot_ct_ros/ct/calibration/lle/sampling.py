@@ -11,6 +11,7 @@ import numpy as np
 
 from robot_ct_ros.ct.calibration.kernels import (N_SUMS, _warp_score_kernel, detector_homographies,
                                                  sample_distances, warp_projections)
+from robot_ct_ros.ct.calibration.model import project
 from robot_ct_ros.ct.calibration.lle.weights import (background_basis, effective_pixel_fraction, posterior_cost,
                                                      project_out)
 from robot_ct_ros.ct.geometry import ConeGeometry
@@ -56,15 +57,13 @@ def score_samples(vol, grid, nom_c, src_params, sample_params, image_index, meas
     Returns the distances, the ray-cast images, the homographies, the samples' valid pixel
     counts (c, S) and the virtual detectors' geometry.
     """
-    from robot_ct_ros.ct.projector import forward_project
-
     c, S = sample_params.shape[:2]
     n_src = src_params.shape[0] // c
     mr, mc = margin_px
     f = config.virtual_oversample
     virtual = repeat_views(nom_c, n_src).perturbed(src_params).with_detector(
         (nom_c.n_rows + 2 * mr) * f, (nom_c.n_cols + 2 * mc) * f, nom_c.row_pitch_mm / f, nom_c.col_pitch_mm / f)
-    images = forward_project(vol, grid, virtual)
+    images = project(vol, grid, virtual)
     dist, H, n_valid = score_warped(images, virtual, nom_c, sample_params, image_index, measured_c, mask_c, config)
     return dist, images, H, n_valid, virtual
 

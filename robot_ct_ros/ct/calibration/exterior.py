@@ -1,0 +1,133 @@
+"""The exterior model: the object outside the ROI, reconstructed with it, for strongly truncated scans.
+
+In an interior scan every ray crosses far more object outside the ROI than inside it. A model
+of the ROI alone cannot reproduce the projections (the outside's edges, bones, air, dominate
+them), and every estimator then registers the views to what is missing. The exterior model adds
+a coarse grid around the ROI, over the region the rays cross, and reconstructs both together by
+non-negative ordered-subsets SIRT from zero, so that the sum of the two parts' projections
+reproduces the measured rays. Evidence and limits: docs/calibration.md, "The exterior model".
+
+Grids are built in the ROI grid's own frame (any world frame; its z axis is the scan axis).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from robot_ct_ros.ct.calibration.masks import as_view_mask
+from robot_ct_ros.ct.calibration.model import VolumeParts
+from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
+
+__all__ = ["exterior_grid", "exterior_support", "joint_sirt", "reconstruct_with_exterior"]
+
+
+def exterior_grid(roi: VolumeGrid, geom: ConeGeometry, voxel_mm: float, half_width_mm: float = 0.0) -> VolumeGrid:
+    """A grid of ``voxel_mm`` voxels around ``roi`` (same direction) for what the rays cross outside it.
+
+    Across the scan axis it reaches ``half_width_mm`` from the ROI centre (0: up to the sources,
+    the largest region an object can fill), clipped to the box the rays span; along the axis, the
+    rays' whole extent, so no ray leaves it through its top or bottom inside the object.
+    """
+    from robot_ct_ros.ct.simulation.scan import irradiated_bounds_mm
+
+    if not voxel_mm > 0:
+        raise ValueError("the exterior grid's voxel must be positive")
+    local_roi, R = roi.in_own_frame()
+    g = geom.moved(R)
+    lo, hi = irradiated_bounds_mm(g)
+    c = np.asarray(local_roi.center_mm, np.float64)
+    half = (float(np.max(np.linalg.norm((g.source_mm - c)[:, :2], axis=1))) if not half_width_mm > 0
+            else float(half_width_mm))
+    lo[:2] = np.maximum(lo[:2], c[:2] - half)
+    hi[:2] = np.minimum(hi[:2], c[:2] + half)
+    k_lo = np.floor((lo - c) / voxel_mm).astype(int)
+    k_hi = np.ceil((hi - c) / voxel_mm).astype(int)
+    n = k_hi - k_lo + 1
+    local = VolumeGrid(tuple(int(x) for x in n[::-1]), (float(voxel_mm),) * 3, tuple(c + k_lo * voxel_mm))
+    return local.moved(R.T)
+
+
+def exterior_support(ext: VolumeGrid, roi: VolumeGrid, overlap_voxels: float = 1.0) -> np.ndarray:
+    """float32 0/1 mask of the exterior grid's voxels that may hold object: those whose centre lies
+    outside the ROI box shrunk by ``overlap_voxels`` exterior voxels (the two grids overlap in
+    that band, so no ray passes between them). Both grids must share their direction."""
+    if not np.allclose(ext.direction_matrix, roi.direction_matrix, atol=1e-9):
+        raise ValueError("the exterior and ROI grids must have the same direction")
+    local_roi, _ = roi.in_own_frame()
+    lo, hi = local_roi.bounds_mm()
+    m = overlap_voxels * np.asarray(ext.voxel_size_mm)
+    lo, hi = lo + m, hi - m
+    x, y, z = ext.axes_mm()  # the grids' shared own frame
+    inside = ((z[:, None, None] > lo[2]) & (z[:, None, None] < hi[2]) & (y[None, :, None] > lo[1])
+              & (y[None, :, None] < hi[1]) & (x[None, None, :] > lo[0]) & (x[None, None, :] < hi[0]))
+    return (~inside).astype(np.float32)
+
+
+def joint_sirt(line_integrals, geom: ConeGeometry, parts, iterations: int, valid_mask=None, *, subsets: int = 1,
+               nonneg: bool = True, relaxation: float = 1.0) -> list:
+    """SIRT on several grids at once: the data are fitted by the sum of the parts' projections.
+
+    Parameters
+    ----------
+    parts : sequence of (x0 or None, grid, support or None)
+        Start volume (None: zeros), grid, and a 0/1 mask of the voxels that may change.
+    iterations : int
+        Passes over all views.
+    subsets : int
+        Ordered subsets of interleaved views, each updated in turn (1: plain SIRT).
+
+    Returns
+    -------
+    list of float32 volumes, one per part. Row sums are those of all parts together, column sums
+    per part and subset.
+    """
+    from robot_ct_ros.ct.projector import back_project, forward_project
+
+    b = np.asarray(line_integrals, np.float32)
+    mask = as_view_mask(valid_mask, b.shape) & np.isfinite(b)
+    b = np.where(mask, b, 0.0).astype(np.float32)
+    xs, grids, sups = [], [], []
+    row = None
+    for x0, g, sup in parts:
+        s = np.ones(g.shape_zyx, np.float32) if sup is None else np.asarray(sup, np.float32)
+        xs.append(np.zeros(g.shape_zyx, np.float32) if x0 is None else np.array(x0, np.float32) * s)
+        grids.append(g)
+        sups.append(s)
+        p = forward_project(s, g, geom)
+        row = p if row is None else row + p
+    eps = np.float32(1e-6)
+    R = np.where(mask & (row > eps * row.max()), 1.0 / np.maximum(row, eps), 0.0).astype(np.float32)
+    subsets = max(1, min(int(subsets), geom.n_views))
+    views = [np.arange(k, geom.n_views, subsets) for k in range(subsets)]  # interleaved: each spans the orbit
+    sub = [(geom.subset(v), b[v], R[v], mask[v]) for v in views]
+    inv_cols = []
+    for g_s, _, _, m_s in sub:
+        per_part = []
+        for g, s in zip(grids, sups):
+            col = back_project(m_s.astype(np.float32), g_s, g) * s
+            per_part.append(np.where(col > eps * col.max(), 1.0 / np.maximum(col, eps), 0.0).astype(np.float32) * s)
+        inv_cols.append(per_part)
+    for _ in range(int(iterations)):
+        for (g_s, b_s, R_s, _), C_s in zip(sub, inv_cols):
+            pred = None
+            for x, g in zip(xs, grids):
+                p = forward_project(x, g, g_s)
+                pred = p if pred is None else pred + p
+            res = (b_s - pred) * R_s
+            for x, g, C in zip(xs, grids, C_s):
+                x += np.float32(relaxation) * C * back_project(res, g_s, g)
+                if nonneg:
+                    np.maximum(x, 0.0, out=x)
+    return xs
+
+
+def reconstruct_with_exterior(line_integrals, geom: ConeGeometry, grid: VolumeGrid, mask, *, voxel_mm: float,
+                              half_width_mm: float, iterations: int, subsets: int) -> VolumeParts:
+    """The estimation volume of a strongly truncated scan: ``grid`` and an exterior grid around it
+    (:func:`exterior_grid`, :func:`exterior_support`) reconstructed together from zero
+    (:func:`joint_sirt`). Starting from zero matters: an FDK start brings the truncation's bias
+    into the ROI, and it leaves slowly."""
+    ext = exterior_grid(grid, geom, voxel_mm, half_width_mm)
+    roi_vol, ext_vol = joint_sirt(line_integrals, geom, [(None, grid, None), (None, ext, exterior_support(ext, grid))],
+                                  iterations, mask, subsets=subsets)
+    return VolumeParts(((roi_vol, grid), (ext_vol, ext)))

@@ -1,0 +1,52 @@
+"""The guard: a correction the robots' stated accuracy cannot explain is not applied."""
+
+import numpy as np
+import pytest
+
+from robot_ct_ros.ct.calibration.guard import plausibility_guard
+from robot_ct_ros.ct.geometry import VolumeGrid
+from robot_ct_ros.ct.metrics import roi_points
+from robot_ct_ros.ct.trajectory import circular_scan
+
+SIGMA = (0.3,) * 6 + (np.deg2rad(0.3),) * 3
+
+
+def _setup(n=60):
+    nominal = circular_scan(n, 60.0, 150.0, 40, 40, 0.8, 0.8)
+    return nominal, roi_points(VolumeGrid.centered((24, 28, 28), 12.0 / 28))
+
+
+def test_a_correction_the_size_of_the_robots_errors_is_kept():
+    nominal, pts = _setup()
+    params = np.random.default_rng(1).standard_normal((60, 9)) * SIGMA
+    out = plausibility_guard(nominal, params, pts, SIGMA)
+    assert not out.scan_reverted and 0.6 < out.ratio < 1.4
+    assert len(out.reverted_views) <= 1  # the 99.9 % quantile: about none of 60 views
+    np.testing.assert_array_equal(np.delete(out.params, list(out.reverted_views), axis=0),
+                                  np.delete(params, list(out.reverted_views), axis=0))
+    assert "1.5" in out.note(1.5) and "nominal geometry is kept" not in out.note(1.5)
+
+
+def test_a_correction_far_beyond_the_robots_errors_keeps_the_nominal_geometry():
+    nominal, pts = _setup()
+    params = np.random.default_rng(2).standard_normal((60, 9)) * SIGMA * 4.0  # what a biased data term does
+    out = plausibility_guard(nominal, params, pts, SIGMA)
+    assert out.scan_reverted and out.ratio > 3.0
+    np.testing.assert_array_equal(out.params, np.zeros_like(params))
+    assert "nominal geometry is kept" in out.note(1.5)
+
+
+def test_one_view_moved_far_keeps_its_nominal_geometry_alone():
+    nominal, pts = _setup()
+    params = np.random.default_rng(3).standard_normal((60, 9)) * SIGMA * 0.5
+    params[17, 3] = 3.0  # 3 mm: ten robot sigmas
+    out = plausibility_guard(nominal, params, pts, SIGMA)
+    assert not out.scan_reverted and 17 in out.reverted_views
+    np.testing.assert_array_equal(out.params[17], 0.0)
+    np.testing.assert_array_equal(out.params[16], params[16])
+
+
+def test_the_guard_needs_a_stated_accuracy():
+    nominal, pts = _setup(8)
+    with pytest.raises(ValueError, match="accuracy"):
+        plausibility_guard(nominal, np.zeros((8, 9)), pts, (0.0,) * 9)
