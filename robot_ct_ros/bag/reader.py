@@ -20,6 +20,7 @@ from __future__ import annotations
 import io
 import math
 import struct
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -36,6 +37,10 @@ MIN_VIEWS = 4
 """The fewest paired views (frames and geometries with equal, distinct stamps) a scan may have; a bag
 with fewer is refused with the reasons its frames and geometries were not used (e.g. every stamp
 equal, every frame of the wrong size or NaN)."""
+
+
+class ChunkCrcError(ValueError):
+    """An MCAP chunk whose records do not match its CRC."""
 
 
 @dataclass(frozen=True)
@@ -147,6 +152,7 @@ def _recover_mcap(path: Path) -> tuple[list, list]:
     orphans: list = []  # messages whose channel record was lost (kept until the end)
     out: list[RawMessage] = []
     damaged = 0
+    bad_chunks = 0
     lost_bytes = 0
 
     def stream(content: bytes) -> ReadDataStream:
@@ -194,6 +200,10 @@ def _recover_mcap(path: Path) -> tuple[list, list]:
                 if opcode == 0x06:
                     chunk = Chunk.read(stream(content))
                     data = _decompress(chunk.compression, chunk.data, chunk.uncompressed_size)
+                    if chunk.uncompressed_crc and zlib.crc32(data) & 0xFFFFFFFF != chunk.uncompressed_crc:
+                        raise ChunkCrcError(
+                            f"CRC mismatch: the chunk at bytes {pos} to {end} (log times {chunk.message_start_time} "
+                            f"to {chunk.message_end_time} ns) is damaged; its messages are not used")
                     q, cn = 0, len(data)
                     while q < cn:
                         if q + 9 > cn:
@@ -206,6 +216,10 @@ def _recover_mcap(path: Path) -> tuple[list, list]:
                         q += 9 + ln
                 elif opcode in (0x03, 0x04, 0x05):
                     handle(opcode, content)
+            except ChunkCrcError as exc:  # nothing of a chunk that fails its checksum is trusted
+                damaged += 1
+                bad_chunks += 1
+                warnings.append(f"{path.name}: {exc}")
             except Exception as exc:  # noqa: BLE001 - a damaged record: keep what came before it
                 damaged += 1
                 warnings.append(f"{path.name}: damaged record at byte {pos} ({type(exc).__name__}: {exc}); "
@@ -233,8 +247,9 @@ def _recover_mcap(path: Path) -> tuple[list, list]:
         if len(orphans) - kept:
             warnings.append(f"{path.name}: {len(orphans) - kept} messages lost: their channel record was damaged")
     if damaged or lost_bytes:
-        warnings.append(f"{path.name}: recovered {len(out)} messages ({damaged} damaged regions, "
-                        f"{lost_bytes} bytes unreadable)")
+        warnings.append(f"{path.name}: recovered {len(out)} messages ({damaged} damaged regions"
+                        + (f", {bad_chunks} of them chunks failing their CRC" if bad_chunks else "")
+                        + f", {lost_bytes} bytes unreadable)")
     return out, warnings
 
 
