@@ -28,13 +28,21 @@ QUATERNION_TOLERANCE = 1e-3
 
 def declare_hand_eye(node, prefix: str = "hand_eye") -> HandEye:
     """Declare the hand-eye parameters on ``node`` and return the mounts (raises ValueError if invalid)."""
+    from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+
+    def declare(name, value):
+        try:
+            return node.declare_parameter(name, value).value
+        except (InvalidParameterTypeException, InvalidParameterValueException, TypeError) as exc:
+            raise ValueError(f"parameter {name}: {exc}") from None
+
     default = HandEye()
     mounts = {}
     for dev in ("source", "detector"):
         base = getattr(default, dev)
-        t = node.declare_parameter(f"{prefix}.{dev}.translation_m", [x * 1e-3 for x in base.translation_mm]).value
-        rv = node.declare_parameter(f"{prefix}.{dev}.rotvec_rad", Parameter.Type.DOUBLE_ARRAY).value
-        rpy = node.declare_parameter(f"{prefix}.{dev}.rpy_rad", Parameter.Type.DOUBLE_ARRAY).value
+        t = declare(f"{prefix}.{dev}.translation_m", [x * 1e-3 for x in base.translation_mm])
+        rv = declare(f"{prefix}.{dev}.rotvec_rad", Parameter.Type.DOUBLE_ARRAY)
+        rpy = declare(f"{prefix}.{dev}.rpy_rad", Parameter.Type.DOUBLE_ARRAY)
         if rv is None and rpy is None:
             rv = list(base.rotvec)
         mounts[dev] = mount_from_si(list(t), None if rv is None else list(rv), None if rpy is None else list(rpy),

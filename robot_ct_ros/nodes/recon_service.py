@@ -53,7 +53,7 @@ class ReconServiceNode(Node):
         super().__init__(node_name, **kwargs)
         self.settings = declare_settings(self, CalibrationSettings)
         self.service = declare_settings(self, ServiceSettings)
-        self.output_dir = Path(self.service.output_dir)
+        self.output_dir = Path(self.service.output_dir).expanduser().absolute()  # reports name files, not cwd-relative paths
 
         self.scan = ScanCollector()
         for topic in fmt.LATCHED_TOPICS:
