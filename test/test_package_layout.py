@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-PACKAGE_FILES = ["package.xml", "setup.py", "setup.cfg", "resource", "robot_ct_ros", "config"]
+PACKAGE_FILES = ["package.xml", "setup.py", "setup.cfg", "resource", "robot_ct_ros", "config", "launch"]
 
 
 @pytest.fixture(scope="module")
@@ -106,3 +106,17 @@ def test_node_executable_starts_and_stops_cleanly_on_sigint(installed):
     proc.send_signal(signal.SIGINT)
     out, err = proc.communicate(timeout=30)
     assert proc.returncode == 0, err[-2000:]
+
+
+def test_launch_files_and_the_parameter_files_they_name_are_installed(installed):
+    """``ros2 launch robot_ct_ros robot_ct.launch.xml`` finds the file and every params file it names."""
+    import re
+
+    prefix, _ = installed
+    share = prefix / "share/robot_ct_ros"
+    launches = sorted((REPO / "launch").glob("*.launch.xml"))
+    assert launches
+    for launch in launches:
+        assert (share / "launch" / launch.name).is_file(), launch.name
+        for ref in re.findall(r'from="\$\(var config_dir\)/([^"]+)"', launch.read_text()):
+            assert (share / "config" / ref).is_file(), ref

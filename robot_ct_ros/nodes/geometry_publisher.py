@@ -65,9 +65,9 @@ class GeometryPublisherNode(Node):
         self._history_ns = int(history_s * 1e9)
         for role in ROLES:
             self.create_subscription(PoseStamped, f"{role}_arm/tool_pose", lambda m, r=role: self._on_pose(r, m), 50)
-        self.create_subscription(Image, fmt.TOPIC_PROJECTION, self._on_frame, STREAM)
-        self.geometry_pub = self.create_publisher(PoseArray, fmt.TOPIC_GEOMETRY, STREAM)
-        self.diag_pub = self.create_publisher(DiagnosticArray, fmt.TOPIC_DIAGNOSTICS, 10)
+        self.create_subscription(Image, fmt.node_topic(fmt.TOPIC_PROJECTION), self._on_frame, STREAM)
+        self.geometry_pub = self.create_publisher(PoseArray, fmt.node_topic(fmt.TOPIC_GEOMETRY), STREAM)
+        self.diag_pub = self.create_publisher(DiagnosticArray, fmt.node_topic(fmt.TOPIC_DIAGNOSTICS), 10)
         self.create_timer(1.0, self._publish_diagnostics)
         self.published = 0
         self.skipped = 0

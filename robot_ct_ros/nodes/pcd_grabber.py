@@ -79,12 +79,12 @@ class PcdGrabberNode(LifecycleNode):
         self.frame_id, self.config = d.frame_id, d.config
         self.hand_eye = declare_hand_eye(self)
 
-        self.frame_pub = self.create_publisher(Image, fmt.TOPIC_PROJECTION, STREAM)
-        self.frame_rejected_pub = self.create_publisher(Image, fmt.TOPIC_PROJECTION_REJECTED, STREAM)
-        self.flat_pub = self.create_publisher(Image, fmt.TOPIC_FLAT_FIELD, LATCHED)
-        self.dead_pub = self.create_publisher(Image, fmt.TOPIC_DEAD_PIXELS, LATCHED)
-        self.true_geom_pub = self.create_publisher(PoseArray, fmt.TOPIC_GEOMETRY_TRUE, STREAM)
-        self.diag_pub = self.create_publisher(DiagnosticArray, fmt.TOPIC_DIAGNOSTICS, 10)
+        self.frame_pub = self.create_publisher(Image, fmt.node_topic(fmt.TOPIC_PROJECTION), STREAM)
+        self.frame_rejected_pub = self.create_publisher(Image, fmt.node_topic(fmt.TOPIC_PROJECTION_REJECTED), STREAM)
+        self.flat_pub = self.create_publisher(Image, fmt.node_topic(fmt.TOPIC_FLAT_FIELD), LATCHED)
+        self.dead_pub = self.create_publisher(Image, fmt.node_topic(fmt.TOPIC_DEAD_PIXELS), LATCHED)
+        self.true_geom_pub = self.create_publisher(PoseArray, fmt.node_topic(fmt.TOPIC_GEOMETRY_TRUE), STREAM)
+        self.diag_pub = self.create_publisher(DiagnosticArray, fmt.node_topic(fmt.TOPIC_DIAGNOSTICS), 10)
 
         self.beam_log = BeamLog()
         self.true_poses = TruePoses(self._now_ns, self.sim.pose_max_age_s)

@@ -92,7 +92,7 @@ class RecorderNode(Node):
         topics = SCAN_TOPICS + (ARM_TOPICS if record_arm else ())
         for topic in topics:
             msgtype = fmt.TOPIC_TYPES[topic]
-            self.create_subscription(message_class(msgtype), topic,
+            self.create_subscription(message_class(msgtype), fmt.node_topic(topic),  # bag: contract name
                                      lambda data, t=topic, m=msgtype: self._on_message(t, m, data),
                                      qos_for(topic), raw=True)
         self.create_service(Trigger, "~/stop", self._on_stop)

@@ -119,7 +119,7 @@ class ReplayNode(Node):
         pub = self._pubs.get(topic)
         if pub is None:
             qos = LATCHED if topic in fmt.LATCHED_TOPICS else STREAM
-            pub = self.create_publisher(message_class(msgtype), topic, qos)
+            pub = self.create_publisher(message_class(msgtype), fmt.node_topic(topic), qos)  # in the namespace
             self._pubs[topic] = pub
         return pub
 
