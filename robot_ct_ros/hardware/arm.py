@@ -24,7 +24,7 @@ time at which each sample was taken (the controller time mapped through the smal
 host-minus-controller offset, so transport latency does not age it) and calls the state *stale*
 when the controller clock has not advanced for ``max_state_age_s``: a frozen controller keeps
 answering with its last sample, which must not be republished as fresh. Stale for longer than
-``call_timeout_s`` counts as a lost connection.
+``call_timeout_s`` counts as a lost connection. An arm without a clock is never stale.
 """
 
 from __future__ import annotations
@@ -247,7 +247,7 @@ class ArmRunner:
             if self._moving or not self._move_ok or self.target is None or self.snapshot is None:
                 return False
             snap, target = self.snapshot, self.target
-        if self.state_age_s() > self.settings.max_state_age_s:
+        if self.stale():
             return False
         dt, dr = pose_distance(snap.tcp_pose, target)
         s = self.settings
@@ -268,7 +268,12 @@ class ArmRunner:
         return math.inf if t is None else max(0.0, self._clock() - t)
 
     def stale(self) -> bool:
-        """The controller's state has not been renewed for longer than ``max_state_age_s``."""
+        """The controller's clock has not advanced for longer than ``max_state_age_s``. An arm without
+        a clock of its own (the simulated arm: every read is its current state) is never stale: a
+        late poll there is only a busy host, and must not cut the beam."""
+        snap = self.latest()
+        if snap is None or snap.timestamp_s is None:
+            return False
         return self.state_age_s() > self.settings.max_state_age_s
 
     # -- threads ------------------------------------------------------------------------------
@@ -313,7 +318,7 @@ class ArmRunner:
                 return
             self._record(snap, self._clock())
             age = self.state_age_s()
-            if age > max(self.settings.call_timeout_s, self.settings.max_state_age_s):
+            if snap.timestamp_s is not None and age > max(self.settings.call_timeout_s, self.settings.max_state_age_s):
                 self._connection_lost(f"the controller stopped updating its state (no new sample for {age:.2f} s)",
                                       arm)
                 return
