@@ -119,9 +119,10 @@ def settings_from_args(args, **fixed):
 
 # ------------------------------------------------------------------------------ commands
 def _cmd_simulate(args) -> int:
+    from robot_ct_ros.jobs.output import prepare_out
     from robot_ct_ros.jobs.simulate import simulate_bag
 
-    simulate_bag(args.out, phantom=args.phantom, views=args.views, rows=args.rows, cols=args.cols,
+    simulate_bag(prepare_out(args.out, must_not_exist=True), phantom=args.phantom, views=args.views, rows=args.rows, cols=args.cols,
                  binning=args.binning, sigma_mm=args.sigma_mm, sigma_deg=args.sigma_deg, seed=args.seed,
                  drift_mm=args.drift_mm, drift_deg=args.drift_deg,
                  photons=args.photons, fov_mm=args.fov_mm, sim_voxel_mm=args.sim_voxel_mm, progress=not args.quiet)
@@ -160,25 +161,54 @@ def _cmd_info(args) -> int:
     return 0
 
 
+def _paths(args):
+    """(bag, out) made absolute, ``out`` created and checked writable before any work: the reports then
+    name files independently of the current directory, and a bad ``--out`` is refused at once."""
+    from pathlib import Path
+
+    from robot_ct_ros.jobs.output import prepare_out
+
+    return Path(args.bag).expanduser().absolute(), prepare_out(args.out)
+
+
 def _cmd_reconstruct(args) -> int:
     from robot_ct_ros.jobs.reconstruct import reconstruct_bag
 
-    reconstruct_bag(args.bag, args.out, geometry=args.geometry, voxel_mm=args.voxel_mm, shape_xyz=args.shape)
+    bag, out = _paths(args)
+    reconstruct_bag(bag, out, geometry=args.geometry, voxel_mm=args.voxel_mm, shape_xyz=args.shape)
     return 0
 
 
 def _cmd_calibrate(args) -> int:
-    from robot_ct_ros.jobs.calibrate import calibrate_bag
+    from robot_ct_ros.bag.reader import read_scan
+    from robot_ct_ros.jobs.calibrate import correct_scan, scan_grid, write_correction
+    from robot_ct_ros.jobs.output import check_memory
 
-    calibrate_bag(args.bag, args.out, settings_from_args(args), voxel_mm=args.voxel_mm, shape_xyz=args.shape)
+    settings = settings_from_args(args)
+    bag, out = _paths(args)
+    scan = read_scan(bag, keep_raw=True)  # calibrate_bag's steps, with the memory check before the work
+    grid = scan_grid(scan, args.voxel_mm, args.shape)
+    check_memory(grid, scan.n_views, scan.geom.det_shape, "reconstruct" if settings.method == "none" else "calibrate")
+    write_correction(correct_scan(scan, settings, grid), out)
     return 0
 
 
 def _cmd_report(args) -> int:
+    from robot_ct_ros.bag.reader import read_scan
+    from robot_ct_ros.jobs.calibrate import scan_grid
+    from robot_ct_ros.jobs.output import check_memory
+    from robot_ct_ros.ct.calibration import get_method
     from robot_ct_ros.jobs.report import report_bag
 
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
-    report_bag(args.bag, args.out, methods, settings_from_args(args), voxel_mm=args.voxel_mm, shape_xyz=args.shape)
+    for m in methods:  # refused before anything is created
+        get_method(m)
+    settings = settings_from_args(args)
+    bag, out = _paths(args)
+    scan = read_scan(bag)
+    check_memory(scan_grid(scan, args.voxel_mm, args.shape), scan.n_views, scan.geom.det_shape, "report")
+    del scan
+    report_bag(bag, out, methods, settings, voxel_mm=args.voxel_mm, shape_xyz=args.shape)
     return 0
 
 
@@ -279,6 +309,14 @@ def main(argv: list[str] | None = None) -> int:
             return commands[args.command](args)
     except (ScanBagError, ValueError) as exc:
         print(f"robot-ct {args.command}: {exc}", file=sys.stderr)
+        return 2
+    except MemoryError as exc:  # the estimate before allocating was too optimistic
+        print(f"robot-ct {args.command}: out of memory ({exc or 'allocation failed'}); use a smaller --shape or a "
+              "larger --voxel-mm", file=sys.stderr)
+        return 2
+    except OSError as exc:  # a file that cannot be read or written, with its name
+        where = f" {exc.filename}" if getattr(exc, "filename", None) else ""
+        print(f"robot-ct {args.command}: cannot access{where}: {exc.strerror or exc}", file=sys.stderr)
         return 2
 
 

@@ -191,3 +191,95 @@ def test_simulate_a_drifting_detector_and_calibrate_it_as_a_drift(tmp_path):
     t = (corrected.stamps_ns - corrected.stamps_ns[0]).astype(float)
     np.testing.assert_allclose(fit_drift(params, 1, t), params, atol=1e-6)
     assert json.loads((out / "report.json").read_text())["drift_order"] == 1
+
+
+@pytest.fixture(scope="module")
+def small_bag(tmp_path_factory):
+    bag = tmp_path_factory.mktemp("cli") / "scan"
+    assert main(["simulate", "--phantom", "mouse", "--views", "12", "--rows", "16", "--cols", "24", "--quiet",
+                 "--out", str(bag)]) == 0
+    return bag
+
+
+def _one_line_error(capsys, *words):
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    assert all(w in err for w in words), err
+    return err
+
+
+def test_bad_output_places_are_refused_in_one_line_before_any_work(tmp_path, capsys, small_bag, monkeypatch):
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    for command in ("reconstruct", "calibrate", "report"):
+        extra = ["--method", "none"] if command == "calibrate" else ["--methods", "none"] if command == "report" else []
+        assert main([command, str(small_bag), "--out", str(afile), *extra]) == 2
+        _one_line_error(capsys, "is a file, not a folder")
+        assert main([command, str(small_bag), "--out", str(afile / "sub"), *extra]) == 2
+        _one_line_error(capsys, "cannot create")
+    assert afile.read_text() == "x"
+    assert main(["simulate", "--views", "12", "--out", str(afile / "bag")]) == 2
+    _one_line_error(capsys, "simulate")
+
+    # a folder that cannot be written to (as root, chmod does not stop us: the check itself is exercised)
+    import os
+    import tempfile
+
+    readonly = tmp_path / "readonly"
+    readonly.mkdir()
+    readonly.chmod(0o555)
+
+    def refused(*args, **kwargs):
+        raise PermissionError(13, "Permission denied")
+    if os.access(readonly, os.W_OK):
+        monkeypatch.setattr(tempfile, "TemporaryFile", refused)
+    try:
+        assert main(["reconstruct", str(small_bag), "--out", str(readonly)]) == 2
+        _one_line_error(capsys, "cannot write into", "ermission denied")
+        assert not (readonly / "volume.npy").exists()
+    finally:
+        readonly.chmod(0o755)
+
+
+def test_a_grid_too_large_for_memory_is_refused_with_what_would_fit(tmp_path, capsys, small_bag, monkeypatch):
+    from robot_ct_ros.jobs import output
+
+    assert main(["reconstruct", str(small_bag), "--out", str(tmp_path / "r"), "--shape", "5000,5000,5000"]) == 2
+    err = _one_line_error(capsys, "not enough memory", "5000 x 5000 x 5000", "would fit", "--shape")
+    fit = [int(x) for x in err.split("--shape ")[1].split()[0].split(",")]
+    monkeypatch.setattr(output, "available_memory_bytes", lambda: 64 * 2 ** 20)  # a small machine: 64 MiB
+    for command, extra in (("reconstruct", []), ("calibrate", ["--method", "ncc-lle"]), ("report", [])):
+        assert main([command, str(small_bag), "--out", str(tmp_path / command), "--shape", "400,400,400",
+                     *extra]) == 2
+        _one_line_error(capsys, "not enough memory", "64 MiB are available")
+    assert fit[0] < 5000 and not (tmp_path / "r" / "volume.npy").exists()
+
+
+def test_reports_name_their_files_independently_of_the_current_directory(tmp_path, capsys, small_bag, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert main(["calibrate", str(small_bag), "--method", "none", "--out", "rel"]) == 0
+    report = json.loads((tmp_path / "rel" / "report.json").read_text())
+    for key, value in report["paths"].items():
+        assert value.startswith("/") and (tmp_path / "rel").as_posix() in value or key == "input_bag", (key, value)
+    assert report["bag"] == str(small_bag)
+    assert main(["reconstruct", "../" + tmp_path.name + "/rel/scan_corrected", "--out", "rel2"]) == 0
+    report = json.loads((tmp_path / "rel2" / "report.json").read_text())
+    assert report["bag"] == str(tmp_path / "rel" / "scan_corrected") or report["bag"].startswith("/")
+    assert all(f.startswith("/") for f in report["files"])
+
+
+def test_a_scan_with_every_stamp_equal_is_not_reconstructed(tmp_path, capsys):
+    """It used to give one view, "reconstructed" with exit status 0."""
+    from robot_ct_ros.bag import ScanBagWriter, scan_info_for
+    from robot_ct_ros.bag import format as fmt
+    from robot_ct_ros.ct.trajectory import robotic_roi_scan
+
+    geom = robotic_roi_scan(n_views=12, n_rows=8, n_cols=12, fov_diameter_mm=0.5)
+    with ScanBagWriter(tmp_path / "zero", scan_info_for(geom)) as w:
+        w.write_msg(fmt.TOPIC_FLAT_FIELD, fmt.image_from_array(np.full((8, 12), 1000.0, np.float32), 0), 1)
+        for i in range(12):
+            w.write_msg(fmt.TOPIC_PROJECTION, fmt.image_from_array(np.full((8, 12), 900.0, np.float32), 0), 10 + i)
+            w.write_geometry(geom, 0, view=i)
+    assert main(["reconstruct", str(tmp_path / "zero"), "--out", str(tmp_path / "o")]) == 2
+    _one_line_error(capsys, "a scan needs at least", "stamp 0 ns")
+    assert not (tmp_path / "o" / "volume.npy").exists()

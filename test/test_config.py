@@ -13,7 +13,7 @@ CONFIG = Path(__file__).resolve().parents[1] / "config"
 
 @pytest.mark.parametrize("node, exclude", [("recon_service", ()), ("replay", ("method",))])
 def test_node_yaml_lists_every_calibration_setting_with_its_default(node, exclude):
-    params = yaml.safe_load((CONFIG / f"{node}.yaml").read_text())[node]["ros__parameters"]
+    params = yaml.safe_load((CONFIG / f"{node}.yaml").read_text())[f"/**/{node}"]["ros__parameters"]
     for name, default in ros_defaults(CalibrationSettings).items():
         if name in exclude:
             continue
@@ -24,6 +24,19 @@ def test_node_yaml_lists_every_calibration_setting_with_its_default(node, exclud
 def test_recon_service_yaml_lists_the_services_own_settings():
     from robot_ct_ros.jobs.online import ServiceSettings
 
-    params = yaml.safe_load((CONFIG / "recon_service.yaml").read_text())["recon_service"]["ros__parameters"]
+    params = yaml.safe_load((CONFIG / "recon_service.yaml").read_text())["/**/recon_service"]["ros__parameters"]
     for name, default in ros_defaults(ServiceSettings).items():
         assert params[name] == default, name
+
+
+@pytest.mark.parametrize("node, cls", [("recorder", "robot_ct_ros.nodes.recorder:RecorderSettings"),
+                                       ("replay", "robot_ct_ros.nodes.replay:ReplaySettings")])
+def test_recorder_and_replay_yaml_list_their_typed_settings(node, cls):
+    import importlib
+
+    module, name = cls.split(":")
+    settings = getattr(importlib.import_module(module), name)
+    params = yaml.safe_load((CONFIG / f"{node}.yaml").read_text())[f"/**/{node}"]["ros__parameters"]
+    for key, default in ros_defaults(settings).items():
+        assert key in params, f"config/{node}.yaml lacks {key}"
+        assert params[key] == default, key

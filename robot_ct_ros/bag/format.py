@@ -61,6 +61,18 @@ TOPIC_TYPES = {
 }
 """Every topic the contract names, with its message type."""
 
+GLOBAL_TOPICS = (TOPIC_DIAGNOSTICS,)
+"""Contract topics the nodes keep absolute: /diagnostics, as ROS tools (aggregator, rqt) expect; every
+status is named after its node's fully qualified name, so two scanners' statuses stay apart."""
+
+
+def node_topic(topic: str) -> str:
+    """The name under which the nodes publish and subscribe a contract topic: relative (``ct/projection``),
+    so the node's namespace applies and ``-r __ns:=/scanner_a`` moves a whole scanner; bags keep the
+    contract's absolute names (``/ct/projection``) whatever the namespace. /diagnostics stays absolute."""
+    return topic if topic in GLOBAL_TOPICS else topic.lstrip("/")
+
+
 LATCHED_TOPICS = (TOPIC_SCAN_INFO, TOPIC_FLAT_FIELD, TOPIC_DEAD_PIXELS)
 """Published once per scan, transient-local (late subscribers such as the recorder get them)."""
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 import io
 import math
 import struct
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -31,6 +32,15 @@ from . import format as fmt
 from .format import ScanBagError
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+MIN_VIEWS = 4
+"""The fewest paired views (frames and geometries with equal, distinct stamps) a scan may have; a bag
+with fewer is refused with the reasons its frames and geometries were not used (e.g. every stamp
+equal, every frame of the wrong size or NaN)."""
+
+
+class ChunkCrcError(ValueError):
+    """An MCAP chunk whose records do not match its CRC."""
 
 
 @dataclass(frozen=True)
@@ -142,6 +152,7 @@ def _recover_mcap(path: Path) -> tuple[list, list]:
     orphans: list = []  # messages whose channel record was lost (kept until the end)
     out: list[RawMessage] = []
     damaged = 0
+    bad_chunks = 0
     lost_bytes = 0
 
     def stream(content: bytes) -> ReadDataStream:
@@ -189,6 +200,10 @@ def _recover_mcap(path: Path) -> tuple[list, list]:
                 if opcode == 0x06:
                     chunk = Chunk.read(stream(content))
                     data = _decompress(chunk.compression, chunk.data, chunk.uncompressed_size)
+                    if chunk.uncompressed_crc and zlib.crc32(data) & 0xFFFFFFFF != chunk.uncompressed_crc:
+                        raise ChunkCrcError(
+                            f"CRC mismatch: the chunk at bytes {pos} to {end} (log times {chunk.message_start_time} "
+                            f"to {chunk.message_end_time} ns) is damaged; its messages are not used")
                     q, cn = 0, len(data)
                     while q < cn:
                         if q + 9 > cn:
@@ -201,6 +216,10 @@ def _recover_mcap(path: Path) -> tuple[list, list]:
                         q += 9 + ln
                 elif opcode in (0x03, 0x04, 0x05):
                     handle(opcode, content)
+            except ChunkCrcError as exc:  # nothing of a chunk that fails its checksum is trusted
+                damaged += 1
+                bad_chunks += 1
+                warnings.append(f"{path.name}: {exc}")
             except Exception as exc:  # noqa: BLE001 - a damaged record: keep what came before it
                 damaged += 1
                 warnings.append(f"{path.name}: damaged record at byte {pos} ({type(exc).__name__}: {exc}); "
@@ -228,8 +247,9 @@ def _recover_mcap(path: Path) -> tuple[list, list]:
         if len(orphans) - kept:
             warnings.append(f"{path.name}: {len(orphans) - kept} messages lost: their channel record was damaged")
     if damaged or lost_bytes:
-        warnings.append(f"{path.name}: recovered {len(out)} messages ({damaged} damaged regions, "
-                        f"{lost_bytes} bytes unreadable)")
+        warnings.append(f"{path.name}: recovered {len(out)} messages ({damaged} damaged regions"
+                        + (f", {bad_chunks} of them chunks failing their CRC" if bad_chunks else "")
+                        + f", {lost_bytes} bytes unreadable)")
     return out, warnings
 
 
@@ -403,14 +423,18 @@ def _decode(raw: RawBag, topic: str, msgtype: str, warnings: list) -> list:
 
 
 def _by_stamp(items, what: str, warnings: list) -> dict:
-    out, dup = {}, 0
+    out, dup, repeated = {}, 0, {}
     for stamp, value in items:
         if stamp in out:
             dup += 1
+            repeated[stamp] = repeated.get(stamp, 1) + 1
             continue
         out[stamp] = value
     if dup:
-        warnings.append(f"{dup} {what} with a stamp already seen were dropped (the first one is used)")
+        stamp, times = max(repeated.items(), key=lambda kv: kv[1])
+        warnings.append(f"{dup} {what} with a stamp already seen were dropped (the first one is used; "
+                        f"{len(items)} messages carry {len(out)} distinct stamps, {times} of them stamp {stamp} ns: "
+                        "header.stamp is the pairing key and must differ from frame to frame)")
     return out
 
 
@@ -462,7 +486,8 @@ def read_scan(path, *, keep_raw: bool = False) -> ScanData:
     shape = (info["n_rows"], info["n_cols"])
     row_pitch_mm, col_pitch_mm = info["row_pitch_m"] * fmt.MM_PER_M, info["col_pitch_m"] * fmt.MM_PER_M
 
-    frames, bad_enc, bad_size = [], 0, 0
+    causes: list[str] = []  # why frames or geometries were not used: named when too few views are left
+    frames, bad_enc, bad_size, empty = [], 0, 0, 0
     for _, msg in _decode(raw, fmt.TOPIC_PROJECTION, fmt.IMAGE, warnings):
         try:
             arr = fmt.array_from_image(msg, fmt.READ_ENCODINGS)
@@ -474,13 +499,25 @@ def read_scan(path, *, keep_raw: bool = False) -> ScanData:
             bad_size += 1
             size_seen = arr.shape
             continue
+        with np.errstate(invalid="ignore"):
+            usable = np.isfinite(arr) & (arr > 0 if info["projection_units"] == "counts" else True)
+        if not usable.any():  # a frame with nothing in it is no view: kept, it would weigh as one
+            empty += 1
+            continue
         frames.append((fmt.stamp_to_ns(msg.header.stamp), arr))
     if bad_enc:
-        warnings.append(f"{bad_enc} frames dropped: {enc_reason}")
+        causes.append(f"{bad_enc} frames dropped: {enc_reason}")
     if bad_size:
-        warnings.append(f"{bad_size} frames dropped: size {size_seen[0]}x{size_seen[1]} differs from scan_info's "
-                        f"{shape[0]}x{shape[1]}")
+        causes.append(f"{bad_size} frames dropped: size {size_seen[0]}x{size_seen[1]} differs from scan_info's "
+                      f"{shape[0]}x{shape[1]}")
+    if empty:
+        what = "a finite, positive count" if info["projection_units"] == "counts" else "a finite value"
+        causes.append(f"{empty} frames dropped: not one pixel holds {what} (NaN, infinite or empty frames)")
+    warnings.extend(causes)
+    n_frame_msgs = len(frames)
     frames = _by_stamp(frames, "frames", warnings)
+    if len(frames) < n_frame_msgs:
+        causes.append(warnings[-1])
     # frames the acquisition rejected (e.g. the beam dropped during the exposure) are never projections,
     # even when a writer also put them on /ct/projection
     rejected = {fmt.stamp_to_ns(m.header.stamp) for _, m in _decode(raw, fmt.TOPIC_PROJECTION_REJECTED, fmt.IMAGE,
@@ -492,7 +529,11 @@ def read_scan(path, *, keep_raw: bool = False) -> ScanData:
         also = f"; {len(dropped)} of them also on {fmt.TOPIC_PROJECTION}, dropped there" if dropped else ""
         warnings.append(f"{len(rejected)} frame(s) on {fmt.TOPIC_PROJECTION_REJECTED} were rejected during the "
                         f"acquisition (e.g. beam interrupted) and are not used{also}")
+        if dropped:
+            causes.append(warnings[-1])
+    n_warn = len(warnings)
     geoms = _geometries(raw, fmt.TOPIC_GEOMETRY, warnings)
+    causes.extend(warnings[n_warn:])
 
     paired = sorted(set(frames) & set(geoms))
     lone_frames, lone_geoms = len(frames) - len(paired), len(geoms) - len(paired)
@@ -500,10 +541,21 @@ def read_scan(path, *, keep_raw: bool = False) -> ScanData:
         warnings.append(f"{lone_frames} frames have no geometry with the same stamp and are not used")
     if lone_geoms:
         warnings.append(f"{lone_geoms} geometries have no frame with the same stamp and are not used")
-    if not paired:
-        raise ScanBagError(f"{path}: no frame on /ct/projection pairs with a geometry on /ct/geometry "
-                           f"({len(frames)} usable frames, {len(geoms)} usable geometries; "
-                           "a pair needs equal header stamps)")
+    if len(paired) < MIN_VIEWS:
+        found = f"{len(paired)} paired view{'s' if len(paired) != 1 else ''}"
+        if frames and geoms and not paired:
+            f0, f1, g0, g1 = min(frames), max(frames), min(geoms), max(geoms)
+            causes.append(f"no stamp is shared: frames are stamped {f0} to {f1} ns, geometries {g0} to {g1} ns "
+                          "(a pair needs equal header stamps)")
+        elif not frames and not geoms:
+            causes.append("neither a usable frame nor a usable geometry")
+        elif not frames:
+            causes.append("no usable frame on /ct/projection")
+        elif not geoms:
+            causes.append("no usable geometry on /ct/geometry")
+        raise ScanBagError(f"{path}: not a usable scan: {found}, a scan needs at least {MIN_VIEWS} "
+                           f"({len(frames)} usable frames, {len(geoms)} usable geometries)"
+                           + (f"; {'; '.join(causes)}" if causes else ""))
     n_views = info.get("n_views")
     if isinstance(n_views, int) and n_views != len(paired):
         warnings.append(f"scan_info announces {n_views} views, the bag holds {len(paired)} paired frames")

@@ -8,11 +8,18 @@ cut with ``fsync=True``) leaves an MCAP file holding every completed frame, with
 summary and metadata.yaml; :func:`robot_ct_ros.bag.reader.read_scan` recovers it. An
 exception or SIGINT (KeyboardInterrupt) inside the ``with`` block still closes the bag
 cleanly (rosbags' own context manager would abort it without an index).
+
+Integrity: rosbags writes every MCAP chunk with a CRC of 0 ("none"); this writer fills in each
+chunk's CRC-32 of its uncompressed records (MCAP specification), which rosbags, the ``mcap``
+library and :func:`robot_ct_ros.bag.reader.read_raw_messages` verify when reading, so a flipped
+byte is a reported damaged chunk instead of silently different pixels.
 """
 
 from __future__ import annotations
 
 import os
+import struct
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -55,6 +62,7 @@ class ScanBagWriter:
         if self._open:
             return self
         self._writer.open()
+        _checksum_chunks(getattr(self._writer, "storage", None))
         self._open = True
         for topic in (fmt.TOPIC_SCAN_INFO, fmt.TOPIC_PROJECTION, fmt.TOPIC_GEOMETRY, fmt.TOPIC_FLAT_FIELD):
             self._connection(topic, fmt.TOPIC_TYPES[topic])
@@ -181,6 +189,28 @@ class ScanBagWriter:
         self.n_frames += 1
         if self.flush_every_frame:
             self.flush()
+
+
+_CHUNK_CRC_OFFSET = 1 + 8 + 8 + 8 + 8  # opcode, record length, message start and end time, uncompressed size
+
+
+def _checksum_chunks(storage) -> None:
+    """Make rosbags' MCAP storage write each chunk's CRC-32 (it writes 0): the CRC of the chunk's
+    uncompressed records is computed before the chunk is written and patched into its header after."""
+    close_chunk = getattr(storage, "close_chunk", None)
+    if close_chunk is None or not hasattr(storage, "chunk") or not hasattr(storage, "bio"):
+        return  # another storage plugin, or a rosbags version without these internals: CRC stays 0
+
+    def close_chunk_with_crc() -> None:
+        crc = zlib.crc32(storage.chunk.bio.getbuffer()) & 0xFFFFFFFF
+        start = storage.bio.tell()
+        close_chunk()
+        end = storage.bio.tell()
+        storage.bio.seek(start + _CHUNK_CRC_OFFSET)
+        storage.bio.write(struct.pack("<I", crc))
+        storage.bio.seek(end)
+
+    storage.close_chunk = close_chunk_with_crc
 
 
 def default_stamps(n_views: int, start_ns: int = 1_767_225_600_000_000_000, period_s: float = 0.1,

@@ -313,6 +313,18 @@ def _place_extensions(buf, n, n_fft, ext, left, right, keep_left, keep_right):
     return buf
 
 
+def _centre_column(geom: ConeGeometry, center_mm) -> np.ndarray:
+    """The detector column (n_views,) the scan centre projects onto, limited to one row length beyond
+    either edge: a centre far off the detector (a grid placed away from the scan, or in a source's
+    plane, where it projects to infinity) is simply "off the detector", and the widening of the
+    filtered rows that follows from it stays bounded (it once asked for 5 GiB)."""
+    nc = geom.n_cols
+    with np.errstate(all="ignore"):
+        cc = geom.project_points(np.asarray(center_mm, dtype=np.float64).reshape(1, 3))[:, 0, 0]
+    cc = np.nan_to_num(cc, nan=0.5 * (nc - 1), posinf=2.0 * nc, neginf=-1.0 * nc)
+    return np.clip(cc, -1.0 * nc, 2.0 * nc)
+
+
 def displaced_detector_weights(geom: ConeGeometry, center_mm=(0.0, 0.0, 0.0),
                                min_asymmetry_px: float | None = None):
     """Redundancy weights (n_views, n_cols) for an offset (displaced) detector, after Wang 2002.
@@ -334,7 +346,7 @@ def displaced_detector_weights(geom: ConeGeometry, center_mm=(0.0, 0.0, 0.0),
     at low column indices, +1 at high ones, 0 where no weighting applies.
     """
     nv, nc = geom.n_views, geom.n_cols
-    cc = geom.project_points(np.asarray(center_mm, dtype=np.float64).reshape(1, 3))[:, 0, 0]
+    cc = _centre_column(geom, center_mm)
     reach_lo = cc + 0.5
     reach_hi = (nc - 0.5) - cc
     asym = reach_hi - reach_lo
@@ -419,8 +431,8 @@ def fdk_filter_projections(line_integrals: np.ndarray, geom: ConeGeometry, *, ce
             lin = lin * red
             keep_lo = np.repeat((side != -1).astype(np.float32), nr)
             keep_hi = np.repeat((side != 1).astype(np.float32), nr)
-            cc = geom.project_points(cm.reshape(1, 3))[:, 0, 0]
-            asym = np.abs((nc - 0.5 - cc) - (cc + 0.5))
+            cc = _centre_column(geom, cm)
+            asym = np.abs((nc - 0.5 - cc) - (cc + 0.5))  # at most 3 rows: _centre_column bounds cc
             m_lo = int(math.ceil(asym[side == -1].max())) if np.any(side == -1) else 0
             m_hi = int(math.ceil(asym[side == 1].max())) if np.any(side == 1) else 0
 

@@ -14,11 +14,22 @@ it feeds the simulated detector), and the simulated arm's error injection is its
 
 :class:`ArmRunner` drives a connected arm from two threads, as the arm_driver node needs: one
 polls the state at a fixed rate, the other runs linear moves one at a time (the newest goal
-wins). A lost connection is recorded (:attr:`ArmRunner.lost_reason`) for the owner to act on.
+wins). A lost connection is recorded (:attr:`ArmRunner.lost_reason`) for the owner to act on,
+and so is the death of either thread from an unexpected exception (:attr:`ArmRunner.failure`, and
+the ``on_thread_died`` callback): a thread never dies silently.
+
+Freshness: a snapshot carries the controller's own clock (``timestamp_s``, the UR controller's time
+since power-up; None for an arm without one, whose every read is fresh). The runner keeps the host
+time at which each sample was taken (the controller time mapped through the smallest observed
+host-minus-controller offset, so transport latency does not age it) and calls the state *stale*
+when the controller clock has not advanced for ``max_state_age_s``: a frozen controller keeps
+answering with its last sample, which must not be republished as fresh. Stale for longer than
+``call_timeout_s`` counts as a lost connection. An arm without a clock is never stale.
 """
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from dataclasses import dataclass
@@ -56,11 +67,15 @@ class ArmSnapshot:
         Joint positions (rad), shoulder pan first.
     true_tcp_pose : numpy.ndarray or None
         Where the tool really is, when the arm knows it (the simulated arm); None for a real arm.
+    timestamp_s : float or None
+        The controller's clock when it measured this state (s, any origin; UR: time since the
+        controller started); None when the arm has no clock of its own (every read is a new sample).
     """
 
     tcp_pose: np.ndarray
     joint_positions: np.ndarray
     true_tcp_pose: np.ndarray | None = None
+    timestamp_s: float | None = None
 
 
 @runtime_checkable
@@ -108,7 +123,7 @@ class ArmSettings:
     """Connection and motion of one arm (the arm_driver's parameters of the same names, SI units)."""
 
     robot_ip: str = setting("", "controller address; empty: the simulated arm")
-    connect_timeout_s: float = setting(10.0, "configure fails if the controller does not answer within this",
+    connect_timeout_s: float = setting(10.0, "the connection fails if the controller does not answer within this",
                                        unit="s", minimum=0.0)
     call_timeout_s: float = setting(2.0, "a state read slower than this counts as a lost connection",
                                     unit="s", minimum=0.0)
@@ -119,6 +134,8 @@ class ArmSettings:
                                           minimum=0.0)
     orientation_tolerance_rad: float = setting(1e-3, "in position: measured-to-goal angle at most", unit="rad",
                                                minimum=0.0)
+    max_state_age_s: float = setting(0.25, "the controller's state is stale (not published, not in position) when "
+                                           "its clock has not advanced for this long", unit="s", minimum=0.0)
 
     def __post_init__(self):
         validate(self)
@@ -130,12 +147,18 @@ class ArmRunner:
     Parameters
     ----------
     settings : ArmSettings
-        Speed, acceleration, move timeout and in-position tolerances.
+        Speed, acceleration, move timeout, in-position tolerances, state freshness.
     rate_hz : float
         State polling rate (at least 0.1 Hz).
     on_move_failed : callable(str), optional
         Called from the move thread with "move failed: <reason>" when a move fails (the
         connection itself still up).
+    on_thread_died : callable(str), optional
+        Called from the dying thread with "<thread> thread died: <exception>" when either thread
+        ends on an unexpected exception (a bug, or a fault nobody foresaw); :attr:`failure` keeps
+        the first such reason until the next :meth:`start`.
+    clock : callable() -> float, optional
+        Host monotonic clock in seconds (tests).
 
     Notes
     -----
@@ -144,16 +167,23 @@ class ArmRunner:
     :meth:`stop` (diagnostics show them); in_position is false until a move completes again.
     """
 
-    def __init__(self, settings: ArmSettings, rate_hz: float, on_move_failed: Callable[[str], None] | None = None):
+    def __init__(self, settings: ArmSettings, rate_hz: float, on_move_failed: Callable[[str], None] | None = None,
+                 on_thread_died: Callable[[str], None] | None = None, clock: Callable[[], float] = time.monotonic):
         self.settings = settings
         self.period_s = 1.0 / max(float(rate_hz), 0.1)
         self._on_move_failed = on_move_failed or (lambda message: None)
+        self._on_thread_died = on_thread_died or (lambda message: None)
+        self._clock = clock
         self.arm = None
         self.active = False
         self.snapshot: ArmSnapshot | None = None
         self.target: np.ndarray | None = None
         self.lost_reason: str | None = None
+        self.failure: str | None = None
         self.moves_completed = 0
+        self.samples = 0                        # new controller samples seen since start
+        self._sample_host_s: float | None = None  # host time at which the latest sample was measured
+        self._offset_s: float | None = None       # smallest host - controller clock offset seen
         self._lock = threading.Lock()
         self._moving = False
         self._move_ok = False
@@ -164,11 +194,15 @@ class ArmRunner:
 
     def start(self, arm: Arm) -> None:
         """Start polling and accepting goals for ``arm`` (connected)."""
-        self.arm, self.lost_reason = arm, None
+        self.arm, self.lost_reason, self.failure = arm, None, None
+        with self._lock:
+            self.snapshot, self._sample_host_s, self._offset_s, self.samples = None, None, None, 0
         self._stop.clear()
         self.active = True
-        self._threads = [threading.Thread(target=self._poll_loop, name="arm_poll", daemon=True),
-                         threading.Thread(target=self._move_loop, name="arm_move", daemon=True)]
+        self._threads = [threading.Thread(target=self._guarded, args=(self._poll_loop, "arm_poll", arm),
+                                          name="arm_poll", daemon=True),
+                         threading.Thread(target=self._guarded, args=(self._move_loop, "arm_move", arm),
+                                          name="arm_move", daemon=True)]
         for t in self._threads:
             t.start()
 
@@ -184,14 +218,22 @@ class ArmRunner:
         self._stop.set()
         self._goal_event.set()
         for t in self._threads:
-            t.join(0.2 if t.name == "arm_move" else 2.0)
+            if t is not threading.current_thread():
+                t.join(0.2 if t.name == "arm_move" else 2.0)
         self._threads = []
         with self._lock:
             self._moving, self._move_ok, self._next_goal = False, False, None
         return was_active
 
-    def command(self, goal: np.ndarray) -> None:
-        """Move to ``goal`` (TCP pose, m and rad) next; a goal not started yet is replaced."""
+    def command(self, goal) -> None:
+        """Move to ``goal`` (TCP pose, m and rad) next; a goal not started yet is replaced.
+
+        Raises
+        ------
+        ValueError
+            ``goal`` is not 6 finite numbers (nothing is commanded).
+        """
+        goal = as_pose(goal)
         with self._lock:
             self.target = goal
             self._next_goal = goal
@@ -199,11 +241,15 @@ class ArmRunner:
             self._goal_event.set()
 
     def in_position(self) -> bool:
-        """The last commanded move completed and the measured pose is within tolerance of it."""
+        """The last commanded move completed, the state is fresh, and the measured pose is within
+        tolerance of the goal."""
         with self._lock:
             if self._moving or not self._move_ok or self.target is None or self.snapshot is None:
                 return False
-            dt, dr = pose_distance(self.snapshot.tcp_pose, self.target)
+            snap, target = self.snapshot, self.target
+        if self.stale():
+            return False
+        dt, dr = pose_distance(snap.tcp_pose, target)
         s = self.settings
         return dt <= s.position_tolerance_m and dr <= s.orientation_tolerance_rad
 
@@ -211,22 +257,75 @@ class ArmRunner:
         with self._lock:
             return self.snapshot
 
+    def sample_time_s(self) -> float | None:
+        """Host monotonic time (s) at which the latest sample was measured (None before the first)."""
+        with self._lock:
+            return self._sample_host_s
+
+    def state_age_s(self) -> float:
+        """How old the latest sample is (s; infinite before the first)."""
+        t = self.sample_time_s()
+        return math.inf if t is None else max(0.0, self._clock() - t)
+
+    def stale(self) -> bool:
+        """The controller's clock has not advanced for longer than ``max_state_age_s``. An arm without
+        a clock of its own (the simulated arm: every read is its current state) is never stale: a
+        late poll there is only a busy host, and must not cut the beam."""
+        snap = self.latest()
+        if snap is None or snap.timestamp_s is None:
+            return False
+        return self.state_age_s() > self.settings.max_state_age_s
+
     # -- threads ------------------------------------------------------------------------------
-    def _poll_loop(self) -> None:
-        arm = self.arm
+    def _guarded(self, loop, name: str, arm) -> None:
+        try:
+            loop(arm)
+        except BaseException as exc:  # noqa: BLE001 - a thread never dies silently
+            reason = f"{name} thread died: {type(exc).__name__}: {exc}"
+            with self._lock:
+                if arm is not self.arm or not self.active:
+                    return  # an arm we already let go of
+                if self.failure is None:
+                    self.failure = reason
+                self._moving, self._move_ok = False, False
+            self._on_thread_died(reason)
+
+    def _record(self, snap: ArmSnapshot, received_s: float) -> None:
+        with self._lock:
+            previous = self.snapshot
+            if snap.timestamp_s is None:  # no controller clock: every read is a new sample
+                self._sample_host_s = received_s
+                self.samples += 1
+            elif previous is None or previous.timestamp_s is None or snap.timestamp_s != previous.timestamp_s:
+                offset = received_s - float(snap.timestamp_s)
+                if self._offset_s is None or offset < self._offset_s or \
+                        (previous is not None and previous.timestamp_s is not None
+                         and snap.timestamp_s < previous.timestamp_s):  # the controller restarted its clock
+                    self._offset_s = offset
+                self._sample_host_s = float(snap.timestamp_s) + self._offset_s
+                self.samples += 1
+            elif self._sample_host_s is not None:
+                snap = previous if previous is not None else snap  # the same sample, read again
+            self.snapshot = snap
+
+    def _poll_loop(self, arm) -> None:
         while not self._stop.is_set():
-            t0 = time.monotonic()
+            t0 = self._clock()
             try:
                 snap = arm.snapshot()
             except ArmError as exc:
                 self._connection_lost(str(exc), arm)
                 return
-            with self._lock:
-                self.snapshot = snap
-            self._stop.wait(max(0.0, self.period_s - (time.monotonic() - t0)))
+            self._record(snap, self._clock())
+            age = self.state_age_s()
+            if snap.timestamp_s is not None and age > max(self.settings.call_timeout_s, self.settings.max_state_age_s):
+                self._connection_lost(f"the controller stopped updating its state (no new sample for {age:.2f} s)",
+                                      arm)
+                return
+            self._stop.wait(max(0.0, self.period_s - (self._clock() - t0)))
 
-    def _move_loop(self) -> None:
-        arm, s = self.arm, self.settings
+    def _move_loop(self, arm) -> None:
+        s = self.settings
         while not self._stop.is_set():
             self._goal_event.wait()
             with self._lock:

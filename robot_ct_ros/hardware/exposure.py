@@ -23,7 +23,7 @@ import threading
 from dataclasses import dataclass
 from typing import Callable
 
-from robot_ct_ros.hardware.detector import Frame
+from robot_ct_ros.hardware.detector import DetectorError, Frame
 
 __all__ = ["BeamLog", "frame_usable", "ExposureResult", "ExposureGate"]
 
@@ -101,12 +101,16 @@ class ExposureResult:
         when the request was refused for the caller's reasons (inactive, busy) or cancelled.
     requested_ns : int
         When the request started (0 if it was refused).
+    crashed : bool
+        The driver raised something other than a DetectorError: a bug, not a detector fault (the
+        owner treats it as a dead worker: an error transition).
     """
 
     frame: Frame | None = None
     problem: str = ""
     fault: str = ""
     requested_ns: int = 0
+    crashed: bool = False
 
 
 class _Exposure:
@@ -212,7 +216,8 @@ class ExposureGate:
             problem = f"{type(result).__name__}: {result}"
         else:
             return ExposureResult(frame=result, requested_ns=exposure.requested_ns)
-        return ExposureResult(problem=problem, fault=f"exposure failed: {problem}", requested_ns=exposure.requested_ns)
+        return ExposureResult(problem=problem, fault=f"exposure failed: {problem}", requested_ns=exposure.requested_ns,
+                              crashed=isinstance(result, Exception) and not isinstance(result, DetectorError))
 
     def _acquire(self, exposure: _Exposure, detector, exposure_s: float) -> None:
         try:

@@ -88,6 +88,11 @@ class URArm:
                     self._fail_all(f"connection to controller at {self.host} lost "
                                    f"(driver process exited with code {proc.exitcode})")
                 return
+            except Exception as exc:  # noqa: BLE001 - a garbled reply: this reader must not die silently
+                if self._conn is conn:
+                    self._kill_child(f"driver process for {self.host} sent an unreadable reply "
+                                     f"({type(exc).__name__}: {exc})")
+                return
             with self._pending_lock:
                 slot = self._pending.pop(msg_id, None)
             if slot is not None:
@@ -215,9 +220,16 @@ class URArm:
         return np.asarray(self.read_state()["joint_positions"], dtype=float)
 
     def snapshot(self) -> ArmSnapshot:
-        """Measured TCP pose and joints from one state read (a real arm does not know its true pose)."""
+        """Measured TCP pose and joints from one state read, with the controller's clock (a real arm
+        does not know its true pose). Raises ArmConnectionError on non-finite values (a corrupt stream)."""
         state = self.read_state()
-        return ArmSnapshot(np.asarray(state["tcp_pose"]), np.asarray(state["joint_positions"]))
+        pose, q = np.asarray(state["tcp_pose"], float), np.asarray(state["joint_positions"], float)
+        if pose.shape != (6,) or q.shape != (6,) or not (np.all(np.isfinite(pose)) and np.all(np.isfinite(q))):
+            self._kill_child(f"controller at {self.host} sent an unusable state (pose {pose.tolist()}, "
+                             f"joints {q.tolist()})")
+            raise ArmConnectionError(self._dead_reason)
+        ts = state.get("timestamp")
+        return ArmSnapshot(pose, q, None, float(ts) if ts is not None and np.isfinite(ts) else None)
 
     def __enter__(self):
         self.connect()

@@ -153,12 +153,12 @@ class SourceSettings:
     """The tube settings and the interlock's report age (the source_control node's parameters).
 
     The tube range is the source's to check (:meth:`XraySource.configure` refuses what it cannot
-    do, and the node's configure transition fails with the reason), so kvp and power_w have no
-    bounds here.
+    do, and the node's configure transition fails with the reason), so kvp and power_w are bounded
+    here only by physics (>= 0; a negative value is refused as the parameter is declared).
     """
 
-    kvp: float = setting(90.0, "tube voltage (60-120 for the simulated source)", unit="kVp")
-    power_w: float = setting(150.0, "tube power (<= 150 for the simulated source)", unit="W")
+    kvp: float = setting(90.0, "tube voltage (60-120 for the simulated source)", unit="kVp", minimum=0.0)
+    power_w: float = setting(150.0, "tube power (<= 150 for the simulated source)", unit="W", minimum=0.0)
     max_report_age_s: float = setting(1.0, "an arm in-position report older than this cuts the beam", unit="s",
                                       minimum=0.0)
 

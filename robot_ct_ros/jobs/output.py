@@ -8,7 +8,95 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["say", "json_default", "clean_json", "write_json", "write_volume"]
+__all__ = ["say", "json_default", "clean_json", "write_json", "write_volume", "prepare_out", "available_memory_bytes",
+           "check_memory", "MEMORY_FACTORS"]
+
+MEMORY_FACTORS = {"reconstruct": (2.0, 3.0), "calibrate": (8.0, 8.0), "report": (10.0, 8.0)}
+"""Rough peak memory of each job, as (volumes, projection stacks): FDK holds its volume and its copy for
+the files, the line integrals, their mask and the filtered projections; the calibration also holds its
+padded estimation volumes (FDK, SIRT) and reprojections; the comparison keeps every method's volume."""
+
+
+def prepare_out(out, *, must_not_exist: bool = False) -> Path:
+    """The output folder ``out`` made absolute, created and checked writable before any work is done.
+
+    Raises
+    ------
+    ValueError
+        ``out`` names a file, cannot be created (read-only place, missing permission), is not
+        writable, or (``must_not_exist``) exists already; the message says which.
+    """
+    import os
+    import tempfile
+
+    path = Path(out).expanduser().absolute()
+    if must_not_exist and path.exists():
+        raise ValueError(f"{out} exists already; it is never overwritten")
+    if path.exists() and not path.is_dir():
+        raise ValueError(f"--out {out} is a file, not a folder")
+    parent = path if must_not_exist is False else path.parent
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+    except FileExistsError:
+        raise ValueError(f"cannot create {out}: a part of the path is a file") from None
+    except OSError as exc:
+        raise ValueError(f"cannot create {out}: {exc.strerror or exc}") from None
+    try:
+        with tempfile.TemporaryFile(dir=parent):
+            pass
+    except OSError as exc:
+        raise ValueError(f"cannot write into {parent}: {exc.strerror or exc}") from None
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ValueError(f"cannot write into {parent}: permission denied")
+    return path
+
+
+def available_memory_bytes() -> int:
+    """Memory available to a new allocation without swapping (Linux: MemAvailable), else the free pages."""
+    import os
+
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return int(os.sysconf("SC_AVPHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
+    except (ValueError, OSError, AttributeError):
+        return 1 << 62  # unknown: never refuse
+
+
+def _gib(n: float) -> str:
+    return f"{n / 2 ** 30:.1f} GiB" if n >= 2 ** 29 else f"{n / 2 ** 20:.0f} MiB"
+
+
+def check_memory(grid, n_views: int, det_shape, job: str, available: int | None = None) -> int:
+    """Refuse, before anything is allocated, a job whose grid and projections cannot fit in memory.
+
+    Returns the estimate in bytes. Raises ValueError naming the estimate, what is available, and
+    the largest grid (same aspect) or the voxel size that would fit.
+    """
+    kv, kp = MEMORY_FACTORS[job]
+    nz, ny, nx = (int(v) for v in grid.shape_zyx)
+    vol = 4.0 * nx * ny * nz
+    proj = 4.0 * int(n_views) * int(det_shape[0]) * int(det_shape[1])
+    need = kv * vol + kp * proj
+    avail = available_memory_bytes() if available is None else int(available)
+    if need <= avail:
+        return int(need)
+    room = avail - kp * proj
+    if room <= 0:
+        raise ValueError(f"not enough memory: the {n_views} projections alone need about {_gib(kp * proj)} for "
+                         f"{job}, {_gib(avail)} are available")
+    scale = (room / (kv * vol)) ** (1.0 / 3.0)
+    fit = [max(1, int(n * scale)) for n in (nx, ny, nz)]
+    voxel = [float(v) / scale for v in grid.voxel_size_mm]
+    raise ValueError(f"not enough memory: a {nx} x {ny} x {nz} grid needs about {_gib(need)} for {job} "
+                     f"({_gib(vol)} per volume), {_gib(avail)} are available; at most about "
+                     f"--shape {fit[0]},{fit[1]},{fit[2]} would fit, or the same field of view with "
+                     f"--voxel-mm {max(voxel):.4g}")
 
 
 def say(message: str) -> None:

@@ -9,7 +9,7 @@ from robot_ct_ros.bag.reader import read_scan
 from robot_ct_ros.bag.format import ScanBagError
 from robot_ct_ros.jobs.calibrate import base_report, geometry_error, scan_grid
 from robot_ct_ros.jobs.output import say as _say
-from robot_ct_ros.jobs.output import write_json, write_volume
+from robot_ct_ros.jobs.output import check_memory, write_json, write_volume
 
 __all__ = ["reconstruct_bag", "GEOMETRIES"]
 
@@ -25,6 +25,9 @@ def reconstruct_bag(bag, out, *, geometry: str = "auto", voxel_mm=None, shape_xy
     ------
     ScanBagError
         The bag gives no scan, or ``geometry="corrected"`` and it holds no corrected geometry.
+    ValueError
+        The grid and the projections would not fit in memory (checked before allocating; the
+        message says what would fit).
     """
     from robot_ct_ros.ct.reconstruction import fdk
 
@@ -39,8 +42,9 @@ def reconstruct_bag(bag, out, *, geometry: str = "auto", voxel_mm=None, shape_xy
         raise ScanBagError(f"{bag} has no /ct/geometry_corrected")
     use_corrected = geometry == "corrected" or (geometry == "auto" and scan.geom_corrected is not None)
     geom = scan.geom_corrected if use_corrected else scan.geom
-    li, mask = scan.to_line_integrals()
     grid = scan_grid(scan, voxel_mm, shape_xyz)
+    check_memory(grid, scan.n_views, geom.det_shape, "reconstruct")
+    li, mask = scan.to_line_integrals()
     say(f"{scan.n_views} views, detector {geom.n_rows}x{geom.n_cols}; FDK on {grid.shape_zyx[::-1]} voxels of "
         f"{grid.voxel_size_mm[0] * 1000:.1f} um ({'corrected' if use_corrected else 'nominal'} geometry)")
     vol = fdk(li, geom, grid, valid_mask=mask)

@@ -4,26 +4,41 @@ Topics, relative to the node namespace, under ``<role>_arm/`` (role is "source" 
   publishes   <role>_arm/joint_states (sensor_msgs/JointState, rad), <role>_arm/tool_pose
               (geometry_msgs/PoseStamped: the measured TCP pose in metres, REP 103, frame_id =
               base_frame), <role>_arm/in_position (std_msgs/Bool: true when the last commanded
-              move completed and the measured pose is within tolerance of it), all at
-              publish_rate_hz while active; <role>_arm/true_tool_pose (PoseStamped, simulated arm
-              only: the true, perturbed pose, for the simulated detector); /diagnostics (1 Hz).
+              move completed, the state is fresh and the measured pose is within tolerance of the
+              goal), at publish_rate_hz while active; <role>_arm/true_tool_pose (PoseStamped,
+              simulated arm only: the true, perturbed pose, for the simulated detector);
+              diagnostics (1 Hz).
   subscribes  <role>_arm/goal_pose (geometry_msgs/PoseStamped in base_frame): a linear move to
-              it; moves run on a worker thread, in_position is false while moving.
-Lifecycle: configure connects (robot_ip "" = simulated arm), activate starts publishing and
-accepting goals, deactivate stops them, cleanup disconnects. A failed connection fails the
-configure transition with a logged reason. When the connection is lost while active the node
-publishes in_position false, logs an error, reports ERROR on /diagnostics and goes back to
-unconfigured (deactivate + cleanup); configure again to reconnect. With autostart (default) the
-node configures and activates itself, so a plain ``ros2 run`` works without a lifecycle manager.
+              it; moves run on a worker thread, in_position is false while moving. A goal with a
+              NaN or infinite value, a non-unit quaternion or another frame is refused at once
+              (logged, and a WARN on diagnostics); the arm keeps its last goal.
+Stamps and freshness: joint_states and tool_pose carry the time the controller measured them
+(the UR controller's clock mapped onto the ROS clock), and each sample is published once; when the
+controller's clock stops advancing for max_state_age_s (a hung controller still answering with its
+last state) nothing is republished, in_position is false and diagnostics say "state stale"; stale
+for call_timeout_s counts as a lost connection.
+Lifecycle: configure creates the arm and connects it on a background thread (robot_ip "" =
+simulated arm), so the executor, the lifecycle services and diagnostics ("connecting", WARN) keep
+running while a controller is slow to answer; activate starts publishing and accepting goals once
+the connection is up (at once if it already is); deactivate stops them; cleanup disconnects (off
+the executor too). A failed connection, or one lost while configured, is logged, reported as
+ERROR on diagnostics, and the node goes back to unconfigured; configure again to reconnect. A
+worker thread dying on an unexpected exception is an ERROR on diagnostics and takes the node
+through the lifecycle error transition (on_error releases the arm; the node ends unconfigured).
+With autostart (default) the node configures and activates itself, so a plain ``ros2 run`` works
+without a lifecycle manager.
 Parameters: config/arm_driver.yaml; the arm itself is robot_ct_ros.hardware.arm (ArmSettings,
 ArmRunner), the simulated arm's sim_* parameters robot_ct_ros.hardware.simulated_arm.
 """
 
 from __future__ import annotations
 
+import threading
+import time
 from dataclasses import dataclass
 
 import numpy as np
+from rclpy.duration import Duration
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from scipy.spatial.transform import Rotation
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
@@ -34,8 +49,12 @@ from std_msgs.msg import Bool
 from robot_ct_ros.hardware.arm import ArmError, ArmRunner, ArmSettings
 from robot_ct_ros.hardware.arms import make_arm
 from robot_ct_ros.hardware.simulated_arm import JOINT_NAMES, SimulatedArmSettings
-from robot_ct_ros.nodes.common import LifecycleSettings, declare_settings, publish_diagnostic, run_settings_node
+from robot_ct_ros.nodes.common import (LifecycleSettings, WorkerFaults, declare_settings, error_transition,
+                                      publish_diagnostic, run_settings_node, transition_result)
+from robot_ct_ros.nodes.hand_eye_params import check_pose
 from robot_ct_ros.parameters import setting, validate
+
+TOPIC_DIAGNOSTICS = "/diagnostics"
 
 __all__ = ["ArmDriverNode", "ArmDriverSettings", "pose_msg_to_ur", "ur_to_pose_msg", "main"]
 
@@ -55,9 +74,10 @@ class ArmDriverSettings:
 
 
 def pose_msg_to_ur(msg: PoseStamped) -> np.ndarray:
-    p, o = msg.pose.position, msg.pose.orientation
-    rotvec = Rotation.from_quat([o.x, o.y, o.z, o.w]).as_rotvec()
-    return np.array([p.x, p.y, p.z, *rotvec])
+    """The UR pose [x, y, z, rx, ry, rz] (m, rad) of a PoseStamped; ValueError when it holds a NaN or
+    infinite value or a quaternion whose norm is not 1 (robot_ct_ros.nodes.hand_eye_params.check_pose)."""
+    xyz, q = check_pose(msg.pose)
+    return np.array([*xyz, *Rotation.from_quat(q).as_rotvec()])
 
 
 def ur_to_pose_msg(pose, frame_id: str, stamp) -> PoseStamped:
@@ -88,14 +108,28 @@ class ArmDriverNode(LifecycleNode):
         self.pose_pub = self.create_publisher(PoseStamped, f"{ns}/tool_pose", 10)
         self.true_pose_pub = self.create_publisher(PoseStamped, f"{ns}/true_tool_pose", 10)
         self.in_position_pub = self.create_publisher(Bool, f"{ns}/in_position", 10)
-        self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.diag_pub = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS, 10)
         self.create_subscription(PoseStamped, f"{ns}/goal_pose", self._on_goal, 10)
         self.create_timer(1.0, self._publish_diagnostics)
 
-        self.arm = None
-        self.runner = ArmRunner(self.arm_settings, s.publish_rate_hz, self._move_failed)
+        self.faults = WorkerFaults(self, self._on_fault)
+        self.error_transition_pending = False
+        self.arm = None                     # the connected arm (between a successful connect and cleanup)
+        self.connecting = False             # a connection attempt is under way (background thread)
+        self._connect_started = 0.0
+        self._attempt = 0                   # a connection result of an older attempt is discarded
+        self._connected_gc = self.create_guard_condition(self._on_connect_done)
+        self._connect_result = None
+        self._connect_lock = threading.Lock()
+        self._release_threads: list[threading.Thread] = []
+        self._want_active = False
+        self.runner = ArmRunner(self.arm_settings, s.publish_rate_hz, self._move_failed,
+                                on_thread_died=self.faults.report)
         self._publish_timer = None
+        self._published_sample = -1
         self.last_error = ""
+        self.goal_rejections = 0
+        self.last_goal_problem = ""
         if autostart:
             self._autostart_timer = self.create_timer(0.0, self._autostart)
 
@@ -120,33 +154,45 @@ class ArmDriverNode(LifecycleNode):
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
         try:
             arm = self._arm_factory()
-            arm.connect()
         except (ArmError, OSError, ValueError) as exc:
             self.last_error = f"configure failed: {exc}"
             self.get_logger().error(self.last_error)
             return TransitionCallbackReturn.FAILURE
-        self.arm = arm
         self.last_error = ""
-        self.get_logger().info(f"{self.role} arm connected ({self.robot_ip or 'simulated'})")
+        self._start_connect(arm)
         return TransitionCallbackReturn.SUCCESS
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self.runner.start(self.arm)
-        self._publish_timer = self.create_timer(self.runner.period_s, self._publish)
+        self._want_active = True
+        if self.arm is not None:
+            self._start_runner()
         return TransitionCallbackReturn.SUCCESS
 
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
         self._stop_activity()
-        return TransitionCallbackReturn.SUCCESS
+        return transition_result(self)
 
     def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
         self._stop_activity()
         self._disconnect()
+        return transition_result(self)
+
+    def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._stop_activity()
+        self._disconnect()
         return TransitionCallbackReturn.SUCCESS
 
-    on_shutdown = on_error = on_cleanup
+    on_shutdown = on_error
+
+    def _start_runner(self) -> None:
+        if self.runner.active:
+            return
+        self._published_sample = -1
+        self.runner.start(self.arm)
+        self._publish_timer = self.create_timer(self.runner.period_s, self._publish)
 
     def _stop_activity(self, publish: bool = True) -> None:
+        self._want_active = False
         if self._publish_timer is not None:
             self._publish_timer.cancel()
             self.destroy_timer(self._publish_timer)
@@ -154,39 +200,124 @@ class ArmDriverNode(LifecycleNode):
         if self.runner.stop() and publish:
             self.in_position_pub.publish(Bool(data=False))
 
+    # -- connection, off the executor -------------------------------------------------------
+    def _start_connect(self, arm) -> None:
+        with self._connect_lock:
+            self._attempt += 1
+            attempt = self._attempt
+            self.connecting, self._connect_started = True, time.monotonic()
+        where = self.robot_ip or "simulated arm"
+        self.get_logger().info(f"{self.role} arm: connecting to {where}")
+
+        def connect():
+            try:
+                arm.connect()
+                result = None
+            except Exception as exc:  # noqa: BLE001 - ArmError, OSError, or a driver bug: all reported
+                result = f"{type(exc).__name__}: {exc}" if not isinstance(exc, (ArmError, OSError)) else str(exc)
+            with self._connect_lock:
+                current = attempt == self._attempt
+                if current:
+                    self._connect_result = (attempt, arm, result)
+            if not current:  # abandoned meanwhile (cleanup, shutdown): let go of it here, off the executor
+                if result is None:
+                    _quiet_disconnect(arm)
+                return
+            try:
+                self._connected_gc.trigger()
+            except Exception:  # noqa: BLE001 - the node is being destroyed
+                _quiet_disconnect(arm)
+
+        threading.Thread(target=connect, name=f"{self.role}_arm_connect", daemon=True).start()
+
+    def _on_connect_done(self) -> None:
+        with self._connect_lock:
+            result, self._connect_result = self._connect_result, None
+            if result is None or result[0] != self._attempt:
+                return
+            self.connecting = False
+        _, arm, error = result
+        if error is not None:
+            self.last_error = f"connect failed: {error}"
+            self.get_logger().error(f"{self.role} arm {self.last_error}; going to unconfigured (configure to retry)")
+            self._to_unconfigured()
+            self._publish_diagnostics()
+            return
+        self.arm = arm
+        self.get_logger().info(f"{self.role} arm connected ({self.robot_ip or 'simulated'}) in "
+                               f"{time.monotonic() - self._connect_started:.2f} s")
+        if self._want_active and self.lifecycle_state == "active":
+            self._start_runner()
+
+    def _to_unconfigured(self) -> None:
+        if self.lifecycle_state == "active":
+            self.trigger_deactivate()
+        if self.lifecycle_state == "inactive":
+            self.trigger_cleanup()
+
     def _disconnect(self) -> None:
+        """Abandon a connection attempt, and disconnect the arm on a background thread (a hung
+        controller's disconnect takes its timeout; the executor never waits for it)."""
+        with self._connect_lock:
+            self._attempt += 1  # a connect still under way cleans up after itself
+            self.connecting, self._connect_result = False, None
         arm, self.arm = self.arm, None
         if arm is not None:
-            try:
-                arm.disconnect()
-            except ArmError as exc:
-                self.get_logger().warn(f"disconnect: {exc}")
+            t = threading.Thread(target=_quiet_disconnect, args=(arm, self.get_logger()), name="arm_disconnect",
+                                 daemon=True)
+            t.start()
+            self._release_threads = [x for x in self._release_threads if x.is_alive()] + [t]
 
     def destroy_node(self):
         # the context may already be shut down (SIGINT): no publishing here
         self._stop_activity(publish=self.context.ok())
         self._disconnect()
+        for t in self._release_threads:
+            t.join(5.0)
         return super().destroy_node()
 
+    # -- faults ------------------------------------------------------------------------------
     def _move_failed(self, message: str) -> None:  # the runner's move thread
         self.last_error = message
         self.get_logger().error(message)
 
+    def _on_fault(self, reason: str) -> None:  # executor, from WorkerFaults
+        self.last_error = f"fault: {reason}"
+        self.get_logger().error(f"{self.role} arm {self.last_error}; lifecycle error transition (configure to "
+                                "restart)")
+        if self.context.ok():
+            self.in_position_pub.publish(Bool(data=False))
+        error_transition(self)
+        self._publish_diagnostics()
+
     # -- executor side ---------------------------------------------------------------------
+    def _refuse_goal(self, problem: str) -> None:
+        self.goal_rejections += 1
+        self.last_goal_problem = problem
+        self.get_logger().error(f"goal refused: {problem}", throttle_duration_sec=1.0)
+
     def _on_goal(self, msg: PoseStamped) -> None:
         if not self.runner.active:
-            self.get_logger().warn(f"goal ignored: node is {self.lifecycle_state}, not active")
+            self.get_logger().warn(f"goal ignored: node is {self.lifecycle_state}"
+                                   f"{' (connecting)' if self.connecting else ''}, not active",
+                                   throttle_duration_sec=1.0)
             return
         if msg.header.frame_id not in ("", self.base_frame):
-            self.get_logger().error(f"goal ignored: frame {msg.header.frame_id!r} is not {self.base_frame!r}")
+            self._refuse_goal(f"frame {msg.header.frame_id!r} is not {self.base_frame!r}")
             return
         try:
             goal = pose_msg_to_ur(msg)
+            self.runner.command(goal)
         except ValueError as exc:
-            self.get_logger().error(f"goal ignored: {exc}")
+            self._refuse_goal(str(exc))
             return
-        self.runner.command(goal)
         self.in_position_pub.publish(Bool(data=False))
+
+    def _stamp(self):
+        """The ROS time at which the latest sample was measured (the controller's clock mapped onto ours)."""
+        age = self.runner.state_age_s()
+        now = self.get_clock().now()
+        return (now - Duration(nanoseconds=int(age * 1e9))).to_msg() if age != float("inf") else now.to_msg()
 
     def _publish(self) -> None:
         if self.runner.lost_reason is not None:
@@ -195,15 +326,18 @@ class ArmDriverNode(LifecycleNode):
         snap = self.runner.latest()
         if not self.runner.active or snap is None:
             return
-        stamp = self.get_clock().now().to_msg()
-        js = JointState()
-        js.header.stamp = stamp
-        js.name = [self.joint_prefix + n for n in JOINT_NAMES]
-        js.position = [float(v) for v in snap.joint_positions]
-        self.joint_pub.publish(js)
-        self.pose_pub.publish(ur_to_pose_msg(snap.tcp_pose, self.base_frame, stamp))
-        if snap.true_tcp_pose is not None:
-            self.true_pose_pub.publish(ur_to_pose_msg(snap.true_tcp_pose, self.base_frame, stamp))
+        fresh = not self.runner.stale()
+        if fresh and self.runner.samples != self._published_sample:  # each sample once, with its own time
+            self._published_sample = self.runner.samples
+            stamp = self._stamp()
+            js = JointState()
+            js.header.stamp = stamp
+            js.name = [self.joint_prefix + n for n in JOINT_NAMES]
+            js.position = [float(v) for v in snap.joint_positions]
+            self.joint_pub.publish(js)
+            self.pose_pub.publish(ur_to_pose_msg(snap.tcp_pose, self.base_frame, stamp))
+            if snap.true_tcp_pose is not None:
+                self.true_pose_pub.publish(ur_to_pose_msg(snap.true_tcp_pose, self.base_frame, stamp))
         self.in_position_pub.publish(Bool(data=self.in_position()))
 
     def _handle_connection_loss(self) -> None:
@@ -211,25 +345,48 @@ class ArmDriverNode(LifecycleNode):
         self.in_position_pub.publish(Bool(data=False))
         self.last_error = f"connection lost: {reason}"
         self.get_logger().error(f"{self.role} arm {self.last_error}; going to unconfigured (configure to reconnect)")
-        self.trigger_deactivate()
-        self.trigger_cleanup()
+        self._to_unconfigured()
         self._publish_diagnostics()
 
     def _publish_diagnostics(self) -> None:
         state = self.lifecycle_state
-        if self.last_error.startswith(("connection lost", "configure failed")):
-            level = DiagnosticStatus.ERROR
-        elif state != "active" or self.last_error:
+        stale = self.runner.active and self.runner.latest() is not None and self.runner.stale()
+        if self.last_error.startswith(("connection lost", "configure failed", "connect failed", "fault")):
+            level, message = DiagnosticStatus.ERROR, self.last_error
+        elif self.connecting:
             level = DiagnosticStatus.WARN
+            message = (f"connecting to {self.robot_ip or 'simulated arm'} "
+                       f"({time.monotonic() - self._connect_started:.1f} s)")
+        elif stale:
+            level = DiagnosticStatus.WARN
+            message = (f"state stale: no new sample from the controller for {self.runner.state_age_s():.2f} s "
+                       f"(limit {self.arm_settings.max_state_age_s} s)")
+        elif state != "active" or self.last_error:
+            level, message = DiagnosticStatus.WARN, self.last_error or state
         else:
-            level = DiagnosticStatus.OK
-        message = self.last_error or (f"{state}, in position" if self.in_position() else state)
+            level, message = DiagnosticStatus.OK, f"{state}, in position" if self.in_position() else state
+        if self.last_goal_problem and level == DiagnosticStatus.OK:
+            level, message = DiagnosticStatus.WARN, f"{message}; last goal refused: {self.last_goal_problem}"
         target = self.runner.target
         target = None if target is None else [round(float(v), 6) for v in target]
+        age = self.runner.state_age_s() if self.runner.latest() is not None else None
+        connection = "connecting" if self.connecting else "connected" if (
+            self.arm is not None and self.arm.is_connected) else "disconnected"
         publish_diagnostic(self, self.diag_pub, level, f"{self.role} arm", self.robot_ip or "simulated_arm", message, (
-            ("lifecycle_state", state), ("connected", self.arm is not None and self.arm.is_connected),
-            ("in_position", self.in_position()), ("moves_completed", self.moves_completed),
-            ("target_pose", target), ("base_frame", self.base_frame), ("tool_frame", self.tool_frame)))
+            ("lifecycle_state", state), ("connection", connection),
+            ("connected", connection == "connected"), ("in_position", self.in_position()),
+            ("moves_completed", self.moves_completed), ("state_age_s", None if age is None else f"{age:.3f}"),
+            ("goals_refused", self.goal_rejections), ("target_pose", target), ("base_frame", self.base_frame),
+            ("tool_frame", self.tool_frame)))
+
+
+def _quiet_disconnect(arm, logger=None) -> None:
+    try:
+        arm.disconnect()
+    except Exception as exc:  # noqa: BLE001 - letting go of an arm never fails the caller
+        if logger is not None:
+            logger.warn(f"disconnect: {exc}")
+
 
 def main(argv=None) -> int:
     return run_settings_node(ArmDriverNode, __doc__.splitlines()[0], argv)

@@ -53,9 +53,14 @@ class ServiceThread:
     name) spun by its own small MultiThreadedExecutor on a daemon thread; the callback group is
     reentrant, so a second request is answered (e.g. "busy") while a first one waits. The callback
     runs on that thread: it must only touch state the owner guards for it.
+
+    A callback that raises is answered (``success`` false and the reason, for a Trigger/SetBool-like
+    response) and reported to ``on_error(reason)`` (e.g. :meth:`WorkerFaults.report`), and so is the
+    serving thread ending while the context is still up: the service never dies silently.
     """
 
-    def __init__(self, owner, srv_type, name: str, callback, *, num_threads: int = 2):
+    def __init__(self, owner, srv_type, name: str, callback, *, num_threads: int = 2,
+                 on_error: Callable[[str], None] | None = None):
         import threading
 
         import rclpy
@@ -67,7 +72,22 @@ class ServiceThread:
         self.node = rclpy.create_node(f"_{owner.get_name()}_{suffix}", namespace=owner.get_namespace(),
                                       context=owner.context, use_global_arguments=False,
                                       start_parameter_services=False)
-        self.service = self.node.create_service(srv_type, self.name, callback, callback_group=ReentrantCallbackGroup())
+        self._on_error = on_error or (lambda reason: None)
+        self._closing = False
+
+        def guarded(request, response):
+            try:
+                return callback(request, response)
+            except Exception as exc:  # noqa: BLE001 - answered and reported, the service keeps serving
+                reason = f"service {self.name} failed: {type(exc).__name__}: {exc}"
+                self._on_error(reason)
+                if hasattr(response, "success"):
+                    response.success = False
+                if hasattr(response, "message"):
+                    response.message = reason
+                return response
+
+        self.service = self.node.create_service(srv_type, self.name, guarded, callback_group=ReentrantCallbackGroup())
         self._executor = MultiThreadedExecutor(num_threads=num_threads, context=owner.context)
         self._executor.add_node(self.node)
         self._thread = threading.Thread(target=self._spin, name=f"srv{self.name}", daemon=True)
@@ -76,17 +96,90 @@ class ServiceThread:
     def _spin(self) -> None:
         try:
             self._executor.spin()
-        except Exception:  # noqa: BLE001 - context shut down (SIGINT) or executor shut down: the thread ends
-            pass
+        except Exception as exc:  # noqa: BLE001 - context shut down (SIGINT), executor shut down, or a fault
+            if not self._closing and self.node.context.ok():
+                self._on_error(f"service {self.name} thread died: {type(exc).__name__}: {exc}")
 
     def close(self, timeout_s: float = 2.0) -> None:
         """Stop serving; the caller first releases any callback still waiting."""
+        self._closing = True
         self._executor.shutdown(timeout_sec=timeout_s)
         self._thread.join(timeout_s)
         try:
             self.node.destroy_node()
         except Exception:  # noqa: BLE001 - already gone with its context
             pass
+
+
+class WorkerFaults:
+    """Failures of a node's worker threads, handed to its executor: a thread never dies silently.
+
+    A thread calls :meth:`report` (any thread; or runs its body through :meth:`guard`); the
+    node's ``on_fault(reason)`` then runs once per report on the executor spinning the node (a
+    guard condition wakes it), where the node may publish, log and change its lifecycle state.
+    Lifecycle nodes take themselves through their error transition there
+    (:func:`error_transition`) and report the reason as an ERROR on /diagnostics.
+    """
+
+    def __init__(self, node, on_fault: Callable[[str], None]):
+        import threading
+
+        self._lock = threading.Lock()
+        self._pending: list[str] = []
+        self._on_fault = on_fault
+        self._gc = node.create_guard_condition(self._dispatch)
+
+    def report(self, reason: str) -> None:
+        with self._lock:
+            self._pending.append(reason)
+        try:
+            self._gc.trigger()
+        except Exception:  # noqa: BLE001 - the node is being destroyed: nobody left to tell
+            pass
+
+    def guard(self, target: Callable, name: str) -> Callable:
+        """``target`` wrapped so that an exception escaping it is reported as "<name> thread died: ..."."""
+        def run(*args, **kwargs):
+            try:
+                return target(*args, **kwargs)
+            except Exception as exc:  # noqa: BLE001 - reported, never lost
+                self.report(f"{name} thread died: {type(exc).__name__}: {exc}")
+        return run
+
+    def _dispatch(self) -> None:
+        with self._lock:
+            pending, self._pending = self._pending, []
+        for reason in pending:
+            self._on_fault(reason)
+
+
+def error_transition(node) -> bool:
+    """Take a lifecycle node through its error transition now (call on its executor).
+
+    rclpy runs ``on_error`` when a transition callback answers ERROR; this sets
+    ``node.error_transition_pending`` and triggers the transition out of the current primary state
+    (active: deactivate; inactive: cleanup), whose callback must answer
+    :func:`transition_result` (ERROR while the flag is set). The node's ``on_error`` releases
+    everything and answers SUCCESS: it ends unconfigured, to be configured again. Returns whether a
+    transition was triggered (not when already unconfigured or finalized)."""
+    state = node._state_machine.current_state[1]
+    trigger = {"active": node.trigger_deactivate, "inactive": node.trigger_cleanup}.get(state)
+    if trigger is None:
+        return False
+    node.error_transition_pending = True
+    try:
+        trigger()
+    finally:
+        node.error_transition_pending = False
+    return True
+
+
+def transition_result(node):
+    """What a deactivate or cleanup callback answers: ERROR during :func:`error_transition`, else SUCCESS."""
+    from rclpy.lifecycle import TransitionCallbackReturn
+
+    return TransitionCallbackReturn.ERROR if getattr(node, "error_transition_pending", False) \
+        else TransitionCallbackReturn.SUCCESS
 
 
 def declare_settings(node, cls, *, prefix: str = "", exclude=(), **defaults):

@@ -7,6 +7,8 @@ Topics (contract names from robot_ct_ros.bag.format; relative names follow the n
   publishes   /ct/geometry (geometry_msgs/PoseArray, reliable, depth 100): for each frame, with
               exactly the frame's header.stamp: poses[0] the source focal spot, poses[1] the detector
               centre with orientation columns (u, v, w), metres, frame world_frame; /diagnostics (1 Hz)
+Every incoming tool pose is checked first: one with a NaN or infinite value, a non-unit quaternion
+or another frame is refused (logged, counted on /diagnostics, WARN) and never used.
 For each frame, each arm's pose nearest in time to the frame stamp is taken through the hand-eye
 mounts (robot_ct_ros.ct.hand_eye.geometry_from_tool_poses). This is the nominal geometry: the arms'
 coordination errors are invisible here (the calibration estimates them from the data). When a pose
@@ -30,7 +32,7 @@ from sensor_msgs.msg import Image
 from robot_ct_ros.bag import format as fmt
 from robot_ct_ros.ct.hand_eye import geometry_from_tool_poses
 from robot_ct_ros.nodes.common import declare_settings, publish_diagnostic, run_settings_node
-from robot_ct_ros.nodes.hand_eye_params import declare_hand_eye, pose_to_matrix_mm, stamp_to_ns
+from robot_ct_ros.nodes.hand_eye_params import check_pose, declare_hand_eye, pose_to_matrix_mm, stamp_to_ns
 from robot_ct_ros.parameters import setting, validate
 
 __all__ = ["GeometryPublisherNode", "GeometryPublisherSettings", "STREAM", "ROLES", "main"]
@@ -63,16 +65,27 @@ class GeometryPublisherNode(Node):
         self._history_ns = int(history_s * 1e9)
         for role in ROLES:
             self.create_subscription(PoseStamped, f"{role}_arm/tool_pose", lambda m, r=role: self._on_pose(r, m), 50)
-        self.create_subscription(Image, fmt.TOPIC_PROJECTION, self._on_frame, STREAM)
-        self.geometry_pub = self.create_publisher(PoseArray, fmt.TOPIC_GEOMETRY, STREAM)
-        self.diag_pub = self.create_publisher(DiagnosticArray, fmt.TOPIC_DIAGNOSTICS, 10)
+        self.create_subscription(Image, fmt.node_topic(fmt.TOPIC_PROJECTION), self._on_frame, STREAM)
+        self.geometry_pub = self.create_publisher(PoseArray, fmt.node_topic(fmt.TOPIC_GEOMETRY), STREAM)
+        self.diag_pub = self.create_publisher(DiagnosticArray, fmt.node_topic(fmt.TOPIC_DIAGNOSTICS), 10)
         self.create_timer(1.0, self._publish_diagnostics)
         self.published = 0
         self.skipped = 0
+        self.poses_refused = 0
+        self.last_refused = ""
         self.last_problem = ""
         self._last_frame_ok = True
 
     def _on_pose(self, role: str, msg: PoseStamped) -> None:
+        try:  # checked at the boundary: a broken pose must never shadow the good ones around it
+            check_pose(msg.pose)
+            if msg.header.frame_id not in ("", self.world_frame):
+                raise ValueError(f"frame {msg.header.frame_id!r} is not {self.world_frame!r}")
+        except ValueError as exc:
+            self.poses_refused += 1
+            self.last_refused = f"{role} arm tool pose refused: {exc}"
+            self.get_logger().warn(self.last_refused, throttle_duration_sec=1.0)
+            return
         t = stamp_to_ns(msg.header.stamp)
         hist = self._history[role]
         hist.append((t, msg.header.frame_id, msg.pose))
@@ -116,12 +129,15 @@ class GeometryPublisherNode(Node):
         self._last_frame_ok = True
 
     def _publish_diagnostics(self) -> None:
-        level = DiagnosticStatus.OK if self._last_frame_ok else DiagnosticStatus.WARN
+        level = DiagnosticStatus.OK if self._last_frame_ok and not self.poses_refused else DiagnosticStatus.WARN
         message = "ok" if self._last_frame_ok else f"last frame without geometry: {self.last_problem}"
+        if self.poses_refused:
+            message += f"; {self.poses_refused} tool poses refused (last: {self.last_refused})"
         ages = {r: (f"{(self.get_clock().now().nanoseconds - self._history[r][-1][0]) * 1e-9:.3f}"
                     if self._history[r] else "none") for r in ROLES}
         publish_diagnostic(self, self.diag_pub, level, "geometry", "hand_eye", message, (
             ("published", self.published), ("skipped", self.skipped), ("last_problem", self.last_problem),
+            ("poses_refused", self.poses_refused),
             ("source_pose_age_s", ages["source"]), ("detector_pose_age_s", ages["detector"]),
             ("max_pose_age_s", self.max_pose_age_s)))
 

@@ -19,18 +19,30 @@ from scipy.spatial.transform import Rotation
 
 from robot_ct_ros.ct.hand_eye import HandEye, mount_from_si
 
-__all__ = ["declare_hand_eye", "stamp_to_ns", "ns_to_stamp", "pose_to_matrix_mm", "matrix_mm_to_pose"]
+__all__ = ["declare_hand_eye", "stamp_to_ns", "ns_to_stamp", "check_pose", "pose_to_matrix_mm", "matrix_mm_to_pose",
+           "QUATERNION_TOLERANCE"]
+
+QUATERNION_TOLERANCE = 1e-3
+"""How far from 1 the norm of an incoming orientation quaternion may be (as the bag reader accepts)."""
 
 
 def declare_hand_eye(node, prefix: str = "hand_eye") -> HandEye:
     """Declare the hand-eye parameters on ``node`` and return the mounts (raises ValueError if invalid)."""
+    from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+
+    def declare(name, value):
+        try:
+            return node.declare_parameter(name, value).value
+        except (InvalidParameterTypeException, InvalidParameterValueException, TypeError) as exc:
+            raise ValueError(f"parameter {name}: {exc}") from None
+
     default = HandEye()
     mounts = {}
     for dev in ("source", "detector"):
         base = getattr(default, dev)
-        t = node.declare_parameter(f"{prefix}.{dev}.translation_m", [x * 1e-3 for x in base.translation_mm]).value
-        rv = node.declare_parameter(f"{prefix}.{dev}.rotvec_rad", Parameter.Type.DOUBLE_ARRAY).value
-        rpy = node.declare_parameter(f"{prefix}.{dev}.rpy_rad", Parameter.Type.DOUBLE_ARRAY).value
+        t = declare(f"{prefix}.{dev}.translation_m", [x * 1e-3 for x in base.translation_mm])
+        rv = declare(f"{prefix}.{dev}.rotvec_rad", Parameter.Type.DOUBLE_ARRAY)
+        rpy = declare(f"{prefix}.{dev}.rpy_rad", Parameter.Type.DOUBLE_ARRAY)
         if rv is None and rpy is None:
             rv = list(base.rotvec)
         mounts[dev] = mount_from_si(list(t), None if rv is None else list(rv), None if rpy is None else list(rpy),
@@ -49,18 +61,38 @@ def ns_to_stamp(ns: int):
     return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
 
 
-def pose_to_matrix_mm(pose) -> np.ndarray:
-    """geometry_msgs/Pose (metres, quaternion) -> 4 x 4 matrix in mm."""
+def check_pose(pose) -> tuple[np.ndarray, np.ndarray]:
+    """(position m, unit quaternion x, y, z, w) of an incoming geometry_msgs/Pose: what every node
+    checks at its boundary before using a pose.
+
+    Raises
+    ------
+    ValueError
+        A NaN or infinite value, or an orientation quaternion whose norm is not 1 (within
+        :data:`QUATERNION_TOLERANCE`): a scaled or zero quaternion is a sender's bug, never
+        silently normalised.
+    """
     p, o = pose.position, pose.orientation
+    xyz = np.array([p.x, p.y, p.z], dtype=float)
     q = np.array([o.x, o.y, o.z, o.w], dtype=float)
-    n = np.linalg.norm(q)
-    if not np.isfinite(n) or n < 1e-6:
-        raise ValueError("pose orientation quaternion is zero or not finite")
+    if not np.all(np.isfinite(xyz)):
+        raise ValueError(f"pose position is not finite ({xyz.tolist()})")
+    if not np.all(np.isfinite(q)):
+        raise ValueError(f"pose orientation quaternion is not finite ({q.tolist()})")
+    n = float(np.linalg.norm(q))
+    if abs(n - 1.0) > QUATERNION_TOLERANCE:
+        raise ValueError(f"pose orientation quaternion is not a unit quaternion (norm {n:.6g})")
+    return xyz, q / n
+
+
+def pose_to_matrix_mm(pose) -> np.ndarray:
+    """geometry_msgs/Pose (metres, quaternion) -> 4 x 4 matrix in mm (ValueError: :func:`check_pose`)."""
+    xyz, q = check_pose(pose)
     T = np.eye(4)
-    T[:3, :3] = Rotation.from_quat(q / n).as_matrix()
-    T[:3, 3] = np.array([p.x, p.y, p.z], dtype=float) * 1e3
-    if not np.all(np.isfinite(T)):
-        raise ValueError("pose position is not finite")
+    T[:3, :3] = Rotation.from_quat(q).as_matrix()
+    T[:3, 3] = xyz * 1e3
+    if not np.all(np.isfinite(T)):  # finite metres beyond ~1e305 overflow in mm
+        raise ValueError("pose position is out of range")
     return T
 
 

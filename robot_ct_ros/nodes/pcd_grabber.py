@@ -31,7 +31,9 @@ Lifecycle: configure builds and connects the detector (simulated: voxelises the 
 the projector) and offers pcd/expose; activate publishes the flat field and dead-pixel map and serves
 exposures; deactivate stops exposing (an exposure in flight is answered with failure, its frame
 dropped); cleanup/shutdown/error withdraw pcd/expose and disconnect the detector (which releases a
-hung acquisition). Unconfigured, pcd/expose does not exist, so the scan orchestrator's start check
+hung acquisition). A driver raising something other than a DetectorError, or the pcd/expose
+thread failing, is an ERROR on /diagnostics and takes the node through the lifecycle error
+transition (on_error releases the detector; the node ends unconfigured). Unconfigured, pcd/expose does not exist, so the scan orchestrator's start check
 sees no detector; inactive, the orchestrator refuses to start from the lifecycle_state reported on
 /diagnostics. With autostart (default) the node configures and activates itself in its constructor.
 Threads: pcd/expose is served on its own executor thread (nodes/common.ServiceThread) and waits there
@@ -57,8 +59,8 @@ from robot_ct_ros.bag import format as fmt
 from robot_ct_ros.hardware.detector import (DetectorError, DetectorSettings, Frame, SimulatedDetectorSettings,
                                             TruePoses, make_detector)
 from robot_ct_ros.hardware.exposure import BeamLog, ExposureGate, frame_usable
-from robot_ct_ros.nodes.common import (LifecycleSettings, ServiceThread, declare_settings, publish_diagnostic,
-                                      run_settings_node)
+from robot_ct_ros.nodes.common import (LifecycleSettings, ServiceThread, WorkerFaults, declare_settings,
+                                      error_transition, publish_diagnostic, run_settings_node, transition_result)
 from robot_ct_ros.nodes.hand_eye_params import declare_hand_eye, pose_to_matrix_mm, stamp_to_ns
 
 __all__ = ["PcdGrabberNode", "LATCHED", "STREAM", "main"]
@@ -77,12 +79,12 @@ class PcdGrabberNode(LifecycleNode):
         self.frame_id, self.config = d.frame_id, d.config
         self.hand_eye = declare_hand_eye(self)
 
-        self.frame_pub = self.create_publisher(Image, fmt.TOPIC_PROJECTION, STREAM)
-        self.frame_rejected_pub = self.create_publisher(Image, fmt.TOPIC_PROJECTION_REJECTED, STREAM)
-        self.flat_pub = self.create_publisher(Image, fmt.TOPIC_FLAT_FIELD, LATCHED)
-        self.dead_pub = self.create_publisher(Image, fmt.TOPIC_DEAD_PIXELS, LATCHED)
-        self.true_geom_pub = self.create_publisher(PoseArray, fmt.TOPIC_GEOMETRY_TRUE, STREAM)
-        self.diag_pub = self.create_publisher(DiagnosticArray, fmt.TOPIC_DIAGNOSTICS, 10)
+        self.frame_pub = self.create_publisher(Image, fmt.node_topic(fmt.TOPIC_PROJECTION), STREAM)
+        self.frame_rejected_pub = self.create_publisher(Image, fmt.node_topic(fmt.TOPIC_PROJECTION_REJECTED), STREAM)
+        self.flat_pub = self.create_publisher(Image, fmt.node_topic(fmt.TOPIC_FLAT_FIELD), LATCHED)
+        self.dead_pub = self.create_publisher(Image, fmt.node_topic(fmt.TOPIC_DEAD_PIXELS), LATCHED)
+        self.true_geom_pub = self.create_publisher(PoseArray, fmt.node_topic(fmt.TOPIC_GEOMETRY_TRUE), STREAM)
+        self.diag_pub = self.create_publisher(DiagnosticArray, fmt.node_topic(fmt.TOPIC_DIAGNOSTICS), 10)
 
         self.beam_log = BeamLog()
         self.true_poses = TruePoses(self._now_ns, self.sim.pose_max_age_s)
@@ -92,6 +94,8 @@ class PcdGrabberNode(LifecycleNode):
             self.create_subscription(PoseStamped, f"{role}_arm/true_tool_pose",
                                      lambda m, r=role: self._on_true_pose(r, m), 10)
 
+        self.faults = WorkerFaults(self, self._on_fault)
+        self.error_transition_pending = False
         self.frames_published = self.frames_rejected = self.failures = 0
         self.last_error, self.last_beam_fraction = "", None
         self.detector = None                          # exists between configure and cleanup
@@ -118,7 +122,7 @@ class PcdGrabberNode(LifecycleNode):
             self.get_logger().error(self.last_error)
             return TransitionCallbackReturn.FAILURE
         self.detector, self.last_error = detector, ""
-        self._expose_srv = ServiceThread(self, Trigger, "pcd/expose", self._on_expose)
+        self._expose_srv = ServiceThread(self, Trigger, "pcd/expose", self._on_expose, on_error=self.faults.report)
         self.get_logger().info(f"detector ready ({self.driver}, {self.config.n_rows} x {self.config.n_cols} "
                                f"binned {self.config.binning}x{self.config.binning}) in {time.monotonic() - t0:.1f} s")
         return TransitionCallbackReturn.SUCCESS
@@ -133,10 +137,11 @@ class PcdGrabberNode(LifecycleNode):
 
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
         self.exposures.cancel("the detector was deactivated during the exposure")
-        return TransitionCallbackReturn.SUCCESS
+        return transition_result(self)
 
     def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
-        return self._release("the detector was cleaned up during the exposure")
+        self._release("the detector was cleaned up during the exposure")
+        return transition_result(self)
 
     def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
         return self._release("the detector was shut down during the exposure")
@@ -160,6 +165,13 @@ class PcdGrabberNode(LifecycleNode):
         return super().destroy_node()
 
     # -- detector and its inputs --------------------------------------------------------------
+    def _on_fault(self, reason: str) -> None:  # executor, from WorkerFaults
+        self.failures += 1
+        self.last_error = f"fault: {reason}"
+        self.get_logger().error(f"{self.last_error}; lifecycle error transition (configure to restart)")
+        error_transition(self)
+        self._publish_diagnostics()
+
     def _make_detector(self):
         detector = make_detector(self.detector_settings, self.sim, self.hand_eye, self.true_poses,
                                  self.beam_log.fraction, self._now_ns)
@@ -178,6 +190,10 @@ class PcdGrabberNode(LifecycleNode):
     # -- exposures (the service thread; the gate's worker thread acquires) ---------------------
     def _on_expose(self, request, response):
         result = self.exposures.expose(self.detector, self.exposure_s, self.exposure_timeout_s, self.lifecycle_state)
+        if result.crashed:  # a driver bug, not a detector fault: as a dead worker thread
+            self.faults.report(f"detector driver raised {result.problem}")
+            response.success, response.message = False, f"detector driver failed: {result.problem}"
+            return response
         if result.fault:  # a detector fault: counted, and an error on /diagnostics
             self.failures, self.last_error = self.failures + 1, result.problem
             self.get_logger().error(result.fault)
@@ -224,7 +240,7 @@ class PcdGrabberNode(LifecycleNode):
         connected = self.detector is not None and self.detector.is_connected
         if self.last_error:
             level = DiagnosticStatus.ERROR if self.last_error.startswith(("detector timeout", "detector not",
-                                                                          "configure failed")) \
+                                                                          "configure failed", "fault")) \
                 else DiagnosticStatus.WARN
         elif not self.exposures.active or not connected:
             level = DiagnosticStatus.WARN

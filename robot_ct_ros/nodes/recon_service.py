@@ -53,21 +53,21 @@ class ReconServiceNode(Node):
         super().__init__(node_name, **kwargs)
         self.settings = declare_settings(self, CalibrationSettings)
         self.service = declare_settings(self, ServiceSettings)
-        self.output_dir = Path(self.service.output_dir)
+        self.output_dir = Path(self.service.output_dir).expanduser().absolute()  # reports name files, not cwd-relative paths
 
         self.scan = ScanCollector()
         for topic in fmt.LATCHED_TOPICS:
-            self.create_subscription(message_class(fmt.TOPIC_TYPES[topic]), topic,
+            self.create_subscription(message_class(fmt.TOPIC_TYPES[topic]), fmt.node_topic(topic),
                                      lambda d, t=topic: self._on_latched(t, d), LATCHED, raw=True)
         for topic in PER_FRAME:
-            self.create_subscription(message_class(fmt.TOPIC_TYPES[topic]), topic,
+            self.create_subscription(message_class(fmt.TOPIC_TYPES[topic]), fmt.node_topic(topic),
                                      lambda d, t=topic: self._on_frame(t, d), STREAM, raw=True)
         self.create_subscription(String, "scan/status", self._on_status, STATUS)
         self.progress_pub = self.create_publisher(String, "recon/progress", 50)
         self.report_pub = self.create_publisher(String, "recon/report", LATCHED)
-        self.corrected_pub = self.create_publisher(PoseArray, fmt.TOPIC_GEOMETRY_CORRECTED, STREAM)
+        self.corrected_pub = self.create_publisher(PoseArray, fmt.node_topic(fmt.TOPIC_GEOMETRY_CORRECTED), STREAM)
         self.slice_pubs = {k: self.create_publisher(Image, f"recon/slice_{k}", LATCHED) for k in SLICES}
-        self.diag_pub = self.create_publisher(DiagnosticArray, fmt.TOPIC_DIAGNOSTICS, 10)
+        self.diag_pub = self.create_publisher(DiagnosticArray, fmt.node_topic(fmt.TOPIC_DIAGNOSTICS), 10)
         self.create_service(Trigger, "recon/run", self._on_run)
 
         self.state, self.message, self.error = "idle", "waiting for a scan", ""  # state: idle|running|done|failed

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import importlib
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 from rclpy.node import Node
@@ -31,7 +32,8 @@ from std_srvs.srv import Trigger
 
 from robot_ct_ros.bag import ScanBagWriter
 from robot_ct_ros.bag import format as fmt
-from robot_ct_ros.nodes.common import run_node
+from robot_ct_ros.nodes.common import declare_settings, run_settings_node
+from robot_ct_ros.parameters import setting, validate
 
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 STREAM = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
@@ -60,13 +62,29 @@ def qos_for(topic: str) -> QoSProfile:
     return ANY
 
 
+@dataclass(frozen=True)
+class RecorderSettings:
+    """Where and how scans are recorded (the recorder's parameters)."""
+
+    output_dir: str = setting("bags", "each scan bag goes to <output_dir>/<bag_prefix>_<UTC time>")
+    bag_prefix: str = setting("scan", "name prefix of each bag")
+    record_arm_topics: bool = setting(True, "also record the tool poses, /diagnostics and source/beam_on")
+    flush_period_s: float = setting(1.0, "other topics are flushed to disk at this period (frames and geometries at "
+                                         "once); 0: only at close", unit="s", minimum=0.0)
+
+    def __post_init__(self):
+        validate(self)
+        if not self.bag_prefix or "/" in self.bag_prefix:
+            raise ValueError(f"bag_prefix must be a plain name, got {self.bag_prefix!r}")
+
+
 class RecorderNode(Node):
     def __init__(self, **kwargs):
         super().__init__("recorder", **kwargs)
-        self.output_dir = Path(self.declare_parameter("output_dir", "bags").value)
-        self.bag_prefix = self.declare_parameter("bag_prefix", "scan").value
-        record_arm = self.declare_parameter("record_arm_topics", True).value
-        flush_period = float(self.declare_parameter("flush_period_s", 1.0).value)
+        self.settings = st = declare_settings(self, RecorderSettings)
+        self.output_dir = Path(st.output_dir).expanduser().resolve()
+        self.bag_prefix = st.bag_prefix
+        record_arm, flush_period = st.record_arm_topics, st.flush_period_s
         self.writer: ScanBagWriter | None = None
         self.bag_path: Path | None = None
         self.closed_bags: list[Path] = []
@@ -74,7 +92,7 @@ class RecorderNode(Node):
         topics = SCAN_TOPICS + (ARM_TOPICS if record_arm else ())
         for topic in topics:
             msgtype = fmt.TOPIC_TYPES[topic]
-            self.create_subscription(message_class(msgtype), topic,
+            self.create_subscription(message_class(msgtype), fmt.node_topic(topic),  # bag: contract name
                                      lambda data, t=topic, m=msgtype: self._on_message(t, m, data),
                                      qos_for(topic), raw=True)
         self.create_service(Trigger, "~/stop", self._on_stop)
@@ -149,7 +167,7 @@ class RecorderNode(Node):
 
 
 def main(argv=None) -> int:
-    return run_node(RecorderNode, __doc__.splitlines()[0], argv)
+    return run_settings_node(RecorderNode, __doc__.splitlines()[0], argv)
 
 
 if __name__ == "__main__":

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import threading
+from dataclasses import dataclass
 from pathlib import Path
 
 from rclpy.node import Node
@@ -27,7 +28,9 @@ from std_msgs.msg import String
 from robot_ct_ros.bag import format as fmt
 from robot_ct_ros.bag.reader import read_raw_messages
 from robot_ct_ros.ct.calibration import CalibrationSettings
-from robot_ct_ros.nodes.common import declare_settings, run_node
+from robot_ct_ros.bag.format import ScanBagError
+from robot_ct_ros.nodes.common import declare_settings, run_settings_node
+from robot_ct_ros.parameters import setting, validate
 from robot_ct_ros.nodes.recorder import LATCHED, message_class
 
 STREAM = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
@@ -52,20 +55,44 @@ def frame_groups(messages) -> tuple[list, list]:
     return latched, groups
 
 
+def _offline_methods():
+    from robot_ct_ros.ct.calibration import method_names
+
+    return ("",) + tuple(method_names())
+
+
+@dataclass(frozen=True)
+class ReplaySettings:
+    """What replay republishes and computes (its own parameters; the calibration's are CalibrationSettings)."""
+
+    bag_path: str = setting("", "scan bag directory or .mcap file (required)")
+    rate_hz: float = setting(10.0, "frames per second when republishing; <= 0: do not republish", unit="Hz")
+    wait_for_subscribers: int = setting(0, "start republishing once /ct/projection has this many subscribers",
+                                        minimum=0)
+    method: str = setting("", "offline job after republishing: empty = none; none = reconstruct only; else a "
+                              "calibration method", choices=_offline_methods)
+    output_dir: str = setting("replay_out", "corrected bag, volume .npy/.tif and report.json")
+
+    def __post_init__(self):
+        validate(self)
+        if not self.bag_path:
+            raise ValueError("bag_path is required")
+
+
 class ReplayNode(Node):
     def __init__(self, **kwargs):
         super().__init__("replay", **kwargs)
-        self.bag_path = self.declare_parameter("bag_path", "").value
-        self.rate_hz = float(self.declare_parameter("rate_hz", 10.0).value)
-        self.wait_for_subscribers = int(self.declare_parameter("wait_for_subscribers", 0).value)
-        self.method = self.declare_parameter("method", "").value  # "": no offline job
+        self.replay_settings = rs = declare_settings(self, ReplaySettings)
+        self.bag_path, self.rate_hz, self.wait_for_subscribers = rs.bag_path, rs.rate_hz, rs.wait_for_subscribers
+        self.method = rs.method  # "": no offline job
         self.settings = declare_settings(self, CalibrationSettings, exclude=("method",))
         if self.method:
             self.settings = self.settings.replace(method=self.method)
-        self.output_dir = Path(self.declare_parameter("output_dir", "replay_out").value)
-        if not self.bag_path:
-            raise ValueError("parameter bag_path is required")
-        raw = read_raw_messages(self.bag_path)
+        self.output_dir = Path(rs.output_dir).expanduser().resolve()
+        try:
+            raw = read_raw_messages(self.bag_path)
+        except ScanBagError as exc:
+            raise ValueError(f"parameter bag_path: {exc}") from None
         for w in raw.warnings:
             self.get_logger().warning(w)
         self.latched, self.groups = frame_groups(raw.messages)
@@ -92,7 +119,7 @@ class ReplayNode(Node):
         pub = self._pubs.get(topic)
         if pub is None:
             qos = LATCHED if topic in fmt.LATCHED_TOPICS else STREAM
-            pub = self.create_publisher(message_class(msgtype), topic, qos)
+            pub = self.create_publisher(message_class(msgtype), fmt.node_topic(topic), qos)  # in the namespace
             self._pubs[topic] = pub
         return pub
 
@@ -146,7 +173,7 @@ class ReplayNode(Node):
 
 
 def main(argv=None) -> int:
-    return run_node(ReplayNode, __doc__.splitlines()[0], argv)
+    return run_settings_node(ReplayNode, __doc__.splitlines()[0], argv)
 
 
 if __name__ == "__main__":

@@ -52,6 +52,15 @@ STREAM = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST, reliability=Reli
 LEVELS = {"ok": DiagnosticStatus.OK, "warn": DiagnosticStatus.WARN, "error": DiagnosticStatus.ERROR}
 
 
+def same_namespace(status_name: str, namespace: str) -> bool:
+    """Whether a /diagnostics status ``"<node fully qualified name>: <what>"`` comes from a node in
+    ``namespace`` (robot_ct_ros.nodes.common.publish_diagnostic names them so)."""
+    node = status_name.split(": ", 1)[0]
+    if not node.startswith("/"):
+        return True  # a status not named by its node: not ours to judge
+    return (node.rsplit("/", 1)[0] or "/") == (namespace.rstrip("/") or "/")
+
+
 class ScanOrchestratorNode(Node):
     def __init__(self, node_name: str = "scan_orchestrator", **kwargs):
         super().__init__(node_name, **kwargs)
@@ -62,8 +71,8 @@ class ScanOrchestratorNode(Node):
         self.goal_pubs = {r: self.create_publisher(PoseStamped, f"{r}_arm/goal_pose", 10) for r in ROLES}
         self.armed_pub = self.create_publisher(Bool, "scan/armed", LATCHED)
         self.status_pub = self.create_publisher(String, "scan/status", LATCHED)
-        self.info_pub = self.create_publisher(String, fmt.TOPIC_SCAN_INFO, LATCHED)
-        self.diag_pub = self.create_publisher(DiagnosticArray, fmt.TOPIC_DIAGNOSTICS, 10)
+        self.info_pub = self.create_publisher(String, fmt.node_topic(fmt.TOPIC_SCAN_INFO), LATCHED)
+        self.diag_pub = self.create_publisher(DiagnosticArray, fmt.node_topic(fmt.TOPIC_DIAGNOSTICS), 10)
         self.set_beam = self.create_client(SetBool, "source/set_beam")
         self.expose = self.create_client(Trigger, "pcd/expose")
         self.scan = ScanSequencer(s, self.hand_eye, self, time.monotonic)
@@ -74,10 +83,10 @@ class ScanOrchestratorNode(Node):
             self.create_subscription(PoseStamped, f"{r}_arm/tool_pose", lambda m, r=r: self._on_tool_pose(r, m), 10)
         self.create_subscription(Bool, "source/beam_on", lambda m: self.scan.on_beam(m.data), LATCHED)
         self.create_subscription(Bool, "estop", lambda m: self.scan.on_estop(m.data), 10)
-        self.create_subscription(DiagnosticArray, fmt.TOPIC_DIAGNOSTICS, self._on_diagnostics, 50)
-        self.create_subscription(Image, fmt.TOPIC_PROJECTION, lambda m: self.scan.on_frame(
+        self.create_subscription(DiagnosticArray, fmt.node_topic(fmt.TOPIC_DIAGNOSTICS), self._on_diagnostics, 50)
+        self.create_subscription(Image, fmt.node_topic(fmt.TOPIC_PROJECTION), lambda m: self.scan.on_frame(
             stamp_to_ns(m.header.stamp), (m.height, m.width)), STREAM)
-        self.create_subscription(PoseArray, fmt.TOPIC_GEOMETRY, lambda m: self.scan.on_geometry(
+        self.create_subscription(PoseArray, fmt.node_topic(fmt.TOPIC_GEOMETRY), lambda m: self.scan.on_geometry(
             stamp_to_ns(m.header.stamp)), STREAM)
         self.create_service(Trigger, "scan/start", self._on_start)
         self.create_service(Trigger, "scan/abort", self._on_abort)
@@ -156,9 +165,11 @@ class ScanOrchestratorNode(Node):
             return
 
     def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+        # /diagnostics is global: only the statuses of nodes in this scanner's namespace count
+        # (another scanner's arm error must not abort this scan)
         self.scan.on_diagnostics([(s.name, s.level == DiagnosticStatus.ERROR, s.message,
                                    next((kv.value for kv in s.values if kv.key == "lifecycle_state"), None))
-                                  for s in msg.status])
+                                  for s in msg.status if same_namespace(s.name, self.get_namespace())])
 
     def _on_start(self, request, response):
         response.success, response.message = self.scan.start()

@@ -28,6 +28,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from std_msgs.msg import Bool
 from std_srvs.srv import SetBool, Trigger
 
+from robot_ct_ros.bag import format as fmt
 from robot_ct_ros.hardware.xray_source import InterlockedSource, SimulatedXraySource, SourceError, SourceSettings
 from robot_ct_ros.nodes.common import LifecycleSettings, declare_settings, publish_diagnostic, run_settings_node
 
@@ -50,7 +51,7 @@ class SourceControlNode(LifecycleNode):
         self.last_error = ""
 
         self.beam_pub = self.create_publisher(Bool, "source/beam_on", LATCHED)
-        self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.diag_pub = self.create_publisher(DiagnosticArray, fmt.TOPIC_DIAGNOSTICS, 10)
         self.create_subscription(Bool, "scan/armed", lambda m: self._update(scan_armed=m.data), 10)
         self.create_subscription(Bool, "source_arm/in_position", lambda m: self._arm("source", m.data), 10)
         self.create_subscription(Bool, "detector_arm/in_position", lambda m: self._arm("detector", m.data), 10)

@@ -28,7 +28,7 @@ WRITER = textwrap.dedent("""
     with ScanBagWriter(sys.argv[1], scan_info_for(geom)) as w:
         w.write_flat(np.full((8, 12), 1000.0, np.float32), int(stamps[0]) - 1)
         for i in range(200):
-            w.write_frame(np.full((8, 12), float(i), np.float32), geom, int(stamps[i]), i)
+            w.write_frame(np.full((8, 12), float(i + 1), np.float32), geom, int(stamps[i]), i)
             print(f"frame {i}", flush=True)  # printed after the frame is on disk
             time.sleep(0.05)
 """)
@@ -60,7 +60,7 @@ def test_interrupted_recording_is_readable(tmp_path, sig, check_bag):
     assert written >= 6
     scan = read_scan(bag)
     assert scan.n_views >= written  # every frame reported as written survived
-    np.testing.assert_array_equal(scan.counts[:, 0, 0], np.arange(scan.n_views, dtype=np.float32))
+    np.testing.assert_array_equal(scan.counts[:, 0, 0], np.arange(1, scan.n_views + 1, dtype=np.float32))
     assert any("200 views" in w for w in scan.warnings), (scan.warnings, scan.recovered, scan.info)
     if sig == signal.SIGINT:  # KeyboardInterrupt: the writer closed the bag normally
         assert not scan.recovered and (bag / "metadata.yaml").exists()

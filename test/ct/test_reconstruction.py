@@ -356,3 +356,27 @@ print("ok")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
                           env={**__import__("os").environ, "NUMBA_BOUNDSCHECK": "1"})
     assert proc.returncode == 0 and "ok" in proc.stdout, proc.stdout[-2000:] + proc.stderr[-2000:]
+
+
+def test_fdk_of_a_grid_far_from_the_scan_needs_bounded_memory():
+    """A grid placed far from the scan (a misplaced ROI, a mm/m mix-up) once made the displaced-detector
+    widening of the filtered rows tens of millions of columns (5 GiB); its centre is then just off the
+    detector, and a centre in a source's plane (projecting to infinity) is no NaN either."""
+    import warnings
+
+    from robot_ct_ros.ct.reconstruction import displaced_detector_weights, fdk_filter_projections
+
+    g = ConeGeometry(source_mm=[[-128.0, 0.0, 0.0], [0.0, -128.0, 0.0], [128.0, 0.0, 0.0]],
+                     detector_mm=[[214.0, 0.0, 0.0], [0.0, 214.0, 0.0], [-214.0, 0.0, 0.0]],
+                     u=[[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]], v=[[0.0, 0.0, 1.0]] * 3,
+                     n_rows=6, n_cols=10, row_pitch_mm=0.1, col_pitch_mm=0.1)
+    p = np.ones((3, 6, 10), np.float32)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        for centre in ([0.0, 900.0, 500.0], [-128.0, 0.0, 0.0]):  # far away; in the first source's plane
+            q, q_geom = fdk_filter_projections(p, g, center_mm=centre)
+            assert q.shape[2] <= 7 * 10 and np.isfinite(q).all()  # bounded: the centre column is within a row
+            w, _ = displaced_detector_weights(g, centre)
+            assert np.isfinite(w).all()
+        vol = fdk(p, g, VolumeGrid.centered((4, 5, 6), 0.2, (0.0, 900.0, 500.0)))
+        assert np.isfinite(vol).all()

@@ -25,7 +25,8 @@ def _wait(predicate, timeout_s=5.0):
 def test_settings_defaults_and_refusals():
     assert ros_defaults(ArmSettings) == {
         "robot_ip": "", "connect_timeout_s": 10.0, "call_timeout_s": 2.0, "move_timeout_s": 60.0, "speed": 0.25,
-        "acceleration": 1.2, "position_tolerance_m": 1e-4, "orientation_tolerance_rad": 1e-3}
+        "acceleration": 1.2, "position_tolerance_m": 1e-4, "orientation_tolerance_rad": 1e-3,
+        "max_state_age_s": 0.25}
     assert ros_defaults(SimulatedArmSettings) == {"sigma_mm": 0.0, "sigma_deg": 0.0, "drift_mm_per_move": 0.0,
                                                   "seed": 0, "motion_time_scale": 0.0, "fail_after_moves": -1}
     with pytest.raises(ValueError, match="speed must be >= 0"):

@@ -27,7 +27,8 @@ ur-rtde connects to fixed ports (30004, 29999, 30003), so two emulators cannot s
 each instance binds its own address in 127.0.0.0/8 (all of it is loopback on Linux), picked at
 random unless given. Fault options: ``drop_after_moves=N`` closes every socket and listener when
 move N + 1 arrives (a controller lost mid-scan); ``silent=True`` accepts connections and never
-sends a byte.
+sends a byte; ``freeze()`` stops the RTDE data stream while every connection stays open (a hung
+controller: the last state is all a client has).
 """
 
 from __future__ import annotations
@@ -198,6 +199,7 @@ class URControllerEmulator:
         self.program_playing = False  # a loaded .urp "playing" (dashboard only, not executed)
         self.rtde_connections = 0
         self._drop_requested = False
+        self.frozen = threading.Event()
 
     # -- lifecycle ---------------------------------------------------------------------------
     def start(self) -> "URControllerEmulator":
@@ -222,6 +224,10 @@ class URControllerEmulator:
         t = threading.Thread(target=target, args=args, name=name, daemon=True)
         t.start()
         self._threads.append(t)
+
+    def freeze(self) -> None:
+        """Behave like a hung controller: no more RTDE data packages, every connection left open."""
+        self.frozen.set()
 
     def drop(self) -> None:
         """Behave like a controller that vanished: close every connection and stop listening."""
@@ -668,7 +674,8 @@ class URControllerEmulator:
             now = time.monotonic()
             if started and outputs and now >= next_send:
                 for rid, names in outputs.items():
-                    self._send(conn, RTDE_DATA_PACKAGE, self._pack_outputs(rid, names))
+                    if not self.frozen.is_set():
+                        self._send(conn, RTDE_DATA_PACKAGE, self._pack_outputs(rid, names))
                 next_send += period
                 if next_send < now:
                     next_send = now + period

@@ -241,7 +241,7 @@ def test_arm_failure_mid_scan_aborts_and_keeps_frames(ros, tmp_path):
     assert g.status[-1]["frames"] == 5
 
 
-def test_beam_drop_mid_exposure_rejects_that_frame(ros, tmp_path):
+def test_beam_drop_mid_exposure_rejects_that_frame(ros, tmp_path, monkeypatch):
     """The e-stop cuts the beam during the third exposure: the scan aborts, that frame goes to
     /ct/projection_rejected only, and neither the recorded bag nor recon_service's collection uses it;
     the two earlier frames are kept, paired and readable."""
@@ -276,6 +276,7 @@ def test_beam_drop_mid_exposure_rejects_that_frame(ros, tmp_path):
     assert ros.spin_until(lambda: recon.n_paired == 2)
     assert bad not in recon.scan.per_frame[fmt.TOPIC_PROJECTION]
     snapshot, n = recon.scan.write_bag(tmp_path / "snapshot")
+    monkeypatch.setattr("robot_ct_ros.bag.reader.MIN_VIEWS", 1)  # two views: pairing, not a reconstruction
     assert n == 2 and read_scan(snapshot).stamps_ns.tolist() == kept
 
     # the recorded bag keeps the rejected frame on its own topic; the reader never uses it

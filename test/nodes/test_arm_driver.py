@@ -4,8 +4,11 @@ import importlib.util
 import sys
 from pathlib import Path
 
+import time
+
 import numpy as np
 from rclpy.parameter import Parameter
+from rclpy.time import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseStamped
 from lifecycle_msgs.msg import Transition
@@ -70,7 +73,8 @@ def test_lifecycle_services_goal_and_in_position(ros):
     get = probe.node.create_client(GetState, "/arm_driver/get_state")
     assert ros.call(get, GetState.Request()).current_state.label == "unconfigured"
     ok = ros.call(change, ChangeState.Request(transition=Transition(id=Transition.TRANSITION_CONFIGURE)))
-    assert ok.success and node.arm is not None and node.lifecycle_state == "inactive"
+    assert ok.success and node.lifecycle_state == "inactive"
+    assert ros.spin_until(lambda: node.arm is not None)  # connected off the executor
     assert ros.call(change, ChangeState.Request(transition=Transition(id=Transition.TRANSITION_ACTIVATE))).success
     assert ros.call(get, GetState.Request()).current_state.label == "active"
 
@@ -83,7 +87,7 @@ def test_lifecycle_services_goal_and_in_position(ros):
     assert ros.spin_until(lambda: probe.in_position and probe.in_position[-1] and _at(probe.poses[-1], goal))
     assert probe.in_position[0] is False  # false while moving
     assert ros.spin_until(lambda: probe.true_poses and _at(probe.true_poses[-1], goal))  # no errors configured
-    assert ros.spin_until(lambda: probe.last_level() == DiagnosticStatus.OK, timeout_s=5)
+    assert ros.spin_until(lambda: probe.last_level() == DiagnosticStatus.OK)
 
     probe.send_goal(ros, goal, frame="some_other_frame")  # wrong frame: ignored, stays in position
     ros.spin_for(0.3)
@@ -123,16 +127,17 @@ def test_connection_loss_goes_safe(ros):
     assert ros.spin_until(lambda: probe.last_level() == DiagnosticStatus.ERROR)
     # configure again reconnects (a fresh simulated arm)
     assert node.trigger_configure().name == "SUCCESS" and node.trigger_activate().name == "SUCCESS"
+    assert ros.spin_until(lambda: node.arm is not None and node.runner.active)
     assert node.arm.is_connected and node.last_error == ""
 
 
-def test_configure_fails_when_nothing_answers(ros):
+def test_a_failed_connection_returns_to_unconfigured_with_an_error(ros):
     host = load_emulator().free_loopback_host()
     node = _driver(ros, role="source", robot_ip=host, autostart=False, connect_timeout_s=10.0)
     probe = Probe(ros)
-    assert node.trigger_configure().name == "FAILURE"
-    assert node.lifecycle_state == "unconfigured" and node.arm is None
-    assert host in node.last_error
+    assert node.trigger_configure().name == "SUCCESS"  # the connection is made off the executor
+    assert ros.spin_until(lambda: node.lifecycle_state == "unconfigured", timeout_s=20)
+    assert node.arm is None and host in node.last_error and "connect failed" in node.last_error
     assert ros.spin_until(lambda: probe.last_level() == DiagnosticStatus.ERROR)
 
 
@@ -144,6 +149,7 @@ def test_end_to_end_over_ur_rtde_with_controller_loss(ros):
         probe = Probe(ros, "detector")
         assert node.trigger_configure().name == "SUCCESS", node.last_error
         assert node.trigger_activate().name == "SUCCESS"
+        assert ros.spin_until(lambda: node.arm is not None, timeout_s=30), node.last_error
         assert emu.script_running
         assert ros.spin_until(lambda: probe.poses and probe.joints)
         np.testing.assert_allclose(pose_msg_to_ur(probe.poses[-1]), emu.tcp_pose, atol=1e-9)
@@ -190,3 +196,129 @@ def test_executable_refuses_a_bad_parameter_without_a_traceback(monkeypatch):
     assert proc.returncode == 2, proc.stderr[-2000:]
     assert "Traceback" not in proc.stderr and "parameter speed" in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+
+
+def _message(probe, role="source"):
+    msgs = [s.message for a in probe.diag for s in a.status if s.name.endswith(f"{role} arm")]
+    return msgs[-1] if msgs else ""
+
+
+def _pose_msg(pose, frame="world"):
+    return ur_to_pose_msg(pose, frame, Time().to_msg())
+
+
+def test_bad_goals_are_refused_at_the_boundary_and_the_arm_keeps_working(ros):
+    """A NaN goal used to kill the move thread silently: every later goal was ignored."""
+    node = _driver(ros, role="source")
+    probe = Probe(ros)
+    assert ros.spin_until(lambda: node.lifecycle_state == "active" and probe.poses)
+    assert ros.wait_for_subscribers(probe.goal_pub)
+    start = pose_msg_to_ur(probe.poses[-1])
+    bad = []
+    for field, value in (("x", float("nan")), ("y", float("inf"))):
+        m = _pose_msg(start)
+        setattr(m.pose.position, field, value)
+        bad.append(m)
+    m = _pose_msg(start)
+    o = m.pose.orientation
+    o.x, o.y, o.z, o.w = 2 * o.x, 2 * o.y, 2 * o.z, 2 * o.w  # a quaternion scaled by 2
+    bad.append(m)
+    m = _pose_msg(start)
+    m.pose.orientation.x, m.pose.orientation.y, m.pose.orientation.z, m.pose.orientation.w = 0.0, 0.0, 0.0, 0.0
+    bad.append(m)
+    m = _pose_msg(start)
+    m.pose.orientation.w = float("nan")
+    bad.append(m)
+    bad.append(_pose_msg(start + np.array([0.01, 0, 0, 0, 0, 0]), frame="tool0"))
+    for m in bad:
+        probe.goal_pub.publish(m)
+    ros.spin_until(lambda: getattr(node, "goal_rejections", 0) == len(bad), timeout_s=2.0)
+    goal = start + np.array([0.0, 0.02, 0.0, 0, 0, 0])
+    probe.send_goal(ros, goal)
+    assert ros.spin_until(lambda: probe.in_position and probe.in_position[-1] and _at(probe.poses[-1], goal))
+    assert node.goal_rejections == len(bad) and node.runner.failure is None and node.lifecycle_state == "active"
+    assert ros.spin_until(lambda: probe.last_level() == DiagnosticStatus.WARN and "goal refused" in _message(probe),
+                          timeout_s=5)
+
+
+class _BuggyArm:
+    """A simulated arm whose move raises what no arm should: a bug in a driver."""
+
+    def __init__(self):
+        from robot_ct_ros.hardware.simulated_arm import SimulatedArm
+
+        self._arm = SimulatedArm()
+
+    def __getattr__(self, name):
+        return getattr(self._arm, name)
+
+    def move_linear(self, pose, speed=0.25, accel=1.2, timeout_s=None):
+        raise ZeroDivisionError("a driver bug")
+
+
+def test_a_dying_worker_thread_is_an_error_and_an_error_transition(ros):
+    node = ros.add(ArmDriverNode(context=ros.context, arm_factory=_BuggyArm))
+    probe = Probe(ros)
+    assert ros.spin_until(lambda: node.lifecycle_state == "active" and probe.poses)
+    probe.send_goal(ros, pose_msg_to_ur(probe.poses[-1]))
+    assert ros.spin_until(lambda: node.lifecycle_state == "unconfigured")
+    assert "arm_move thread died: ZeroDivisionError" in node.last_error and node.arm is None
+    assert ros.spin_until(lambda: probe.last_level() == DiagnosticStatus.ERROR and "thread died" in _message(probe))
+    assert probe.in_position[-1] is False
+    # configure again: a fresh arm and threads
+    assert node.trigger_configure().name == "SUCCESS"
+    assert ros.spin_until(lambda: node.arm is not None)
+
+
+def test_connecting_to_a_silent_controller_never_blocks_the_executor(ros):
+    """A controller that accepts TCP and never answers: lifecycle services and diagnostics keep answering."""
+    emu = load_emulator().URControllerEmulator(silent=True).start()
+    try:
+        node = _driver(ros, role="source", robot_ip=emu.host, connect_timeout_s=8.0)  # autostart
+        probe = Probe(ros)
+        get = probe.node.create_client(GetState, "/arm_driver/get_state")
+        assert ros.wait_for_service(get)
+        t0 = time.monotonic()
+        # answered long before the 8 s the connection attempt may take (a blocked executor answers after it)
+        assert ros.call(get, GetState.Request(), timeout_s=4.0).current_state.label in ("inactive", "active")
+        assert time.monotonic() - t0 < 4.0
+        assert ros.spin_until(lambda: "connecting" in _message(probe), timeout_s=5.0)
+        assert probe.last_level() == DiagnosticStatus.WARN and node.connecting
+        assert ros.spin_until(lambda: node.lifecycle_state == "unconfigured", timeout_s=20)
+        assert emu.host in node.last_error and not node.connecting
+        assert ros.spin_until(lambda: probe.last_level() == DiagnosticStatus.ERROR)
+    finally:
+        emu.stop()
+
+
+def test_a_frozen_controller_is_noticed_and_its_last_pose_is_not_republished(ros):
+    emu = load_emulator().URControllerEmulator().start()
+    try:
+        node = _driver(ros, role="detector", robot_ip=emu.host, connect_timeout_s=15.0, call_timeout_s=2.0,
+                       max_state_age_s=0.2, publish_rate_hz=50.0)
+        probe = Probe(ros, "detector")
+        assert ros.spin_until(lambda: len(probe.poses) > 5, timeout_s=30)
+        goal = pose_msg_to_ur(probe.poses[-1])
+        probe.send_goal(ros, goal)
+        assert ros.spin_until(lambda: probe.in_position and probe.in_position[-1], timeout_s=20)
+        # stamps are the controller's measurement times: they advance, and never run ahead of the clock
+        stamps = [Time.from_msg(m.header.stamp).nanoseconds for m in probe.poses[-5:]]
+        assert all(b > a for a, b in zip(stamps, stamps[1:]))
+        assert stamps[-1] <= node.get_clock().now().nanoseconds
+        emu.freeze()
+        frozen_at = node.get_clock().now().nanoseconds
+        n_before = len(probe.poses)
+        # noticed well before the connection is called lost (call_timeout_s 2 s; ur-rtde alone: 2.5 s)
+        assert ros.spin_until(lambda: probe.in_position[-1] is False and node.runner.stale(), timeout_s=1.8)
+        assert ros.spin_until(lambda: any(w in _message(probe, "detector") for w in ("stale", "stopped updating")),
+                              timeout_s=5.0)
+        # the last sample is not republished as fresh: whatever arrived after the freeze was measured before it
+        assert all(Time.from_msg(m.header.stamp).nanoseconds <= frozen_at + 50_000_000 for m in probe.poses[n_before:])
+        if node.lifecycle_state == "active":  # still within call_timeout_s: nothing new is published
+            n = len(probe.poses)
+            ros.spin_for(0.3)
+            assert len(probe.poses) == n or node.lifecycle_state != "active"
+        assert ros.spin_until(lambda: node.lifecycle_state == "unconfigured", timeout_s=10)
+        assert "stopped updating" in node.last_error
+    finally:
+        emu.stop()

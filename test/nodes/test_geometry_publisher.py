@@ -72,7 +72,7 @@ def test_geometry_per_frame_with_the_frame_stamp(ros):
     np.testing.assert_allclose(d, GEOM.detector_mm[2], atol=1e-6)
     np.testing.assert_allclose(np.stack([u, v]), np.stack([GEOM.u[2], GEOM.v[2]]), atol=1e-9)
     assert node.published == 1 and node.skipped == 0
-    assert ros.spin_until(lambda: probe.level() == DiagnosticStatus.OK, timeout_s=3)
+    assert ros.spin_until(lambda: probe.level() == DiagnosticStatus.OK)
 
 
 def test_stale_missing_or_foreign_poses_give_no_geometry(ros):
@@ -90,14 +90,15 @@ def test_stale_missing_or_foreign_poses_give_no_geometry(ros):
     probe.frame(ros, t)
     assert ros.spin_until(lambda: node.skipped == 2)
     assert "stale" in node.last_problem
-    probe.pose(ros, "detector", D[0], t, frame="detector_arm_base")
-    assert ros.spin_until(lambda: len(node._history["detector"]) == 2)
+    probe.pose(ros, "detector", D[0], t, frame="detector_arm_base")  # refused as it arrives
+    assert ros.spin_until(lambda: node.poses_refused == 1)
+    assert "not 'world'" in node.last_refused and len(node._history["detector"]) == 1
     probe.frame(ros, t)
     assert ros.spin_until(lambda: node.skipped == 3)
-    assert "not 'world'" in node.last_problem
+    assert "stale" in node.last_problem
     ros.spin_for(0.1)
     assert not probe.geoms and node.published == 0
-    assert ros.spin_until(lambda: probe.level() == DiagnosticStatus.WARN, timeout_s=3)
+    assert ros.spin_until(lambda: probe.level() == DiagnosticStatus.WARN)
 
 
 def test_hand_eye_parameters_are_used(ros):
@@ -127,3 +128,34 @@ def test_bad_parameter_values_are_refused_with_a_clear_error(ros):
 
     with pytest.raises(ValueError, match="parameter max_pose_age_s.*out of range"):
         GeometryPublisherNode(context=ros.context, parameter_overrides=[Parameter("max_pose_age_s", value=-0.1)])
+
+
+def test_broken_tool_poses_are_refused_and_never_shadow_good_ones(ros):
+    node = _node(ros)
+    probe = Probe(ros)
+    S, D = tool_goals_from_geometry(GEOM, HandEye())
+    t = probe.now_ns()
+    probe.pose(ros, "source", S[1], t - 50_000_000)
+    probe.pose(ros, "detector", D[1], t - 50_000_000)
+    for i, breakage in enumerate(("nan", "scaled", "frame")):  # each nearer to the frame than the good ones
+        T = S[1].copy()
+        if breakage == "nan":
+            T[0, 3] = np.nan
+        msg = PoseStamped()
+        msg.header.frame_id = "tool0" if breakage == "frame" else "world"
+        msg.header.stamp = ns_to_stamp(t - i * 1_000_000)
+        matrix_mm_to_pose(np.nan_to_num(T), msg.pose)
+        if breakage == "nan":
+            msg.pose.position.x = float("nan")
+        if breakage == "scaled":
+            o = msg.pose.orientation
+            o.x, o.y, o.z, o.w = 2 * o.x, 2 * o.y, 2 * o.z, 2 * o.w
+        probe.pose_pubs["source"].publish(msg)
+    ros.spin_until(lambda: getattr(node, "poses_refused", 0) == 3, timeout_s=2.0)
+    probe.frame(ros, t)
+    assert ros.spin_until(lambda: probe.geoms)
+    assert node.poses_refused == 3
+    s, d, u, v = fmt.view_from_pose_array(probe.geoms[-1])
+    np.testing.assert_allclose(s, GEOM.source_mm[1], atol=1e-6)
+    assert node.published == 1 and node.skipped == 0
+    assert ros.spin_until(lambda: probe.level() == DiagnosticStatus.WARN)

@@ -1,0 +1,39 @@
+"""Every node executable refuses a bad parameter value in one line on stderr, exit status 2, no traceback
+(``ros2 run robot_ct_ros <node> --ros-args -p kvp:=abc``)."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+
+CASES = [
+    ("source_control", "kvp:=abc", "parameter kvp"),
+    ("source_control", "kvp:=-5.0", "parameter kvp"),
+    ("arm_driver", "publish_rate_hz:=fast", "parameter publish_rate_hz"),
+    ("pcd_grabber", "exposure_s:=abc", "parameter exposure_s"),
+    ("geometry_publisher", "hand_eye.source.translation_m:=abc", "parameter hand_eye.source.translation_m"),
+    ("scan_orchestrator", "tick_period_s:=-1.0", "parameter tick_period_s"),
+    ("recon_service", "iterations:=abc", "parameter iterations"),
+    ("recorder", "flush_period_s:=abc", "parameter flush_period_s"),
+    ("replay", "rate_hz:=abc", "parameter rate_hz"),
+    ("replay", "bag_path:=/nonexistent/bag", "parameter bag_path"),
+    ("replay", "method:=foo", "parameter method"),
+]
+
+
+@pytest.mark.parametrize("node, assignment, words", CASES, ids=[f"{n}:{a}" for n, a, _ in CASES])
+def test_a_bad_parameter_is_one_line_and_exit_2(node, assignment, words):
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_DOMAIN_ID=str(150 + os.getpid() % 50),
+               PYTHONPATH=str(REPO))
+    args = ["--ros-args", "-p", assignment, "-p", "autostart:=false"]
+    if node == "replay" and not assignment.startswith("bag_path"):
+        args += ["-p", "bag_path:=/nonexistent/bag"]
+    proc = subprocess.run([sys.executable, "-m", f"robot_ct_ros.nodes.{node}", *args], capture_output=True, text=True,
+                          env=env, timeout=60)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert "Traceback" not in proc.stderr and words in proc.stderr, proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
