@@ -17,6 +17,10 @@ from robot_ct_ros.ct.geometry import ConeGeometry
 
 __all__ = ["blas_single_threaded", "detector_homographies", "warp_projections", "N_SUMS", "sample_distances"]
 
+FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
+"""numba fast-math flags of the warp kernels: everything but 'nnan' and 'ninf', so that a NaN or
+infinite point fails the on-detector test instead of being assumed away."""
+
 
 blas_single_threaded = threadpool_limits.wrap(limits=1, user_api="blas")
 """Decorator: BLAS (numpy's matrix products) on one thread while the function runs. The
@@ -50,7 +54,7 @@ def detector_homographies(virtual: ConeGeometry, target: ConeGeometry) -> np.nda
     return np.einsum("nij,njk->nik", P, M)
 
 
-@njit(inline="always", fastmath=True)
+@njit(inline="always", fastmath=FASTMATH)
 def _warped_value(img, h, r, c):
     """Bilinear value of virtual image ``img`` at the point homography ``h`` maps detector pixel
     (c, r) to, and 1.0 where that point lies on the virtual detector (else 0.0, with the value
@@ -59,13 +63,14 @@ def _warped_value(img, h, r, c):
     x_max = vc - 1.0
     y_max = vr - 1.0
     z = h[2, 0] * c + h[2, 1] * r + h[2, 2]
-    on = z != 0.0
+    on = abs(z) > 1e-30  # a denormal or zero depth would make the point infinite or NaN
     inv = 1.0 / z if on else 0.0
     x = (h[0, 0] * c + h[0, 1] * r + h[0, 2]) * inv
     y = (h[1, 0] * c + h[1, 1] * r + h[1, 2]) * inv
+    # NaN fails every comparison (FASTMATH keeps NaN and inf semantics): such a point is off the detector
     on = on & (x >= 0.0) & (y >= 0.0) & (x <= x_max) & (y <= y_max)
-    xc = min(max(x, 0.0), x_max)
-    yc = min(max(y, 0.0), y_max)
+    xc = x if on else 0.0  # a select, not a clamp of NaN: stays branch-free
+    yc = y if on else 0.0
     i0 = min(int(xc), vc - 2)
     j0 = min(int(yc), vr - 2)
     fx = np.float32(xc - i0)
@@ -75,7 +80,7 @@ def _warped_value(img, h, r, c):
     return np.float64(top + fy * (bottom - top)), 1.0 if on else 0.0
 
 
-@njit(parallel=True, fastmath=True, cache=True)
+@njit(parallel=True, fastmath=FASTMATH, cache=True)
 def _warp_kernel(images, H, image_index, out, valid):
     m, n_rows, n_cols = out.shape
     for t in prange(m * n_rows):
@@ -114,7 +119,7 @@ def warp_projections(virtual_images: np.ndarray, homographies: np.ndarray, image
 N_SUMS = 7  # n, sum p, sum p^2, sum p b, sum b, sum b^2, sum p b_res; then one sum p q_k per basis image
 
 
-@njit(parallel=True, fastmath=True, cache=True)
+@njit(parallel=True, fastmath=FASTMATH, cache=True)
 def _warp_score_kernel(images, H, image_index, target_index, measured, residual, basis, weight, out):
     """For each sample s: warp virtual image image_index[s] with H[s] onto the detector and
     accumulate, over pixels valid in ``weight[target_index[s]]`` (1.0 valid, 0.0 not) and on
