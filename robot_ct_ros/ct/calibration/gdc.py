@@ -22,7 +22,7 @@ enlarged virtual detector); detector-parameter derivatives are homography warps
 (:func:`~robot_ct_ros.ct.calibration.detector_homographies`,
 :func:`~robot_ct_ros.ct.calibration.warp_projections`) of the current view's virtual
 ray-cast. The pixel mask is the LLE's: valid detector pixels and
-:func:`~robot_ct_ros.ct.calibration.roi_support_mask`.
+:func:`~robot_ct_ros.ct.calibration.masks.roi_support_mask`.
 
 :func:`estimate_views_gdc` has the signature and return convention of
 :func:`robot_ct_ros.ct.calibration.estimate_views`: ``calibration.calibrate(method="gdc" |
@@ -38,7 +38,7 @@ from scipy import ndimage
 
 from robot_ct_ros.ct.calibration.kernels import blas_single_threaded, detector_homographies, warp_projections
 from robot_ct_ros.ct.calibration.model import as_model, project
-from robot_ct_ros.ct.calibration.masks import as_view_mask, roi_support_mask, usable_views, view_chunks
+from robot_ct_ros.ct.calibration.masks import estimator_inputs, usable_views, view_chunks
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
 
 GDC_METHODS = ("gdc", "gdc-log")
@@ -180,15 +180,10 @@ def estimate_views_gdc(measured: np.ndarray, nominal: ConeGeometry, params0: np.
     kept, per iteration) and ``metric``.
     """
     n = nominal.n_views
-    meas = np.ascontiguousarray(measured, dtype=np.float32)
-    if meas.shape != (n,) + nominal.det_shape:
-        raise ValueError(f"measured {meas.shape} does not match the geometry ({n}, {nominal.det_shape})")
-    params = np.array(params0, dtype=np.float64).reshape(n, 9)
+    meas, params, valid, mask = estimator_inputs(measured, nominal, params0, valid_mask, grid,
+                                                 config.roi_support_fraction)
     vol = as_model(volume)
     sigma = config.log_sigma_px
-    valid = as_view_mask(valid_mask, meas.shape) & np.isfinite(meas)
-    mask = valid if config.roi_support_fraction is None else (
-        valid & roi_support_mask(nominal, params, grid, config.roi_support_fraction))
     if sigma is None:
         meas_f = np.where(valid, meas, 0.0).astype(np.float32)
     else:

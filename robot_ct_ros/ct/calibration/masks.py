@@ -7,7 +7,7 @@ import numpy as np
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
 
 __all__ = ["roi_support_mask", "as_view_mask", "usable_data", "bin_masked", "usable_views", "view_chunks",
-           "MIN_VIEW_PIXELS"]
+           "estimator_inputs", "MIN_VIEW_PIXELS"]
 
 MIN_VIEW_PIXELS = 16
 """A view with fewer usable pixels than this (its rays barely cross the grid, or its detector is
@@ -72,3 +72,26 @@ def view_chunks(views: np.ndarray, size: int):
     views = np.asarray(views, np.int64)
     for v0 in range(0, views.size, max(1, int(size))):
         yield views[v0:v0 + size]
+
+
+def estimator_inputs(measured, nominal: ConeGeometry, params0, valid_mask, grid: VolumeGrid,
+                     support_fraction: float | None):
+    """What every per-view estimator starts from: the measured views as float32 (n, rows, cols)
+    checked against ``nominal``, the starting parameters (n, 9) as a copy, the valid pixels
+    (valid and finite) and the pixels to register (also on the ROI support, unless
+    ``support_fraction`` is None: every ray modelled).
+
+    Raises
+    ------
+    ValueError
+        The views do not match the geometry's count or detector.
+    """
+    n = nominal.n_views
+    meas = np.ascontiguousarray(measured, dtype=np.float32)
+    if meas.shape != (n,) + nominal.det_shape:
+        raise ValueError(f"measured {meas.shape} does not match the geometry ({n}, {nominal.det_shape})")
+    params = np.array(params0, dtype=np.float64).reshape(n, 9)
+    valid = as_view_mask(valid_mask, meas.shape) & np.isfinite(meas)
+    mask = valid if support_fraction is None else valid & roi_support_mask(nominal, params, grid, support_fraction)
+    return meas, params, valid, mask
+

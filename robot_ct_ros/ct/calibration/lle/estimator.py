@@ -11,7 +11,7 @@ from robot_ct_ros.ct.calibration.lle.sampling import (best_fit_fraction, ranking
                                                       source_offsets, virtual_margin_px)
 from robot_ct_ros.ct.calibration.lle.weights import WEIGHTINGS, background_basis, lle_weights, view_distances
 from robot_ct_ros.ct.calibration.model import as_model, project
-from robot_ct_ros.ct.calibration.masks import as_view_mask, roi_support_mask, usable_views, view_chunks
+from robot_ct_ros.ct.calibration.masks import estimator_inputs, usable_views, view_chunks
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
 
 __all__ = ["LLEConfig", "estimate_views", "default_lle_configs", "narrowed", "DEFAULT_BACKGROUND", "DRAWS",
@@ -132,15 +132,10 @@ def estimate_views(measured: np.ndarray, nominal: ConeGeometry, params0: np.ndar
     (``independent_fraction``).
     """
     n = nominal.n_views
-    measured = np.ascontiguousarray(measured, dtype=np.float32)
-    if measured.shape != (n,) + nominal.det_shape:
-        raise ValueError(f"measured {measured.shape} does not match the geometry ({n}, {nominal.det_shape})")
-    params = np.array(params0, dtype=np.float64).reshape(n, 9)
+    measured, params, _, mask_all = estimator_inputs(measured, nominal, params0, valid_mask, grid,
+                                                     config.roi_support_fraction)
     vol = as_model(volume)
     metric = "l2" if config.weighting == "l2" else "ncc"
-    mask_all = as_view_mask(valid_mask, measured.shape) & np.isfinite(measured)
-    if config.roi_support_fraction is not None:  # None: every ray is modelled (the exterior model)
-        mask_all = mask_all & roi_support_mask(nominal, params, grid, config.roi_support_fraction)
     measured = np.where(mask_all, measured, np.float32(0.0))  # dead pixels may be nan or inf: see score_warped
     if config.shift_search_px > 0:
         params = _shift_search(measured, nominal, params, vol, grid, config, mask_all)
