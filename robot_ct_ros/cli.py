@@ -93,8 +93,9 @@ def add_settings_arguments(p: argparse.ArgumentParser, skip=("method",)) -> None
         names = ("--" + s.name.replace("_", "-"),) + OPTION_ALIASES.get(s.name, ())
         unit = f" ({s.unit})" if s.unit else ""
         default = "off" if s.default is None else s.default
-        if s.kind is bool:
-            group.add_argument(*names, dest=s.name, action="store_true", default=None, help=f"{s.help} [off]")
+        if s.kind is bool:  # --name / --no-name
+            group.add_argument(*names, dest=s.name, action=argparse.BooleanOptionalAction, default=None,
+                               help=f"{s.help} [{'on' if s.default else 'off'}]")
             continue
         metavar = "{" + ",".join(s.choices) + "}" if s.choices else s.name.upper()
         group.add_argument(*names, dest=s.name, type=_checked(s), default=None, metavar=metavar,

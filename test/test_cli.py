@@ -283,3 +283,24 @@ def test_a_scan_with_every_stamp_equal_is_not_reconstructed(tmp_path, capsys):
     assert main(["reconstruct", str(tmp_path / "zero"), "--out", str(tmp_path / "o")]) == 2
     _one_line_error(capsys, "a scan needs at least", "stamp 0 ns")
     assert not (tmp_path / "o" / "volume.npy").exists()
+
+
+def test_every_setting_is_an_option_and_switches_turn_both_ways():
+    import argparse
+
+    from robot_ct_ros.cli import add_settings_arguments, settings_from_args
+    from robot_ct_ros.ct.calibration import CalibrationSettings
+    from robot_ct_ros.parameters import specs
+
+    p = argparse.ArgumentParser()
+    add_settings_arguments(p, skip=())
+    options = {a.dest for a in p._actions}
+    missing = [s.name for s in specs(CalibrationSettings)
+               if s.name not in options and s.name not in ("prior_translation_mm", "prior_rotation_deg")]
+    assert not missing, missing
+    assert settings_from_args(p.parse_args([])) == CalibrationSettings()
+    s = settings_from_args(p.parse_args(["--no-guard", "--undo-inconsistent", "--exterior", "on", "--stop-px", "0.1",
+                                         "--prior-sigma", "0.1,0.05"]))
+    assert not s.guard and s.undo_inconsistent and s.exterior == "on" and s.stop_update_px == 0.1
+    assert s.prior_translation_mm == 0.1 and s.prior_rotation_deg == 0.05
+    assert settings_from_args(p.parse_args(["--prior-sigma", "none"])).prior_sigma is None
