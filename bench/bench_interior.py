@@ -37,6 +37,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 from robot_ct_ros.ct import calibration  # noqa: E402
 from robot_ct_ros.ct import simulation as sim  # noqa: E402
 from robot_ct_ros.ct.geometry import VolumeGrid  # noqa: E402
+from robot_ct_ros.ct.metrics import reprojection_error, roi_points  # noqa: E402
 from robot_ct_ros.ct.reconstruction import fdk  # noqa: E402
 from robot_ct_ros.ct.rtk_bridge import rtk_ellipsoid_projections  # noqa: E402
 from robot_ct_ros.ct.trajectory import SeedSystem, fov_radius_mm, robotic_roi_scan  # noqa: E402
@@ -99,8 +100,6 @@ def oracle(sc, phantom, say, exterior_voxels=(None, 1.0, 0.5, 0.25)) -> list:
     from robot_ct_ros.ct.calibration.masks import bin_masked
     from robot_ct_ros.ct.calibration.model import VolumeParts
     from robot_ct_ros.ct.calibration.volume import estimation_grid
-    from robot_ct_ros.ct.metrics import reprojection_error, roi_points
-
     pts = roi_points(sc.grid)
     grid_e = estimation_grid(sc.grid, calibration.DEFAULT_PADDING)
     coarse, fine = default_lle_configs("ncc-exact", prior_sigma=calibration.prior_sigma_from(sc.sigma, sc.sigma))
@@ -191,6 +190,11 @@ def main(argv=None) -> int:
                              title=title, reconstruct=sc.reconstruct, notes={"sigma": sigma, "fov_mm": sc.fov_mm})
         rows_ = paths["rows"]
         notes = {m: list(getattr(r, "notes", ())) for m, r in results.items() if getattr(r, "notes", ())}
+        pts = roi_points(sc.grid)
+        for m, r in results.items():  # what the guard kept at nominal: the estimate before it
+            if getattr(r, "params_unguarded", None) is not None:
+                e = reprojection_error(sc.nominal.perturbed(r.params_unguarded), sc.true, pts)
+                notes[m].append(f"before the guard {e['mean_px']:.3f} px mean, {e['p95_px']:.3f} px p95")
         report["scans"].append({"sigma": sigma, "fov_mm": sc.fov_mm, "body_mm": sc.body_mm, "rows": rows_,
                                 "notes": notes})
         table = markdown_table(rows_)

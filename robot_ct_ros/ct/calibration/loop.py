@@ -267,9 +267,11 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
                      f"{sorted(skipped)[:20]}{' ...' if len(skipped) > 20 else ''}")
     if exterior:
         notes.append("the object outside the ROI was modelled (exterior model)")
+    unguarded = None
     if settings.guard and accuracy is not None:
         checked = plausibility_guard(nominal, params, points, accuracy, max_ratio=settings.guard_max_ratio,
                                      view_quantile=settings.guard_view_quantile, seed=settings.seed)
+        unguarded = params if checked.reverted_views else None
         params = checked.params
         notes.append(checked.note(settings.guard_max_ratio))
     elif settings.guard:
@@ -280,4 +282,4 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
     volume = fdk(li, geom, grid, valid_mask=mask, **fdk_kwargs)
     notes = tuple(notes)
     return CalibrationResult(method.name, params, geom, volume, tuple(history), time.perf_counter() - t_start,
-                             settings=settings, notes=notes)
+                             settings=settings, notes=notes, params_unguarded=unguarded)

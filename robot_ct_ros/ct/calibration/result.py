@@ -42,7 +42,8 @@ class CalibrationResult:
     the runs averaged and ``spread_px`` their mean gauge-aligned distance to the mean (NaN for
     one run), ``settings`` the :class:`~robot_ct_ros.ct.calibration.settings.CalibrationSettings`
     the run used (a method without a prior runs without one), ``notes`` what the loop decided on
-    its own (e.g. views it kept at nominal)."""
+    its own (e.g. views it kept at nominal), ``params_unguarded`` the loop's estimate before the guard
+    kept views at nominal (None when it kept none)."""
 
     method: str
     params: np.ndarray
@@ -54,3 +55,4 @@ class CalibrationResult:
     spread_px: float = float("nan")
     settings: object = None
     notes: tuple = ()
+    params_unguarded: np.ndarray | None = None
