@@ -32,6 +32,9 @@ from scipy.spatial.transform import Rotation
 
 from .geometry import ConeGeometry
 
+__all__ = ["pose_matrix", "matrix_to_position_rotvec", "invert", "Mount", "HandEye", "mount_from_si",
+           "geometry_from_tool_poses", "device_frames", "tool_goals_from_geometry"]
+
 
 def pose_matrix(position_mm, rotvec=(0.0, 0.0, 0.0)) -> np.ndarray:
     """4 x 4 homogeneous matrix from a position (mm) and a rotation vector (rad); stacks (n, 3) too."""

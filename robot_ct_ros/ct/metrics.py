@@ -19,6 +19,10 @@ from scipy.spatial.transform import Rotation
 
 from .geometry import ConeGeometry, VolumeGrid
 
+__all__ = ["rigidly_moved", "fit_gauge", "fit_object_scale", "remove_gauge", "reprojection_error",
+           "gauge_aligned_reprojection_error", "roi_points", "ncc", "mean_ncc", "projection_rmse", "psnr", "ssim",
+           "edge_sharpness", "sample_volume", "line_profile", "edge_rise_distance_mm", "cap_thickness_mm"]
+
 
 # ----------------------------------------------------------------------------- gauge
 def rigidly_moved(geom: ConeGeometry, rotvec, translation_mm, center_mm=(0.0, 0.0, 0.0)) -> ConeGeometry:

@@ -29,6 +29,9 @@ import numpy as np
 
 from .geometry import ConeGeometry
 
+__all__ = ["circular_scan", "SeedSystem", "fov_radius_mm", "detector_edge_for_fov_mm", "roi_scan_offset_mm",
+           "robotic_roi_scan"]
+
 
 def _orbit_frame(axis) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     a = np.asarray(axis, dtype=np.float64).reshape(3)

@@ -15,6 +15,8 @@ import signal
 import sys
 import threading
 
+__all__ = ["STATE_VARIABLES", "worker_main"]
+
 STATE_VARIABLES = ["timestamp", "actual_q", "actual_TCP_pose", "robot_mode", "safety_mode", "runtime_state"]
 
 

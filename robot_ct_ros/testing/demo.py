@@ -23,6 +23,8 @@ import shutil
 import time
 from pathlib import Path
 
+__all__ = ["DEFAULTS", "MOUSE_SPINE_Y_M", "QUICK", "demo_settings", "demo_setup", "recon_parameters", "run_demo"]
+
 DEFAULTS = {"views": 120, "rows": 64, "cols": 128, "phantom": "mouse", "method": "ncc-lle-exact", "iterations": 2,
             "exposure_s": 0.1, "sigma_mm": 0.1, "sigma_deg": 0.05}
 MOUSE_SPINE_Y_M = 0.0066  # the vertebral bodies lie 6.6 mm dorsal (-y) of the mouse phantom's centre

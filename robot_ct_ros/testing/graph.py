@@ -22,6 +22,8 @@ import yaml
 
 from robot_ct_ros.hardware.detector import warm_up_projector
 
+__all__ = ["CONFIG_DIR", "ROLES", "GraphError", "GraphResult", "run_scan_graph"]
+
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "config"
 ROLES = ("source", "detector")
 _domains = itertools.count()

@@ -41,6 +41,8 @@ from robot_ct_ros.ct.calibration.model import as_model, project
 from robot_ct_ros.ct.calibration.masks import estimator_inputs, usable_views, view_chunks
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
 
+__all__ = ["GDC_METHODS", "GDCConfig", "default_gdc_configs", "estimate_views_gdc", "with_log"]
+
 GDC_METHODS = ("gdc", "gdc-log")
 
 

@@ -9,6 +9,8 @@ import numpy as np
 from robot_ct_ros.ct.geometry import bin_projections
 from robot_ct_ros.ct.simulation.phantoms import MU, _rng
 
+__all__ = ["DetectorModel", "simulate_flat", "simulate_counts", "counts_to_line_integrals"]
+
 # ----------------------------------------------------------------------------- detector model
 @dataclass(frozen=True)
 class DetectorModel:

@@ -9,6 +9,8 @@ from scipy.ndimage import gaussian_filter1d
 
 from robot_ct_ros.ct.simulation.phantoms import _rng
 
+__all__ = ["GeometryErrorModel", "SumOfErrorModels", "robot_coordination", "detector_drift", "static_misalignment"]
+
 # ----------------------------------------------------------------------------- geometric errors
 @dataclass(frozen=True)
 class GeometryErrorModel:

@@ -11,6 +11,9 @@ from scipy.spatial.transform import Rotation
 
 from robot_ct_ros.ct.geometry import VolumeGrid
 
+__all__ = ["MU", "Primitive", "ellipsoid", "elliptic_cylinder", "box", "spiral", "CapGeometry", "Phantom",
+           "voxelize", "mouse_phantom", "battery_phantom", "carotid_plaque_phantom", "interior_neck_phantom"]
+
 
 # ----------------------------------------------------------------------------- materials
 MU = {

@@ -11,6 +11,8 @@ from robot_ct_ros.ct.simulation.detector import (DetectorModel, counts_to_line_i
                                                  simulate_flat)
 from robot_ct_ros.ct.simulation.phantoms import Phantom, _rng, voxelize
 
+__all__ = ["raw_geometry", "irradiated_bounds_mm", "scan_volumes", "SimulatedScan", "project_parts", "simulate_scan"]
+
 # ----------------------------------------------------------------------------- scan simulation
 def raw_geometry(geom: ConeGeometry, binning: int) -> ConeGeometry:
     """The unbinned detector whose ``binning`` x ``binning`` binning is ``geom`` (same centre)."""
