@@ -52,9 +52,8 @@ def focus_conjugate_modes(line_integrals, nominal: ConeGeometry, params: np.ndar
     of view t's image that its conjugate view can mirror moves each ray and its conjugate
     alike, so the data stay consistent and the alternating loop leaves it in place: a
     detector shift along u or an in-plane roll that is odd under the half turn (odd angular
-    harmonics cos(k t), sin(k t)), and a magnification that is even under it. On the
-    truncated mouse scan a 0.5 px k = 3 shift mode stayed at 0.5 px through three loop
-    iterations while a k = 2 mode fell to 0.04 px. Such modes still blur the image, so each
+    harmonics cos(k t), sin(k t)), and a magnification that is even under it
+    (docs/calibration.md, "What the data cannot tell"). Such modes still blur the image, so each
     coefficient is chosen (coordinate-wise parabola through three reconstructions, ``sweeps``
     rounds, the step halving each round) to minimise :func:`image_entropy` of an FDK of the
     central ``focus_slices`` slices of ``grid``, within ``inner_fraction`` of its half width.
@@ -129,8 +128,8 @@ def hold_magnification(nominal: ConeGeometry, params: np.ndarray, points_mm, tol
     magnification equals the nominal one (:func:`metrics.fit_object_scale` = 1).
 
     The loop cannot see a common magnification error (it is the similarity part of the
-    gauge) and let it drift to 1.3 % on the simulated mouse scan; the robot's nominal
-    magnification is far better than that on average.
+    gauge) and lets it drift; the robots' nominal magnification is far better than that on
+    average (docs/calibration.md, "Gauge fixing and magnification hold").
     """
     from robot_ct_ros.ct.metrics import fit_object_scale
 

@@ -25,9 +25,8 @@ infinite point fails the on-detector test instead of being assumed away."""
 blas_single_threaded = threadpool_limits.wrap(limits=1, user_api="blas")
 """Decorator: BLAS (numpy's matrix products) on one thread while the function runs. The
 estimators alternate numba kernels, which use every core, with small BLAS products; BLAS's
-idle threads keep spinning after each call and took the cores from the kernels that
-followed (calibrate on the scan of bench/bench_calibration_speed.py, 2 cores: 68 s with them,
-62 s without)."""
+idle threads keep spinning after each call and took the cores from the kernels that followed
+(docs/calibration.md, "Speed")."""
 
 
 def detector_homographies(virtual: ConeGeometry, target: ConeGeometry) -> np.ndarray:

@@ -38,8 +38,8 @@ def reconstruct_for_estimation(line_integrals, geom, grid, mask, sirt_iterations
     FDK of a truncated scan does not reproject to its own data (the extrapolated rows leave
     low-frequency errors, and what lies outside the grid is missing), and no background
     model absorbs all of that. A few SIRT iterations started from FDK make the volume
-    consistent with the measured rays: on the truncated mouse scan the per-view estimates
-    against a true-geometry volume became 8x more accurate. Where the object reaches far
+    consistent with the measured rays (docs/calibration.md, "The estimation volume and
+    truncation"). Where the object reaches far
     beyond the grid, SIRT piles the missing mass into the border voxels instead; the SIRT
     volume is kept only where it reprojects closer (masked NCC) to the data than the FDK.
     ``fdk_shape_yx`` keeps the FDK to that central part of the grid (zero around it): outside

@@ -229,11 +229,9 @@ def estimate_views(measured: np.ndarray, nominal: ConeGeometry, params0: np.ndar
 
 DEFAULT_BACKGROUND = (0, 0)
 """Smooth background ignored by the NCC weightings by default: (0, 0) = offset and gain only,
-the metric as published. Against FDK volumes a quadratic one, (2, 2), halved the estimator's
-error on truncated scans (it absorbs the bowl the truncated object adds); against the
-SIRT-consistent volumes of :func:`reconstruct_for_estimation` the published metric is the more
-accurate on the mouse scan (0.14 px against 0.37 px after 3 iterations), the quadratic one on
-the battery scan (1.08 px against 1.40 px)."""
+the metric as published. A quadratic one, (2, 2), also absorbs the bowl a truncated object adds;
+against the SIRT-consistent estimation volumes the published one did better on the mouse scan and
+worse on the battery scan (docs/calibration.md, "Three weightings")."""
 
 
 EMBEDDING_SETTINGS = {"l2": {"n_neighbours": 24, "reg": 1e-5}, "ncc-exact": {"n_neighbours": 24, "reg": 1e-5}}
@@ -241,12 +239,8 @@ EMBEDDING_SETTINGS = {"l2": {"n_neighbours": 24, "reg": 1e-5}, "ncc-exact": {"n_
 (16, 1e-3). The solved weightings embed in more neighbours with a weaker ridge: the ridge pulls
 the weights towards the neighbours' centroid, i.e. the weakly seen parameters (scale,
 perspective) towards the current estimate, and with the robots' accuracy as prior the ridge
-need not hold them any more. Measured with bench/bench_calibration.py's scenario (a) (90
-views, 3 iterations): ncc-lle-exact 0.127 -> 0.107 px (0.125 -> 0.109 and 0.136 -> 0.112 with
-other sampling seeds), l2-lle 0.124 -> 0.113 px; (b) 1.00 -> 1.00 and 1.00 -> 1.02 px, (c)
-4.14 -> 4.05 and 3.69 -> 3.35 px. The published ``ncc`` closed form has no ridge, and 24
-neighbours made it worse on the 360-view scan of bench/bench_calibration_speed.py (0.664 ->
-0.692 px), so it keeps 16."""
+need not hold them any more. The published ``ncc`` closed form has no ridge and keeps 16
+(docs/calibration.md, "Three weightings"; the measurements are listed there as open)."""
 
 
 COARSE_SAMPLES = 96
@@ -258,11 +252,7 @@ independent sample sets per level whose embeddings are averaged (:attr:`LLEConfi
 both levels. Each set is one draw of the random sampling; its embedding carries that draw's
 noise, which more samples in one set do not average out (they only tighten the K nearest
 ones), while a second set is scored against the same ray-casts, so it costs only its
-homography scoring and weights. Measured with ncc-lle-exact on scenario (a) of
-bench/bench_calibration.py (90 views, 3 iterations, six sampling seeds): 192 samples and one
-set per level 0.0995 to 0.102 px (384 samples: 0.101 to 0.103 px), 96 coarse samples 0.094
-to 0.096 px, 96 coarse samples and two sets on both levels 0.089 to 0.094 px (mean 0.091) in
-24 s instead of 20 s; three sets of 64 coarse samples 0.090 px in 26 s."""
+homography scoring and weights (docs/calibration.md, "Sample sets")."""
 
 
 def default_lle_configs(weighting: str, seed: int = 0, background=DEFAULT_BACKGROUND,
@@ -279,10 +269,8 @@ def default_lle_configs(weighting: str, seed: int = 0, background=DEFAULT_BACKGR
 
 
 MAX_NARROWING = 2
-"""Outer iterations after which the LLE search box stops shrinking. Halving it without end left
-the box smaller than the estimator's own scatter: on scenario (a) of bench/bench_calibration.py
-the error rose again from 0.101 px (iteration 3) to 0.110 px (iteration 6); held at a quarter
-from iteration 3 on, it stayed at 0.100 to 0.101 px."""
+"""Outer iterations after which the LLE search box stops shrinking: halving it without end leaves
+the box smaller than the estimator's own scatter (docs/calibration.md, "Stopping and narrowing")."""
 
 
 def narrowed(config: LLEConfig, iteration: int) -> LLEConfig:

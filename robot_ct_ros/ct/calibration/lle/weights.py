@@ -113,11 +113,8 @@ def effective_pixel_fraction(measured, predicted, mask, basis=None, highpass_px:
     reconstruction) is correlated and would otherwise count its information once per pixel.
     With that residual's lag-one correlation ρ along rows and along columns, the fraction is
     ((1 - ρ_u) / (1 + ρ_u)) ((1 - ρ_v) / (1 + ρ_v)), the effective sample size of a first-order
-    autoregressive field: about 1 for white residuals. The 16
-    pixels were measured: on the 360-view mouse scan of bench/bench_calibration_speed.py the
-    raw residual (0) made the prior hold the views back (0.90 px after 2 iterations, 0.64 px
-    without prior), 8 pixels let the carotid scan of bench/bench_calibration.py drift (6.1 px
-    against 3.4 px nominal), 16 pixels did neither (0.68 px; 4.0 px).
+    autoregressive field: about 1 for white residuals. Why 16 pixels: docs/calibration.md,
+    "The robots' accuracy as a prior".
     """
     mask = np.asarray(mask, bool)
     if basis is None:
