@@ -268,14 +268,22 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
     if exterior:
         notes.append("the object outside the ROI was modelled (exterior model)")
     unguarded = None
-    if settings.guard and accuracy is not None:
+    explained = history[-1].projection_ncc if history else float("nan")
+    if settings.guard and explained < settings.guard_min_ncc:
+        # the data term is dominated by what the model lacks (the object outside the ROI): its optimum is not the
+        # geometry's, and no consistency figure can vouch for it
+        unguarded, params = params, np.zeros_like(params)
+        notes.append(f"guard: the estimation model explains the data poorly (projection NCC {explained:.3f} < "
+                     f"{settings.guard_min_ncc:g}); the data do not support the correction and the nominal geometry is "
+                     f"kept (for an interior scan of a wide object, try exterior=on)")
+    elif settings.guard and accuracy is not None:
         checked = plausibility_guard(nominal, params, points, accuracy, max_ratio=settings.guard_max_ratio,
                                      view_quantile=settings.guard_view_quantile, seed=settings.seed)
         unguarded = params if checked.reverted_views else None
         params = checked.params
         notes.append(checked.note(settings.guard_max_ratio))
     elif settings.guard:
-        notes.append("guard off: no robot accuracy stated (prior 0)")
+        notes.append("guard: no robot accuracy stated (prior 0), so only the model's explanation of the data is checked")
     for note in notes:
         say(note)
     geom = nominal.perturbed(params)

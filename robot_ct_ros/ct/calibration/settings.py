@@ -140,6 +140,9 @@ class CalibrationSettings:
                           "robots' stated accuracy (the prior) explains")
     guard_max_ratio: float = setting(1.5, "the scan keeps its nominal geometry when the correction moves the views this "
                                      "many times as far as the stated accuracy does", minimum=1.0)
+    guard_min_ncc: float = setting(0.5, "the scan keeps its nominal geometry when the estimation model explains the "
+                                   "data this poorly: the final projection NCC of its reprojection against the data",
+                                   minimum=0.0, maximum=1.0)
     guard_view_quantile: float = setting(0.999, "a view moved beyond this quantile of the stated accuracy's "
                                          "displacements keeps its nominal geometry", minimum=0.5, maximum=1.0)
 

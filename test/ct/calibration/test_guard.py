@@ -50,3 +50,23 @@ def test_the_guard_needs_a_stated_accuracy():
     nominal, pts = _setup(8)
     with pytest.raises(ValueError, match="accuracy"):
         plausibility_guard(nominal, np.zeros((8, 9)), pts, (0.0,) * 9)
+
+
+def test_a_model_that_explains_little_of_the_data_keeps_the_nominal_geometry():
+    """A 7 mm ROI in a 24 mm body: the ROI model cannot reproduce the projections (projection NCC far
+    below the guard's 0.5), so whatever the loop estimates, the scan keeps its nominal geometry."""
+    from robot_ct_ros.ct.calibration import calibrate
+    from robot_ct_ros.ct.projector import forward_project
+    from robot_ct_ros.ct.simulation import mouse_phantom, robot_coordination, voxelize
+
+    nominal = circular_scan(24, 60.0, 150.0, 16, 24, 0.8, 0.8)
+    true = nominal.perturbed(robot_coordination(0.3, 0.3, seed=5).sample(24))
+    fine = VolumeGrid.centered((40, 120, 120), 0.25)
+    data = forward_project(voxelize(mouse_phantom(body_width_mm=24.0, length_mm=20.0), fine), fine, true)
+    roi = VolumeGrid.centered((12, 24, 24), 0.3)
+    free = calibrate(data, nominal, roi, iterations=1, guard=False)
+    assert free.history[-1].projection_ncc < 0.5 and np.abs(free.params).max() > 1e-3
+    guarded = calibrate(data, nominal, roi, iterations=1)
+    np.testing.assert_array_equal(guarded.params, 0.0)
+    np.testing.assert_allclose(guarded.params_unguarded, free.params)
+    assert any("explains the data poorly" in note for note in guarded.notes), guarded.notes
