@@ -12,7 +12,9 @@ writes into ``out_dir`` (``<name>`` prefixes every file):
 
 Metrics (all from :mod:`robot_ct_ros.ct.metrics`): gauge-aligned reprojection error of ROI
 points (mean, p95, px), SSIM against the reconstruction with the true geometry, edge
-sharpness, fibrous-cap thickness for a plaque phantom, outer iterations, wall time.
+sharpness, fibrous-cap thickness for a plaque phantom, the model NCC (how well the last
+iteration's estimation volume reprojects to the data: the guard's first test), outer
+iterations, wall time.
 Figures use matplotlib's Agg backend (no display needed).
 """
 
@@ -37,6 +39,7 @@ COLUMNS = (
     ("ssim", "SSIM vs true-geom. recon", "{:.4f}"),
     ("sharpness", "edge sharpness", "{:.4f}"),
     ("cap_um", "cap thickness (um)", "{:.1f}"),
+    ("model_ncc", "model NCC", "{:.3f}"),
     ("iterations", "iterations", "{}"),
     ("wall_s", "wall time (s)", "{:.1f}"),
 )
@@ -53,10 +56,11 @@ def _unpack(result):
     return geom, volume, tuple(history or ()), (items[3] if len(items) == 4 else None)
 
 
-def _history_rmse(history) -> list[float]:
+def _history(history, key: str = "projection_rmse") -> list[float]:
+    """One field of each iteration's record (an IterationRecord or its dict), NaN where missing."""
     out = []
     for h in history:
-        v = h.get("projection_rmse") if isinstance(h, dict) else getattr(h, "projection_rmse", None)
+        v = h.get(key) if isinstance(h, dict) else getattr(h, key, None)
         out.append(float("nan") if v is None else float(v))
     return out
 
@@ -96,7 +100,8 @@ def summarize(results: dict, grid: VolumeGrid, truth=None, points_mm=None, recon
         row = {"method": str(method), "reproj_mean_px": None, "reproj_p95_px": None, "ssim": None,
                "sharpness": _finite_or_none(edge_sharpness(volume)), "cap_um": None,
                "iterations": len(history), "wall_s": _finite_or_none(wall),
-               "projection_rmse": _history_rmse(history)}
+               "projection_rmse": _history(history), "projection_ncc": _history(history, "projection_ncc"),
+               "model_ncc": _finite_or_none(_history(history, "projection_ncc")[-1]) if history else None}
         if true_geom is not None:
             err = reprojection_error(geom, true_geom, pts)
             row["reproj_mean_px"], row["reproj_p95_px"] = err["mean_px"], err["p95_px"]
@@ -229,7 +234,7 @@ def plot_rmse(path, results: dict, *, initial_rmse: float | None = None, title: 
     plt = _plt()
     fig, ax = plt.subplots(figsize=(5.4, 3.9))
     for k, (m, r) in enumerate(results.items()):
-        rmse = _history_rmse(_unpack(r)[2])
+        rmse = _history(_unpack(r)[2])
         if not rmse:
             continue
         x = np.arange(1, len(rmse) + 1)
