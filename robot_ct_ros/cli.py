@@ -6,6 +6,8 @@
   robot-ct calibrate scan_bag --method ncc-lle-exact --iterations 2 --out out/calib
   robot-ct report scan_bag --methods none,ncc-lle-exact,gdc-log --out out/report
   robot-ct demo --out out/demo
+  robot-ct import htc2022 htc2022_01a_full.mat --out scan_bag
+  robot-ct export scan_bag --format rtk --out geometry.xml
 """
 
 from __future__ import annotations
@@ -213,6 +215,24 @@ def _cmd_report(args) -> int:
     return 0
 
 
+def _cmd_import(args) -> int:
+    from robot_ct_ros.jobs.htc2022 import import_htc2022
+    from robot_ct_ros.jobs.output import prepare_out
+
+    import_htc2022(args.file, prepare_out(args.out, must_not_exist=True))
+    return 0
+
+
+def _cmd_export(args) -> int:
+    from pathlib import Path
+
+    from robot_ct_ros.jobs.export import export_geometry
+
+    export_geometry(Path(args.bag).expanduser().absolute(), Path(args.out).expanduser().absolute(), args.format,
+                    corrected=args.corrected)
+    return 0
+
+
 def _cmd_demo(args) -> int:
     from robot_ct_ros.testing.demo import run_demo
 
@@ -268,6 +288,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--out", required=True, help="output bag directory (must not exist)")
 
+    p = sub.add_parser("import", help="write another lab's scan data as a scan bag")
+    isub = p.add_subparsers(dest="source", required=True)
+    q = isub.add_parser("htc2022", help="a Helsinki Tomography Challenge 2022 *_full.mat (fan beam, 1-row detector; "
+                                        "geometry conventions: robot_ct_ros/jobs/htc2022.py)")
+    q.add_argument("file", help="the .mat file (struct CtDataFull with sinogram and parameters)")
+    q.add_argument("--out", required=True, help="output bag directory (must not exist)")
+
+    p = sub.add_parser("export", help="write a bag's geometry (or a calibration's corrected one) for RTK or ASTRA")
+    p.add_argument("bag")
+    p.add_argument("--format", choices=("rtk", "astra"), required=True,
+                   help="rtk: RTK ThreeDCircularProjectionGeometry XML (needs itk-rtk); astra: cone_vec rows of 12 "
+                        "numbers per view (.npy, else text)")
+    p.add_argument("--corrected", default=None, metavar="DIR_OR_REPORT",
+                   help="write the corrected geometry of this calibration output (robot-ct calibrate's --out folder, "
+                        "its report.json, or a corrected bag) instead of the bag's nominal one")
+    p.add_argument("--out", required=True, help="output file")
+
     p = sub.add_parser("info", help="summarise a bag (topics, scan, pairing, damage)")
     p.add_argument("bag")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
@@ -303,7 +340,8 @@ def main(argv: list[str] | None = None) -> int:
     from robot_ct_ros.bag import ScanBagError
 
     commands = {"demo": _cmd_demo, "simulate": _cmd_simulate, "info": _cmd_info, "reconstruct": _cmd_reconstruct,
-                "calibrate": _cmd_calibrate, "report": _cmd_report}
+                "calibrate": _cmd_calibrate, "report": _cmd_report, "import": _cmd_import,
+                "export": _cmd_export}
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # numpy's on masked pixels; the jobs report what counts

@@ -1,0 +1,148 @@
+"""Export of a scan's per-view geometry for other CT toolkits: RTK XML and ASTRA ``cone_vec``.
+
+:func:`export_geometry` writes the nominal geometry of a scan bag (/ct/geometry), or the
+corrected geometry of a calibration (:func:`corrected_geometry`), in millimetres, one view per
+paired frame in stamp order (the order of the bag's frames as :func:`read_scan` returns them):
+
+* ``rtk``: an ``rtk.ThreeDCircularProjectionGeometry`` XML file, written by RTK's own
+  ``ThreeDCircularProjectionGeometryXMLFileWriter`` from
+  :func:`robot_ct_ros.ct.rtk_bridge.to_rtk_geometry` (exact vector form). It needs itk-rtk,
+  which is a test dependency only; without it the export says so. The XML holds no detector
+  size: RTK's projection stack must have spacing (col_pitch, row_pitch, 1) mm and origin
+  (-(n_cols-1)/2 * col_pitch, -(n_rows-1)/2 * row_pitch, 0) mm (its physical (0, 0) is the
+  centre of the pixel grid), and its numpy view is our ``proj[view, row, col]``.
+* ``astra``: ASTRA's ``cone_vec`` vectors, one row of 12 numbers per view:
+  ``(srcX, srcY, srcZ, dX, dY, dZ, uX, uY, uZ, vX, vY, vZ)``: the source, the detector centre, the
+  vector from detector pixel (0, 0) to (0, 1) (one column step, ``u * col_pitch``) and from
+  (0, 0) to (1, 0) (one row step, ``v * row_pitch``), i.e.
+  :meth:`~robot_ct_ros.ct.geometry.ConeGeometry.to_astra_vec`. ASTRA's detector has
+  ``n_rows`` rows and ``n_cols`` columns; its 3-D projection data are ``proj.transpose(1, 0, 2)``
+  (rows, views, columns). ``.npy`` writes a float64 array (n_views, 12), any other suffix a text
+  file (``numpy.savetxt``, 17 significant digits, a ``#`` header with the detector size).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from robot_ct_ros.ct.geometry import ConeGeometry
+from robot_ct_ros.jobs.output import say as _say
+
+__all__ = ["FORMATS", "corrected_geometry", "export_geometry", "write_astra_vectors", "read_astra_vectors",
+           "write_rtk_xml"]
+
+FORMATS = ("rtk", "astra")
+
+
+def _read(bag):
+    from robot_ct_ros.bag.reader import read_scan
+
+    return read_scan(bag)
+
+
+def corrected_geometry(path, nominal_scan=None) -> ConeGeometry:
+    """The corrected geometry of a calibration output.
+
+    ``path`` is the folder ``robot-ct calibrate --out`` wrote, its ``report.json`` (whose
+    ``corrected_bag`` names the bag with /ct/geometry_corrected), or such a corrected bag itself.
+    With ``nominal_scan`` (a :class:`~robot_ct_ros.bag.reader.ScanData`), the corrected bag must
+    hold the same views (same stamps).
+    """
+    path = Path(path)
+    report = path / "report.json" if path.is_dir() and (path / "report.json").exists() else path
+    bag = path
+    if report.suffix == ".json":
+        try:
+            rep = json.loads(report.read_text())
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"{report}: not a JSON report ({exc})") from None
+        name = rep.get("corrected_bag") if isinstance(rep, dict) else None
+        if not name:
+            raise ValueError(f"{report}: no corrected_bag in it; is it a report of robot-ct calibrate?")
+        bag = Path(name)
+        if not bag.exists():  # the output folder was moved: the bag sits next to report.json
+            bag = report.parent / bag.name
+    scan = _read(bag)
+    if scan.geom_corrected is None:
+        raise ValueError(f"{bag}: no /ct/geometry_corrected covering every frame")
+    if nominal_scan is not None and not np.array_equal(scan.stamps_ns, nominal_scan.stamps_ns):
+        raise ValueError(f"{bag} holds other views than {nominal_scan.path} ({scan.n_views} and "
+                         f"{nominal_scan.n_views} frames, stamps differ)")
+    return scan.geom_corrected
+
+
+def write_rtk_xml(geom: ConeGeometry, path) -> Path:
+    """RTK's geometry XML of ``geom`` at ``path`` (needs itk-rtk; module docstring)."""
+    try:
+        from robot_ct_ros.ct import rtk_bridge
+        _, rtk = rtk_bridge._rtk()
+    except ImportError:
+        raise ValueError("--format rtk needs itk-rtk (pip install itk-rtk, see requirements-test.txt); "
+                         "--format astra does not") from None
+    rtk_geom = rtk_bridge.to_rtk_geometry(geom)  # kept referenced: the writer holds a raw pointer to it
+    writer = rtk.ThreeDCircularProjectionGeometryXMLFileWriter.New()
+    writer.SetFilename(str(path))
+    writer.SetObject(rtk_geom)
+    writer.WriteFile()
+    del writer, rtk_geom
+    return Path(path)
+
+
+def write_astra_vectors(geom: ConeGeometry, path) -> Path:
+    """ASTRA ``cone_vec`` rows of ``geom`` at ``path`` (.npy, else text; module docstring)."""
+    vec = geom.to_astra_vec()
+    path = Path(path)
+    if path.suffix == ".npy":
+        np.save(path, vec)
+    else:
+        np.savetxt(path, vec, fmt="%.17g",
+                   header=f"ASTRA cone_vec, mm: srcX srcY srcZ dX dY dZ uX uY uZ vX vY vZ; "
+                          f"detector {geom.n_rows} rows x {geom.n_cols} columns")
+    return path
+
+
+def read_astra_vectors(path, n_rows: int, n_cols: int) -> ConeGeometry:
+    """The :class:`ConeGeometry` of ASTRA ``cone_vec`` rows saved by :func:`write_astra_vectors`."""
+    path = Path(path)
+    vec = np.load(path) if path.suffix == ".npy" else np.loadtxt(path, ndmin=2)
+    return ConeGeometry.from_astra_vec(vec, n_rows, n_cols)
+
+
+def export_geometry(bag, out, fmt: str = "rtk", *, corrected=None, say=_say) -> dict:
+    """Write the geometry of the scan bag ``bag`` as ``fmt`` (``rtk`` or ``astra``) to the file ``out``.
+
+    ``corrected``: a calibration output (see :func:`corrected_geometry`) whose corrected geometry
+    is written instead of the bag's nominal one. Returns what was written (paths, detector, the
+    RTK projection stack's origin and spacing).
+    """
+    if fmt not in FORMATS:
+        raise ValueError(f"unknown format {fmt!r}; one of {', '.join(FORMATS)}")
+    out = Path(out)
+    if out.is_dir():
+        raise ValueError(f"--out {out} is a folder; give a file name")
+    if not out.parent.is_dir():
+        raise ValueError(f"cannot write {out}: {out.parent} is not a folder")
+    scan = _read(bag)
+    geom = scan.geom if corrected is None else corrected_geometry(corrected, scan)
+    which = "nominal" if corrected is None else "corrected"
+    if fmt == "rtk":
+        write_rtk_xml(geom, out)
+    else:
+        write_astra_vectors(geom, out)
+    result = {"path": str(out), "format": fmt, "geometry": which, "n_views": geom.n_views,
+              "n_rows": geom.n_rows, "n_cols": geom.n_cols, "row_pitch_mm": geom.row_pitch_mm,
+              "col_pitch_mm": geom.col_pitch_mm,
+              "rtk_projection_origin_mm": [-0.5 * (geom.n_cols - 1) * geom.col_pitch_mm,
+                                           -0.5 * (geom.n_rows - 1) * geom.row_pitch_mm, 0.0],
+              "rtk_projection_spacing_mm": [geom.col_pitch_mm, geom.row_pitch_mm, 1.0]}
+    detector = (f"detector {geom.n_rows} x {geom.n_cols} pixels of {geom.row_pitch_mm:g} x {geom.col_pitch_mm:g} mm "
+                "(rows x columns)")
+    if fmt == "rtk":
+        o = result["rtk_projection_origin_mm"]
+        detector += f"; RTK projection stack origin ({o[0] + 0.0:g}, {o[1] + 0.0:g}, 0) mm, spacing " \
+                    f"({geom.col_pitch_mm:g}, {geom.row_pitch_mm:g}, 1)"
+    say(f"wrote {out}: {which} geometry of {geom.n_views} views as {fmt}, {detector}")
+    return result
