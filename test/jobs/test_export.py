@@ -1,0 +1,160 @@
+"""robot-ct export: a bag's nominal (or a calibration's corrected) geometry as RTK XML and ASTRA
+cone_vec, read back into the same geometry; RTK projects through it as we do; clear errors."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from robot_ct_ros.bag import read_scan, write_scan
+from robot_ct_ros.cli import main
+from robot_ct_ros.ct.geometry import VolumeGrid
+from robot_ct_ros.ct.trajectory import circular_scan
+from robot_ct_ros.jobs.export import read_astra_vectors
+from robot_ct_ros.jobs.htc2022 import fan_beam_geometry
+
+
+def _geometry(seed=0, n=8):
+    """A circular scan with per-view errors: every parameter of every view differs."""
+    rng = np.random.default_rng(seed)
+    return circular_scan(n, 60.0, 150.0, 12, 20, 0.8, 0.7).perturbed(rng.normal(0, [0.3] * 6 + [0.01] * 3, (n, 9)))
+
+
+@pytest.fixture
+def bag(tmp_path):
+    g = _geometry()
+    return write_scan(tmp_path / "scan", np.ones((g.n_views,) + g.det_shape, np.float32), g,
+                      projection_units="line_integral")
+
+
+def _one_line_error(capsys, *words):
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    assert all(w in err for w in words), err
+    return err
+
+
+def _read_rtk_xml(path):
+    from robot_ct_ros.ct import rtk_bridge
+
+    _, rtk = rtk_bridge._rtk()
+    reader = rtk.ThreeDCircularProjectionGeometryXMLFileReader.New()
+    reader.SetFilename(str(path))
+    reader.GenerateOutputInformation()
+    return reader.GetOutputObject()
+
+
+def _interior_volume(grid, seed=0):
+    """Random values with a zero border of 3 voxels (RTK's and our Joseph projectors differ only in
+    how they treat the volume's outer voxels)."""
+    vol = np.zeros(grid.shape_zyx, np.float32)
+    inner = tuple(slice(3, s - 3) for s in grid.shape_zyx)
+    vol[inner] = np.random.default_rng(seed).random(vol[inner].shape)
+    return vol
+
+
+@pytest.mark.parametrize("one_row", [False, True], ids=["cone", "fan"])
+def test_rtk_xml_round_trip_and_rtk_projects_through_it_as_we_do(tmp_path, capsys, one_row):
+    pytest.importorskip("itk")
+    from robot_ct_ros.ct.projector import forward_project
+    from robot_ct_ros.ct.rtk_bridge import from_rtk_geometry, rtk_forward_project
+
+    if one_row:
+        g = fan_beam_geometry(np.arange(0.0, 360.0, 23.0), 410.66, 553.74, 64, 1.6)
+        grid = VolumeGrid.centered((9, 48, 48), 1.0)
+    else:
+        g = _geometry()
+        grid = VolumeGrid.centered((16, 24, 24), 0.5)
+    src = write_scan(tmp_path / "scan", np.ones((g.n_views,) + g.det_shape, np.float32), g,
+                     projection_units="line_integral")
+    nominal = read_scan(src).geom  # as the bag carries it (metres on the wire)
+    xml = tmp_path / "geometry.xml"
+    assert main(["export", str(src), "--format", "rtk", "--out", str(xml)]) == 0
+    assert "RTK projection stack origin" in capsys.readouterr().out
+    back = from_rtk_geometry(_read_rtk_xml(xml), g.n_rows, g.n_cols, g.row_pitch_mm, g.col_pitch_mm)
+    assert back.allclose(nominal, atol=1e-9)
+    assert nominal.allclose(g, atol=1e-9)
+    vol = _interior_volume(grid)
+    ours = forward_project(vol, grid, nominal)
+    theirs = rtk_forward_project(vol, grid, back)
+    assert ours.max() > 1.0
+    np.testing.assert_allclose(theirs, ours, rtol=0, atol=2e-6 * ours.max())
+
+
+@pytest.mark.parametrize("suffix", [".npy", ".txt"])
+def test_astra_vectors_round_trip_and_follow_astras_pixel_convention(tmp_path, bag, suffix):
+    out = tmp_path / f"vectors{suffix}"
+    assert main(["export", str(bag), "--format", "astra", "--out", str(out)]) == 0
+    nominal = read_scan(bag).geom
+    vec = np.load(out) if suffix == ".npy" else np.loadtxt(out)
+    assert vec.shape == (nominal.n_views, 12)
+    assert read_astra_vectors(out, nominal.n_rows, nominal.n_cols).allclose(nominal, atol=1e-9)
+    # ASTRA: src, detector centre, u = pixel (0,0) -> (0,1) (next column), v = pixel (0,0) -> (1,0) (next row)
+    for i in (0, nominal.n_views - 1):
+        px = nominal.pixel_centers_mm(i)
+        np.testing.assert_allclose(vec[i, 0:3], nominal.source_mm[i], atol=1e-9)
+        np.testing.assert_allclose(vec[i, 3:6], px.mean(axis=(0, 1)), atol=1e-9)
+        np.testing.assert_allclose(vec[i, 6:9], px[0, 1] - px[0, 0], atol=1e-9)
+        np.testing.assert_allclose(vec[i, 9:12], px[1, 0] - px[0, 0], atol=1e-9)
+
+
+def test_export_of_a_corrected_geometry(tmp_path, bag, capsys):
+    scan = read_scan(bag)
+    corrected = scan.geom.perturbed(np.full(9, 0.01))
+    calib = tmp_path / "calib"
+    # what robot-ct calibrate --out writes (write_correction), with the corrected geometry given
+    from types import SimpleNamespace
+
+    from robot_ct_ros.jobs.calibrate import Correction, write_correction
+
+    scan_raw = read_scan(bag, keep_raw=True)
+    grid = VolumeGrid.centered((2, 2, 2), 1.0)
+    result = SimpleNamespace(geom=corrected, volume=np.zeros(grid.shape_zyx, np.float32))
+    write_correction(Correction(scan_raw, grid, result, {"method_used": "test", "iterations_run": 1}), calib,
+                     say=lambda m: None)
+    corrected_bag = calib / "scan_corrected"
+    expected = read_scan(corrected_bag).geom_corrected
+    assert not expected.allclose(scan.geom, atol=1e-6)
+    for i, where in enumerate((calib, calib / "report.json", corrected_bag)):
+        out = tmp_path / f"corrected{i}.npy"
+        assert main(["export", str(bag), "--format", "astra", "--corrected", str(where), "--out", str(out)]) == 0
+        assert "corrected geometry" in capsys.readouterr().out
+        assert read_astra_vectors(out, 12, 20).allclose(expected, atol=1e-9)
+    moved = tmp_path / "moved"
+    calib.rename(moved)  # report.json names the old place: the bag next to it is used
+    assert main(["export", str(bag), "--format", "astra", "--corrected", str(moved), "--out",
+                 str(tmp_path / "m.npy")]) == 0
+    assert read_astra_vectors(tmp_path / "m.npy", 12, 20).allclose(expected, atol=1e-9)
+
+    other = _geometry(seed=1, n=6)
+    other_bag = write_scan(tmp_path / "other", np.ones((6, 12, 20), np.float32), other, projection_units="line_integral")
+    assert main(["export", str(other_bag), "--format", "astra", "--corrected", str(moved), "--out",
+                 str(tmp_path / "x.npy")]) == 2
+    _one_line_error(capsys, "other views")
+    assert main(["export", str(bag), "--format", "astra", "--corrected", str(bag), "--out", str(tmp_path / "x.npy")]) == 2
+    _one_line_error(capsys, "no /ct/geometry_corrected")
+    (tmp_path / "r.json").write_text(json.dumps({"method": "none"}))
+    assert main(["export", str(bag), "--format", "astra", "--corrected", str(tmp_path / "r.json"), "--out",
+                 str(tmp_path / "x.npy")]) == 2
+    _one_line_error(capsys, "no corrected_bag")
+    assert not (tmp_path / "x.npy").exists()
+
+
+def test_export_errors_are_one_line(tmp_path, bag, capsys, monkeypatch):
+    assert main(["export", str(tmp_path / "missing"), "--format", "astra", "--out", str(tmp_path / "a.npy")]) == 2
+    _one_line_error(capsys, "no such bag")
+    assert main(["export", str(bag), "--format", "astra", "--out", str(tmp_path)]) == 2
+    _one_line_error(capsys, "is a folder")
+    assert main(["export", str(bag), "--format", "astra", "--out", str(tmp_path / "no" / "a.npy")]) == 2
+    _one_line_error(capsys, "is not a folder")
+
+    from robot_ct_ros.ct import rtk_bridge
+
+    def no_rtk():
+        raise ImportError("No module named 'itk'")
+    monkeypatch.setattr(rtk_bridge, "_rtk", no_rtk)
+    assert main(["export", str(bag), "--format", "rtk", "--out", str(tmp_path / "g.xml")]) == 2
+    _one_line_error(capsys, "needs itk-rtk")
+    assert not (tmp_path / "g.xml").exists()
