@@ -1,4 +1,4 @@
-"""robot-ct: one command line over the jobs (simulate, inspect, reconstruct, calibrate, compare, demo).
+"""robot-ct: one command line over the jobs (simulate, inspect, reconstruct, calibrate, compare, demo, import, export).
 
   robot-ct simulate --phantom carotid --views 360 --out scan_bag
   robot-ct info scan_bag

@@ -1,4 +1,4 @@
-"""The jobs users run, with no ROS and no argparse: simulate, reconstruct, calibrate, report, demo.
+"""The jobs users run, with no ROS and no argparse: simulate, reconstruct, calibrate, report, demo, import, export.
 
 Each takes plain values and typed settings, returns its results in memory, and writes each
 output file once. The command line (robot_ct_ros.cli), the nodes (robot_ct_ros.nodes) and the

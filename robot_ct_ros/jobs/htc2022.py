@@ -29,9 +29,9 @@ Increasing theta turns the source counter-clockwise seen from +z (a positive rot
 +z). This is ASTRA's ``fanflat`` geometry (which the HTC2022 authors used) with ASTRA's image x,
 y as world x, y (image row 0 at the largest y). It was checked on the data: our forward
 projection of the dataset's own FBP reconstruction (``*_recon_fbp.mat``, placed so) correlates
-with the measured sinogram of 01a at 0.998 (0.714 after removing each detector column's mean
-over the angles, i.e. the disc), against 0.996 (0.30) with the opposite rotation sense
-(test/jobs/test_htc2022.py, on the shared real data when present).
+with the measured sinogram at 0.998 for 01a and 02a (0.714 and 0.967 after removing each detector
+column's mean over the angles, i.e. the disc), against 0.996 and 0.942 (0.30 and -0.10) with the
+opposite rotation sense (test/jobs/test_htc2022.py checks 01a when the shared real data are present).
 
 The angles run 0 to 360 degrees in 0.5 degree steps: the last repeats the first. It is
 **dropped** (720 views over a full turn), so a full turn is not weighted twice; a last angle that
@@ -130,10 +130,13 @@ def read_htc2022(path) -> HtcData:
     unit = getattr(params, "distanceUnit", "mm")
     if isinstance(unit, str) and unit.strip().lower() not in ("mm", ""):
         raise ValueError(f"{path}: distanceUnit is {unit!r}; only mm is supported")
-    sino = np.asarray(data.sinogram, dtype=np.float64)
+    try:
+        sino = np.asarray(data.sinogram, dtype=np.float64)
+        angles = np.atleast_1d(np.asarray(params.angles, dtype=np.float64))
+    except (TypeError, ValueError):
+        raise ValueError(f"{path}: sinogram and parameters.angles must be numeric arrays") from None
     if sino.ndim == 1:  # squeeze_me turns a one-view sinogram into a vector
         sino = sino[None]
-    angles = np.atleast_1d(np.asarray(params.angles, dtype=np.float64))
     n_det = int(_number(params, "numDetectorsPost", path))
     dso = _number(params, "distanceSourceOrigin", path)
     dsd = _number(params, "distanceSourceDetector", path)

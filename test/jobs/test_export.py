@@ -129,11 +129,13 @@ def test_export_of_a_corrected_geometry(tmp_path, bag, capsys):
     assert read_astra_vectors(tmp_path / "m.npy", 12, 20).allclose(expected, atol=1e-9)
 
     other = _geometry(seed=1, n=6)
-    other_bag = write_scan(tmp_path / "other", np.ones((6, 12, 20), np.float32), other, projection_units="line_integral")
+    other_bag = write_scan(tmp_path / "other", np.ones((6, 12, 20), np.float32), other,
+                           projection_units="line_integral")
     assert main(["export", str(other_bag), "--format", "astra", "--corrected", str(moved), "--out",
                  str(tmp_path / "x.npy")]) == 2
     _one_line_error(capsys, "other views")
-    assert main(["export", str(bag), "--format", "astra", "--corrected", str(bag), "--out", str(tmp_path / "x.npy")]) == 2
+    assert main(["export", str(bag), "--format", "astra", "--corrected", str(bag), "--out",
+                 str(tmp_path / "x.npy")]) == 2
     _one_line_error(capsys, "no /ct/geometry_corrected")
     (tmp_path / "r.json").write_text(json.dumps({"method": "none"}))
     assert main(["export", str(bag), "--format", "astra", "--corrected", str(tmp_path / "r.json"), "--out",
