@@ -40,6 +40,23 @@ from scipy.spatial.transform import Rotation
 PARAM_NAMES = ("s_u", "s_v", "s_w", "d_u", "d_v", "d_w", "r_u", "r_v", "r_w")
 """Names of the 9 per-view geometry parameters, in array order (mm, mm, mm, ..., rad)."""
 
+FAN_BEAM_PARAMS = ("s_u", "s_w", "d_u", "d_w", "r_v")
+"""The parameters a one-row (fan-beam) detector sees: those that move its rays within the fan
+plane (spanned by u and w): the source's in-plane position (s_u, s_w), the detector's in-plane
+shift (d_u) and distance (d_w: with s_w, the magnification), and its rotation within the fan
+plane (r_v, about the detector's v axis). The other four (s_v, d_v: out of the plane; r_u, r_w:
+tilt and roll of the row out of the plane) move the rays off the one slice the row sees, which a
+one-row scan cannot tell from the object changing along the axis."""
+
+
+def observable_params(geom: "ConeGeometry") -> np.ndarray:
+    """(9,) bool: the parameters the calibration estimates for ``geom``'s detector. All nine for a
+    detector of two or more rows; :data:`FAN_BEAM_PARAMS` for one row (fan beam): the others stay
+    at their current (nominal, or prior) values."""
+    if geom.n_rows >= 2:
+        return np.ones(9, bool)
+    return np.array([name in FAN_BEAM_PARAMS for name in PARAM_NAMES])
+
 
 def _as_vectors(a, n: int | None = None) -> np.ndarray:
     arr = np.array(a, dtype=np.float64, copy=True)
