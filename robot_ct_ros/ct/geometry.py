@@ -40,6 +40,23 @@ from scipy.spatial.transform import Rotation
 PARAM_NAMES = ("s_u", "s_v", "s_w", "d_u", "d_v", "d_w", "r_u", "r_v", "r_w")
 """Names of the 9 per-view geometry parameters, in array order (mm, mm, mm, ..., rad)."""
 
+FAN_BEAM_PARAMS = ("s_u", "s_w", "d_u", "d_w", "r_v")
+"""The parameters a one-row (fan-beam) detector sees: those that move its rays within the fan
+plane (spanned by u and w): the source's in-plane position (s_u, s_w), the detector's in-plane
+shift (d_u) and distance (d_w: with s_w, the magnification), and its rotation within the fan
+plane (r_v, about the detector's v axis). The other four (s_v, d_v: out of the plane; r_u, r_w:
+tilt and roll of the row out of the plane) move the rays off the one slice the row sees, which a
+one-row scan cannot tell from the object changing along the axis."""
+
+
+def observable_params(geom: "ConeGeometry") -> np.ndarray:
+    """(9,) bool: the parameters the calibration estimates for ``geom``'s detector. All nine for a
+    detector of two or more rows; :data:`FAN_BEAM_PARAMS` for one row (fan beam): the others stay
+    at their current (nominal, or prior) values."""
+    if geom.n_rows >= 2:
+        return np.ones(9, bool)
+    return np.array([name in FAN_BEAM_PARAMS for name in PARAM_NAMES])
+
 
 def _as_vectors(a, n: int | None = None) -> np.ndarray:
     arr = np.array(a, dtype=np.float64, copy=True)
@@ -153,9 +170,11 @@ class VolumeGrid:
                                    self.center_mm, self.direction_matrix)
 
     def binned(self, factor: int) -> "VolumeGrid":
-        """The grid with ``factor``-times larger voxels covering the same box."""
-        shape = tuple(max(1, s // factor) for s in self.shape_zyx)
-        return self.resized(shape, tuple(v * factor for v in self.voxel_size_mm))
+        """The grid with ``factor``-times larger voxels covering the same box; an axis with fewer
+        than ``factor`` voxels (a thin fan-beam slab) keeps its voxels (:func:`bin_factors`)."""
+        f = bin_factors(self.shape_zyx, factor)
+        return self.resized(tuple(s // k for s, k in zip(self.shape_zyx, f)),
+                            tuple(v * k for v, k in zip(self.voxel_size_mm, f[::-1])))
 
     def in_own_frame(self) -> tuple["VolumeGrid", np.ndarray]:
         """This grid axis-aligned in its own frame, and the rotation R (= direction transposed)
@@ -311,17 +330,19 @@ class ConeGeometry:
 
         Binning drops trailing rows/columns that do not fill a bin, which moves the grid
         centre; the detector centre is shifted accordingly so each binned pixel lies
-        exactly over the raw pixels it sums.
+        exactly over the raw pixels it sums. Rows (or columns) fewer than ``factor`` are not
+        binned (:func:`bin_factors`): a one-row fan-beam detector stays one row at every level.
         """
-        if factor == 1:
+        fr, fc = bin_factors(self.det_shape, factor)
+        if fr == fc == 1:
             return self
-        nr, nc = self.n_rows // factor, self.n_cols // factor
+        nr, nc = self.n_rows // fr, self.n_cols // fc
         # centre of the kept raw pixels relative to the raw grid centre, in raw pixels
-        dr = 0.5 * (nr * factor - self.n_rows)
-        dc = 0.5 * (nc * factor - self.n_cols)
+        dr = 0.5 * (nr * fr - self.n_rows)
+        dc = 0.5 * (nc * fc - self.n_cols)
         det = (self.detector_mm + dc * self.col_pitch_mm * self.u + dr * self.row_pitch_mm * self.v)
         return self.replace(detector_mm=det, n_rows=nr, n_cols=nc,
-                            row_pitch_mm=self.row_pitch_mm * factor, col_pitch_mm=self.col_pitch_mm * factor)
+                            row_pitch_mm=self.row_pitch_mm * fr, col_pitch_mm=self.col_pitch_mm * fc)
 
     def pixel_centers_mm(self, view: int) -> np.ndarray:
         """World positions (n_rows, n_cols, 3) of the pixel centres of one view."""
@@ -458,15 +479,27 @@ def axis_frame(axis) -> np.ndarray:
     return np.eye(3) + vx + vx @ vx / (1.0 + c)
 
 
+def bin_factors(shape, factor: int) -> tuple[int, ...]:
+    """The factor each axis of ``shape`` is binned by in a ``factor``-times binning: ``factor``
+    where the axis has at least that many pixels (voxels), else 1. Binning thus never reduces a
+    dimension to zero: a one-row (fan-beam) detector, or a grid one voxel thick, keeps it."""
+    factor = int(factor)
+    if factor < 1:
+        raise ValueError(f"binning factor must be >= 1, got {factor}")
+    return tuple(factor if int(n) >= factor else 1 for n in shape)
+
+
 def bin_projections(proj: np.ndarray, factor: int, mean: bool = False) -> np.ndarray:
     """Sum (counts) or average (line integrals, ``mean=True``) ``factor`` x ``factor`` blocks.
 
     Works on (..., rows, cols) arrays. Trailing rows/columns that do not fill a bin are
-    dropped, as in ``ConeGeometry.binned``.
+    dropped, as in ``ConeGeometry.binned``; rows (columns) fewer than ``factor`` are not
+    binned (:func:`bin_factors`).
     """
-    if factor == 1:
+    fr, fc = bin_factors(proj.shape[-2:], factor)
+    if fr == fc == 1:
         return proj
-    nr, nc = proj.shape[-2] // factor, proj.shape[-1] // factor
-    p = proj[..., : nr * factor, : nc * factor]
-    p = p.reshape(p.shape[:-2] + (nr, factor, nc, factor))
+    nr, nc = proj.shape[-2] // fr, proj.shape[-1] // fc
+    p = proj[..., : nr * fr, : nc * fc]
+    p = p.reshape(p.shape[:-2] + (nr, fr, nc, fc))
     return p.mean(axis=(-3, -1)) if mean else p.sum(axis=(-3, -1))

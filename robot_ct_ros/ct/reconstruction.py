@@ -28,6 +28,10 @@ detector frame:
   reconstructs to its attenuation; on an ideal circle it equals RTK's FDK to float
   rounding (see the tests).
 
+A one-row detector is a fan beam: the same weights and filter are then the exact fan-beam
+FBP of the plane through the source and the row, and the back-projection fills the voxels
+within half a pixel of that plane (a grid of one or a few slices).
+
 Offset (displaced) detectors, as the robotic ROI scan uses to widen its field of view,
 get Wang's redundancy weights instead of the 1/2 (:func:`displaced_detector_weights`).
 
@@ -529,7 +533,9 @@ def _fdk_backproject_kernel(q, pm, vol, ox, oy, oz, dx, dy, dz, view_chunk):
     P @ x is affine in i: each row evaluates numerator/denominator as a + i * b, and the
     range of i that projects onto the detector is solved for up front, so the inner loop
     is branch-free with unsigned flat indices and vectorises (AVX gathers).
-    Requires n_rows, n_cols >= 2.
+    A one-row (fan-beam) or one-column detector has no neighbour to interpolate with: its
+    step to the next row (column) is 0, so the "bilinear" value is the pixel's own, and a
+    voxel gets it where it projects within half a pixel of that row (the slab the row sees).
     """
     nz, ny, nx = vol.shape
     nv, nr, nc = q.shape
@@ -538,10 +544,10 @@ def _fdk_backproject_kernel(q, pm, vol, ox, oy, oz, dx, dy, dz, view_chunk):
     cmax = np.float32(nc - 1)
     rmax = np.float32(nr - 1)
     zero = np.float32(0.0)
-    ncm2 = np.uint32(nc - 2)
-    nrm2 = np.uint32(nr - 2)
-    unc = np.uint64(nc)
-    one = np.uint64(1)
+    ncm2 = np.uint32(max(nc - 2, 0))
+    nrm2 = np.uint32(max(nr - 2, 0))
+    unc = np.uint64(nc) if nr > 1 else np.uint64(0)  # step to the next row (none on one row)
+    one = np.uint64(1) if nc > 1 else np.uint64(0)  # step to the next column
     n_rows_vox = nz * ny
     for v0 in range(0, nv, view_chunk):
         v1 = min(nv, v0 + view_chunk)
@@ -598,12 +604,12 @@ def fdk_backproject(filtered: np.ndarray, geom: ConeGeometry, grid: VolumeGrid,
     ``depth`` is the distance of the voxel from the source along the detector normal
     (third row of ``geom.projection_matrices()``). Pixels are sampled with bilinear
     interpolation; voxels projecting outside the detector receive nothing from that view.
+    A one-row detector (fan beam) back-projects onto the voxels within half a pixel of its
+    row's plane: the slice(s) it sees; the grid may be one voxel thick.
     """
     q = np.ascontiguousarray(filtered, dtype=np.float32)
     if q.shape != (geom.n_views,) + geom.det_shape:
         raise ValueError(f"filtered projections must have shape {(geom.n_views,) + geom.det_shape}")
-    if geom.n_rows < 2 or geom.n_cols < 2:
-        raise ValueError("FDK back-projection needs at least 2 detector rows and columns")
     # express P in the grid's own frame, relative to its centre: axis-aligned voxels, and small
     # numbers for float32
     centre = grid.center_mm

@@ -229,3 +229,28 @@ def test_subset_concatenate_replace_with_detector():
     assert big.det_shape == (40, 50) and big.col_pitch_mm == g.col_pitch_mm
     np.testing.assert_array_equal(big.detector_mm, g.detector_mm)
     assert g.replace(col_pitch_mm=1.0).col_pitch_mm == 1.0 and g.col_pitch_mm == 0.25
+
+
+@pytest.mark.parametrize("factor", [2, 4])
+def test_binning_never_reduces_a_dimension_to_zero(factor):
+    """A one-row (fan-beam) detector stays one row at every binning level; its columns are binned,
+    and the binned geometry still lies over the pixels bin_projections sums. A grid one voxel thick
+    keeps its voxel."""
+    g = _geom(n=3, n_rows=1, n_cols=27, seed=5)
+    gb = g.binned(factor)
+    assert gb.det_shape == (1, 27 // factor)
+    assert gb.row_pitch_mm == g.row_pitch_mm and gb.col_pitch_mm == pytest.approx(g.col_pitch_mm * factor)
+    for i in range(g.n_views):
+        mean_centres = np.stack([bin_projections(g.pixel_centers_mm(i)[..., k], factor, mean=True)
+                                 for k in range(3)], axis=-1)
+        np.testing.assert_allclose(gb.pixel_centers_mm(i), mean_centres, atol=1e-9)
+    proj = np.arange(3 * 27, dtype=np.float64).reshape(3, 1, 27)
+    assert bin_projections(proj, factor).shape == (3, 1, 27 // factor)
+    # a few rows: binned only when there are at least `factor` of them
+    assert _geom(n=3, n_rows=factor - 1, n_cols=27).binned(factor).n_rows == factor - 1
+    assert _geom(n=3, n_rows=2 * factor + 1, n_cols=27).binned(factor).n_rows == 2
+    grid = VolumeGrid.centered((1, 8, 12), (0.5, 0.5, 0.2))
+    gb = grid.binned(factor)
+    assert gb.shape_zyx == (1, 8 // factor, 12 // factor)
+    assert gb.voxel_size_mm == (0.5 * factor, 0.5 * factor, 0.2)
+    np.testing.assert_allclose(gb.center_mm, grid.center_mm)

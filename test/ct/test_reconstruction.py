@@ -380,3 +380,31 @@ def test_fdk_of_a_grid_far_from_the_scan_needs_bounded_memory():
             assert np.isfinite(w).all()
         vol = fdk(p, g, VolumeGrid.centered((4, 5, 6), 0.2, (0.0, 900.0, 500.0)))
         assert np.isfinite(vol).all()
+
+
+# --------------------------------------------------------------------------- fan beam
+SLAB = [((0, 0, 0), (7.0, 400.0, 5.0), 0.02), ((2, 0, 1), (2.0, 400.0, 1.5), 0.01),
+        ((-2, 0, -1), (1.0, 400.0, 1.0), -0.005)]
+"""A 2D-ish phantom: ellipsoids so long along the scan axis (y) that every slice near y = 0 is the same."""
+
+
+def test_one_row_fan_beam_fdk_reconstructs_the_slice_it_sees():
+    """FDK of a one-row (fan-beam) scan reconstructs the phantom's slice, on a grid one voxel thick,
+    and equals the mid-plane of the FDK of a three-row scan whose middle row is that row (in the
+    mid-plane FDK is the fan-beam FBP). Voxels off the row's plane get nothing."""
+    fan = circular_geometry(90, n_rows=1, n_cols=64, pitch_mm=0.8)
+    proj = ellipsoid_projections(fan, SLAB)
+    grid = VolumeGrid.centered((48, 1, 48), (0.4, 0.3, 0.4))  # x, y (the scan axis), z
+    vol = fdk(proj, fan, grid)
+    assert vol.shape == grid.shape_zyx and np.all(np.isfinite(vol))
+    phantom = ellipsoid_volume(grid, SLAB)
+    support = phantom > 0
+    assert rmse(vol, phantom, support) < 0.1 * 0.02, rmse(vol, phantom, support)
+    cone = circular_geometry(90, n_rows=3, n_cols=64, pitch_mm=0.8)
+    mid = fdk(ellipsoid_projections(cone, SLAB), cone, grid)
+    np.testing.assert_allclose(vol, mid, atol=1e-4 * 0.02)
+    # a thicker grid: only the slice within half a pixel of the row's plane is filled
+    thick = VolumeGrid.centered((48, 5, 48), (0.4, 0.3, 0.4))
+    vt = fdk(proj, fan, thick)
+    np.testing.assert_allclose(vt[:, 2], vol[:, 0], atol=1e-6)
+    assert np.all(vt[:, [0, 4]] == 0)

@@ -39,7 +39,7 @@ from scipy import ndimage
 from robot_ct_ros.ct.calibration.kernels import blas_single_threaded, detector_homographies, warp_projections
 from robot_ct_ros.ct.calibration.model import as_model, project
 from robot_ct_ros.ct.calibration.masks import estimator_inputs, usable_views, view_chunks
-from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
+from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid, observable_params
 
 __all__ = ["GDC_METHODS", "GDCConfig", "default_gdc_configs", "estimate_views_gdc", "with_log"]
 
@@ -180,6 +180,11 @@ def estimate_views_gdc(measured: np.ndarray, nominal: ConeGeometry, params0: np.
     :class:`GDCConfig`); a step is kept only when it lowers that view's cost. Returns the parameters and a dict with ``cost`` (mean over views
     after each iteration, index 0 = start), ``accepted`` (fraction of views whose step was
     kept, per iteration) and ``metric``.
+
+    A one-row (fan-beam) ``nominal`` steps only the parameters a fan beam sees
+    (:func:`~robot_ct_ros.ct.geometry.observable_params`); the others keep ``params0``'s values.
+    On a detector of few rows the LoG mask is eroded along the rows by at most a quarter of
+    them, so a thin detector keeps its rows.
     """
     n = nominal.n_views
     meas, params, valid, mask = estimator_inputs(measured, nominal, params0, valid_mask, grid,
@@ -193,14 +198,17 @@ def estimate_views_gdc(measured: np.ndarray, nominal: ConeGeometry, params0: np.
 
         meas_f = _filter(fill_invalid_pixels(np.where(valid, meas, 0.0), valid), sigma)
         r = int(np.ceil(config.log_erode * sigma))
+        r_rows = min(r, (nominal.n_rows - 1) // 4)  # a thin detector is not eroded away along its few rows
         if r > 0:
-            # erode the mask by r pixels (squares of side 2r+1): LoG responses to masked edges are dropped
-            mask = ~ndimage.binary_dilation(~mask, structure=np.ones((1, 2 * r + 1, 2 * r + 1), bool))
+            # erode the mask by r pixels (rectangles of 2r_rows+1 x 2r+1): LoG responses to masked edges are dropped
+            mask = ~ndimage.binary_dilation(~mask, structure=np.ones((1, 2 * r_rows + 1, 2 * r + 1), bool))
     views = usable_views(mask)  # the others keep their geometry
     fd = np.asarray(config.fd_step)
     scale = np.asarray(config.param_scale)
     cap = np.asarray(config.max_step)
     dev = np.asarray(config.max_deviation)
+    free = observable_params(nominal)  # a fan beam holds the parameters out of its plane
+    held = np.diag((~free).astype(np.float64))
     start = params.copy()
     lam = np.full(n, config.lambda0)
     cost = np.full(n, np.nan)
@@ -227,7 +235,8 @@ def estimate_views_gdc(measured: np.ndarray, nominal: ConeGeometry, params0: np.
             pw = prior_w[idx]
             x = g / scale
             damp = lam[idx, None] * dA + config.ridge * dA.mean(axis=1, keepdims=True) + 1e-30
-            rhs = grad + pw[:, None] * x
+            rhs = (grad + pw[:, None] * x) * free
+            A = A * np.outer(free, free) + held  # held parameters: a unit row and column, zero step
             step = -np.linalg.solve(A + (damp + pw[:, None])[:, :, None] * np.eye(9), rhs[..., None])[..., 0] * scale
             step = np.clip(step, -cap, cap)
             trial = np.clip(g + step, start[idx] - dev, start[idx] + dev)

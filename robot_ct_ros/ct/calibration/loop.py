@@ -25,7 +25,7 @@ from robot_ct_ros.ct.calibration.settings import CalibrationSettings
 from robot_ct_ros.ct.calibration.volume import (EXTERIOR_ABOVE, TRUNCATED_ABOVE, EstimationVolume, estimation_grid,
                                                 projection_consistency, reconstruct_for_estimation,
                                                 truncation_level)
-from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
+from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid, observable_params
 from robot_ct_ros.ct.metrics import remove_gauge, roi_points
 
 __all__ = ["calibrate", "settings_with"]
@@ -56,7 +56,8 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
     line_integrals : (n, rows, cols) array
         The measured projections as line integrals on ``nominal``'s detector grid.
     nominal : ConeGeometry
-        The nominal (robot-reported) geometry of the n views.
+        The nominal (robot-reported) geometry of the n views. A one-row detector is a fan beam:
+        only the parameters it sees are estimated (:func:`_calibrate_once`).
     grid : VolumeGrid
         The ROI grid the result is reconstructed on.
     settings : CalibrationSettings, optional
@@ -132,6 +133,13 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
     views less than ``stop_update_px``; with ``undo_inconsistent`` an iteration that lowers the
     data consistency is undone and ends it. The returned volume is the full-size FDK with the
     final geometry.
+
+    A one-row detector (fan beam) is calibrated as such: every level keeps one row
+    (:meth:`~robot_ct_ros.ct.geometry.ConeGeometry.binned`), the grid may be one slice thick,
+    and only the parameters a fan beam sees are estimated (in-plane source position, detector
+    shift along the row, magnification, rotation within the fan plane:
+    :data:`~robot_ct_ros.ct.geometry.FAN_BEAM_PARAMS`); the other four stay at their nominal
+    values, which is also what the prior says of them.
     """
     from robot_ct_ros.ct.reconstruction import fdk
 
@@ -194,6 +202,7 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
         if fine_volume == "fdk+coarse-sirt":  # no coarse level to take the correction from
             fine_volume = "sirt"
     params = np.zeros((nominal.n_views, 9))
+    held = ~observable_params(nominal)
     history = []
     skipped = set()  # views that saw too little of the grid to be estimated at some level
     # the coarse level's reconstruction with the geometry entering each iteration: its volume
@@ -226,6 +235,7 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
         skipped.update(fine_info.get("skipped_views", ()))
         params = remove_gauge(nominal.perturbed(params), nominal, points).params_relative_to(nominal)
         params = hold_magnification(nominal, params, points)
+        params[:, held] = 0.0  # a fan beam: the gauge fit must not move what the data cannot see
         if drift_order is not None:
             params = fit_drift(params, drift_order, drift_times)
         if focus_modes:

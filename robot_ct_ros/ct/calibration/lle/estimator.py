@@ -12,7 +12,7 @@ from robot_ct_ros.ct.calibration.lle.sampling import (best_fit_fraction, ranking
 from robot_ct_ros.ct.calibration.lle.weights import WEIGHTINGS, background_basis, lle_weights, view_distances
 from robot_ct_ros.ct.calibration.model import as_model, project
 from robot_ct_ros.ct.calibration.masks import estimator_inputs, usable_views, view_chunks
-from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
+from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid, observable_params
 
 __all__ = ["LLEConfig", "estimate_views", "default_lle_configs", "narrowed", "DEFAULT_BACKGROUND", "DRAWS",
            "COARSE_SAMPLES", "EMBEDDING_SETTINGS", "MAX_NARROWING"]
@@ -93,10 +93,11 @@ def _shift_search(measured, nominal, params, vol, grid, config, mask_all):
     """
     R = int(np.ceil(config.shift_search_px))
     pitch = np.array([nominal.col_pitch_mm, nominal.row_pitch_mm])
+    along_v = bool(observable_params(nominal)[4])  # a fan beam searches d_u alone
     out = params.copy()
     for step, reach in ((1.0, R), (0.5, 1)):
         k = np.arange(-reach, reach + 1) * step
-        du, dv = (a.ravel() for a in np.meshgrid(k, k, indexing="ij"))
+        du, dv = (a.ravel() for a in np.meshgrid(k, k if along_v else np.zeros(1), indexing="ij"))
         offsets = np.stack([du, dv], axis=1) * pitch  # mm, includes (0, 0)
         S = offsets.shape[0]
         margin = (int(np.ceil(reach * step)) + 2, int(np.ceil(reach * step)) + 2)
@@ -130,6 +131,10 @@ def estimate_views(measured: np.ndarray, nominal: ConeGeometry, params0: np.ndar
     (``best_distance``), of the chosen estimate (``chosen_distance``, with the safeguard) and,
     with a prior, the median over views of :func:`effective_pixel_fraction`
     (``independent_fraction``).
+
+    A one-row (fan-beam) ``nominal`` estimates only the parameters a fan beam sees
+    (:func:`~robot_ct_ros.ct.geometry.observable_params`: in-plane source position, detector
+    shift and distance, rotation within the fan plane); the other four keep ``params0``'s values.
     """
     n = nominal.n_views
     measured, params, _, mask_all = estimator_inputs(measured, nominal, params0, valid_mask, grid,
@@ -140,7 +145,7 @@ def estimate_views(measured: np.ndarray, nominal: ConeGeometry, params0: np.ndar
     if config.shift_search_px > 0:
         params = _shift_search(measured, nominal, params, vol, grid, config, mask_all)
     rng = np.random.default_rng(config.seed)
-    h0 = np.asarray(config.half_width, dtype=np.float64)
+    h0 = np.asarray(config.half_width, dtype=np.float64) * observable_params(nominal)  # held parameters: no width
     views = usable_views(mask_all)  # the others keep their geometry (they lean on the prior)
     info = {"best_distance": [], "chosen_distance": [], "independent_fraction": [],
             "skipped_views": [int(v) for v in np.setdiff1d(np.arange(n), views)]}

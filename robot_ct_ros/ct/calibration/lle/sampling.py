@@ -21,16 +21,19 @@ __all__ = ["source_offsets", "repeat_views", "virtual_margin_px", "score_samples
 
 
 def source_offsets(kind: str, h: np.ndarray) -> np.ndarray:
+    """Source offsets (m, 3) of the ray-casts of one view, the first one zero (the current source);
+    an axis of zero half width ``h`` (a parameter held, e.g. out of a fan beam's plane) gets none."""
     if kind == "fixed":
         return np.zeros((1, 3))
     if kind == "star":
-        offs = np.zeros((7, 3))
+        offs = [np.zeros(3)]
         for k in range(3):
-            offs[1 + 2 * k, k] = h[k]
-            offs[2 + 2 * k, k] = -h[k]
-        return offs
+            if h[k] > 0:
+                offs += [np.eye(3)[k] * h[k], -np.eye(3)[k] * h[k]]
+        return np.array(offs)
     if kind == "grid":
-        g = np.stack(np.meshgrid(*[np.array([0.0, -1.0, 1.0]) * h[k] for k in range(3)], indexing="ij"), -1)
+        g = np.stack(np.meshgrid(*[np.array([0.0, -1.0, 1.0] if h[k] > 0 else [0.0]) * h[k] for k in range(3)],
+                                 indexing="ij"), -1)
         return g.reshape(-1, 3)
     raise ValueError(f"unknown source_positions {kind!r}")
 
