@@ -34,7 +34,7 @@ bench-calibration-speed: $(STAMP)
 	$(PY) bench/bench_calibration_speed.py --json docs/results/speed.json
 
 bench-interior: $(STAMP)
-	$(PY) bench/bench_interior.py --out docs/results
+	$(PY) bench/bench_interior.py --oracle --out docs/results
 
 bench-sweep: $(STAMP)
 	$(PY) bench/bench_truncation_sweep.py --out docs/results
