@@ -55,8 +55,9 @@ replaces (with it: 0.79 against 0.69 px on (b)). Only where the errors are a dri
 DRIFT_SCENARIOS = ("b",)
 EXTERIOR_METHOD = "ncc-lle-exact + exterior"
 """ncc-lle-exact registering the views against the ROI and a coarse model of the object around it
-(calibrate(exterior="on"), reaching from the ROI centre to the far side of the neck). Only on
-the strongly truncated scenario."""
+(calibrate(exterior="on"), reaching from the ROI centre to the object's far side). In the
+results table only on the strongly truncated scenario (c); the truncation sweep runs it at
+every width."""
 EXTERIOR_SCENARIOS = ("c",)
 ALL_METHODS = ("none", "l2-lle", "ncc-lle", "ncc-lle-exact", "gdc", "gdc-log", DRIFT_METHOD, EXTERIOR_METHOD,
                "true geometry")
@@ -107,11 +108,11 @@ def make_scenario(key: str, views: int, det: tuple[int, int], vol: int, binning:
         cap = phantom.cap
         center = np.asarray(cap.lumen_point_mm) + 0.5 * cap.thickness_mm * np.asarray(cap.direction)
         errors = sim.robot_coordination(0.3, 0.3, seed=seed + 1).sample(views)
-        # the exterior grid (a square about the ROI centre across the axis) reaches the neck's far side
-        lo, hi = (np.asarray(b, float) for b in phantom.bounds_mm())
-        exterior_half_width_mm = float(np.max(np.maximum(center[:2] - lo[:2], hi[:2] - center[:2])))
     else:
         raise ValueError(f"unknown scenario {key!r}")
+    # the exterior model's grid (a square about the ROI centre across the axis) reaches the object's far side
+    lo, hi = (np.asarray(b, float) for b in phantom.bounds_mm())
+    exterior_half_width_mm = float(np.max(np.maximum(center[:2] - lo[:2], hi[:2] - center[:2])))
     nominal = robotic_roi_scan(system, roi_center_mm=tuple(center), fov_diameter_mm=fov, n_views=views,
                                binning=binning, n_rows=rows, n_cols=cols)
     true = nominal.perturbed(errors)
@@ -133,7 +134,7 @@ def make_scenario(key: str, views: int, det: tuple[int, int], vol: int, binning:
         f"{vs * 1000:.1f} um, FOV {fov:.2f} mm ({time.perf_counter() - t0:.1f} s)")
     sc = SimpleNamespace(key=key, phantom=phantom, nominal=nominal, true=true, errors=errors, grid=grid,
                          li=scan.line_integrals, mask=scan.valid_mask, fov_mm=fov, pitch_mm=pitch,
-                         exterior_half_width_mm=exterior_half_width_mm if key == "c" else None)
+                         exterior_half_width_mm=exterior_half_width_mm)
     sc.reconstruct = lambda geom: fdk(sc.li, geom, sc.grid, valid_mask=sc.mask)  # FDK of the scan onto the ROI grid
     return sc
 
