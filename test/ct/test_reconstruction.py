@@ -1,4 +1,5 @@
-"""Tests of robot_ct_ros.ct.reconstruction (FDK for arbitrary geometry, SIRT, CGLS).
+"""Tests of robot_ct_ros.ct.reconstruction (FDK for arbitrary geometry) and robot_ct_ros.ct.iterative
+(SIRT, CGLS), which share the analytic fixtures.
 
 Projections are exact analytic line integrals of ellipsoids (chord lengths), so the
 reconstructions are not compared against data made by the same discretisation (no
@@ -10,15 +11,14 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
+from robot_ct_ros.ct.iterative import cgls, sirt
 from robot_ct_ros.ct.reconstruction import (
-    cgls,
     displaced_detector_weights,
     estimate_scan_axis,
     fdk,
     fdk_view_weights,
     fill_invalid_pixels,
     ramp_kernel_spectrum,
-    sirt,
 )
 
 SOD_MM = 128.0

@@ -53,7 +53,8 @@ def reconstruct_for_estimation(line_integrals, geom, grid, mask, sirt_iterations
     (few-view) problem. It costs a reprojection: without SIRT and with ``measure_fdk`` False it
     is skipped (NaN).
     """
-    from robot_ct_ros.ct.reconstruction import fdk, resample, sirt
+    from robot_ct_ros.ct.iterative import sirt
+    from robot_ct_ros.ct.reconstruction import fdk, resample
 
     vol = fdk(line_integrals, geom, grid, valid_mask=mask, **(fdk_kwargs or {}))
     if fdk_shape_yx is not None:

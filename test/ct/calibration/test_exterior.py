@@ -8,7 +8,7 @@ from robot_ct_ros.ct.calibration.volume import projection_consistency
 from robot_ct_ros.ct.calibration.model import VolumeParts, project
 from robot_ct_ros.ct.geometry import VolumeGrid
 from robot_ct_ros.ct.projector import forward_project
-from robot_ct_ros.ct.reconstruction import sirt
+from robot_ct_ros.ct.iterative import sirt
 from robot_ct_ros.ct.simulation import mouse_phantom, voxelize
 from robot_ct_ros.ct.trajectory import circular_scan
 
