@@ -7,6 +7,8 @@
   robot-ct report scan_bag --methods none,ncc-lle-exact,gdc-log --out out/report
   robot-ct demo --out out/demo
   robot-ct import htc2022 htc2022_01a_full.mat --out scan_bag
+  robot-ct import rtk --projections proj.tif --geometry geometry.xml --pitch-mm 0.2,0.2 --out scan_bag
+  robot-ct import astra --projections proj.npy --vectors cone_vec.txt --out scan_bag
   robot-ct export scan_bag --format rtk --out geometry.xml
 """
 
@@ -68,6 +70,22 @@ def _shape(text: str):
     if len(parts) != 3 or min(parts) < 1:
         raise argparse.ArgumentTypeError("shape is NX,NY,NZ (or NXxNYxNZ), positive whole numbers")
     return tuple(parts)
+
+
+def _pair(what: str, positive: bool):
+    """``ROW,COL`` (or one number for both) -> (row, col) floats, in mm."""
+    def parse(text: str):
+        try:
+            parts = [float(x) for x in text.split(",")]
+        except ValueError:
+            parts = []
+        if len(parts) == 1:
+            parts *= 2
+        if len(parts) != 2 or not all(np.isfinite(parts)) or (positive and min(parts) <= 0):
+            raise argparse.ArgumentTypeError(f"{what} is ROW,COL in mm{', positive' if positive else ''} "
+                                             f"(e.g. 0.2,0.2), got {text!r}")
+        return tuple(parts)
+    return parse
 
 
 def _positive(what: str, kind=float):
@@ -216,10 +234,30 @@ def _cmd_report(args) -> int:
 
 
 def _cmd_import(args) -> int:
-    from robot_ct_ros.jobs.htc2022 import import_htc2022
     from robot_ct_ros.jobs.output import prepare_out
 
-    import_htc2022(args.file, prepare_out(args.out, must_not_exist=True))
+    if args.source == "htc2022":
+        from robot_ct_ros.jobs.htc2022 import import_htc2022
+
+        import_htc2022(args.file, prepare_out(args.out, must_not_exist=True))
+        return 0
+    from robot_ct_ros.jobs import importers
+
+    raw = dict(counts=args.counts, flat=args.flat, dark=args.dark)
+    if not args.counts and (args.flat or args.dark):
+        raise ValueError("--flat and --dark go with --counts (raw counts); without it the projections are line "
+                         "integrals")
+    for name in ("projections", "geometry", "vectors", "flat", "dark"):  # a missing input is refused before --out
+        path = getattr(args, name, None)
+        if path is not None:
+            with open(path, "rb"):
+                pass
+    if args.source == "rtk":
+        importers.import_rtk(args.projections, args.geometry, prepare_out(args.out, must_not_exist=True),
+                             pitch_mm=args.pitch_mm, origin_mm=args.origin_mm, **raw)
+    else:
+        importers.import_astra(args.projections, args.vectors, prepare_out(args.out, must_not_exist=True),
+                               layout=args.layout, row_pitch_mm=args.row_pitch_mm, **raw)
     return 0
 
 
@@ -238,6 +276,12 @@ def _cmd_demo(args) -> int:
 
     return run_demo(args.out, quick=args.quick, views=args.views, rows=args.rows, cols=args.cols,
                     phantom=args.phantom, method=args.method, iterations=args.iterations, truncated=args.truncated)
+
+
+def importers_layouts():
+    from robot_ct_ros.jobs.importers import LAYOUTS
+
+    return LAYOUTS
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -294,6 +338,29 @@ def build_parser() -> argparse.ArgumentParser:
                                         "geometry conventions: robot_ct_ros/jobs/htc2022.py)")
     q.add_argument("file", help="the .mat file (struct CtDataFull with sinogram and parameters)")
     q.add_argument("--out", required=True, help="output bag directory (must not exist)")
+    for name, helptext in (("rtk", "projections with an RTK ThreeDCircularProjectionGeometry XML (needs itk-rtk)"),
+                           ("astra", "projections with ASTRA cone_vec (n x 12) or fanflat_vec (n x 6) vectors")):
+        q = isub.add_parser(name, help=f"{helptext}; conventions: robot_ct_ros/jobs/importers.py")
+        q.add_argument("--projections", required=True, metavar="P",
+                       help="a .npy or TIFF stack of line integrals (or raw counts with --counts)"
+                            + (", (views, rows, cols)" if name == "rtk" else ""))
+        if name == "rtk":
+            q.add_argument("--geometry", required=True, metavar="G.xml", help="RTK's geometry XML")
+            q.add_argument("--pitch-mm", type=_pair("--pitch-mm", True), required=True, metavar="ROW,COL",
+                           help="detector pixel pitch between rows and between columns (mm); RTK's XML holds none")
+            q.add_argument("--origin-mm", type=_pair("--origin-mm", False), default=None, metavar="ROW,COL",
+                           help="RTK projection stack origin, physical position of pixel (0, 0) (mm; default "
+                                "centred: -(n-1)/2 * pitch)")
+        else:
+            q.add_argument("--vectors", required=True, metavar="V", help="ASTRA vectors, .npy or text")
+            q.add_argument("--layout", choices=importers_layouts(), default="views-first",
+                           help="views-first: (views, rows, cols) [default]; astra: ASTRA's 3-D (rows, views, cols)")
+            q.add_argument("--row-pitch-mm", type=_positive("--row-pitch-mm"), default=None,
+                           help="fanflat_vec: the one row's height (mm; default the column pitch)")
+        q.add_argument("--counts", action="store_true", help="P holds raw counts: needs --flat")
+        q.add_argument("--flat", default=None, metavar="F", help="flat field with --counts (a frame, or a stack averaged)")
+        q.add_argument("--dark", default=None, metavar="D", help="dark frame with --counts (a frame, or a stack averaged)")
+        q.add_argument("--out", required=True, help="output bag directory (must not exist)")
 
     p = sub.add_parser("export", help="write a bag's geometry (or a calibration's corrected one) for RTK or ASTRA")
     p.add_argument("bag")

@@ -1,0 +1,273 @@
+"""Import of a projection stack with RTK or ASTRA geometry into a scan bag (``robot-ct import rtk|astra``).
+
+Projections (:func:`read_stack`): a ``.npy`` array or a TIFF stack (``tifffile``), shape (views,
+rows, cols), i.e. our ``proj[view, row, col]`` (RTK's numpy view of its projection stack). For
+ASTRA, ``layout="astra"`` takes ASTRA's 3-D projection data (rows, views, cols) instead; a 2-D
+array is a fan-beam sinogram (views, cols) and becomes a one-row detector.
+
+Values are line integrals -log(I/I0), stored unchanged (float32, ``projection_units =
+"line_integral"``), or raw counts (``counts=True``) with a flat field ``flat`` and optionally a dark
+frame ``dark`` (2-D frames, or stacks averaged over their first axis). The bag stores counts and
+a flat field itself (docs/bag-format.md), so raw data are kept as counts rather than converted:
+frames ``I - D`` and flat field ``F - D`` (float32); the reader then forms
+``log((F - D) / max(I - D, 0.5)) = -log((I - D) / (F - D))``. A pixel with ``I - D <= 0`` is
+stored as NaN (unusable in that frame) and one with ``F - D <= 0`` is unusable in every frame
+(the reader masks a non-positive flat). Dark-corrected counts in (0, 0.5) meet the bag's
+photon-starvation floor of 0.5.
+
+RTK (:func:`rtk_geometry`): the ``rtk.ThreeDCircularProjectionGeometry`` XML, read with
+itk-rtk's ``ThreeDCircularProjectionGeometryXMLFileReader`` (itk-rtk is a test dependency:
+without it the import says so). RTK's circular geometry rotates about the world **y** axis: at
+gantry angle theta (no offsets, no tilt) the source is at ``SID * (sin theta, 0, cos theta)``,
+the detector's u (first image index) is ``(cos theta, 0, -sin theta)`` and v is ``+y`` (checked
+with RTK in test/jobs/test_import_rtk.py). The views keep RTK's world frame; a bag may rotate
+about any axis. The XML holds no detector size, so the pitch (``row_pitch_mm, col_pitch_mm``)
+must be given and the stack's origin may be: ``origin_mm = (row, col)`` is the physical
+coordinate of pixel (0, 0) in RTK's projection frame (ITK's image origin, second and first
+component). The default is RTK's usual centred stack, origin ``(-(n_rows-1)/2 * row_pitch,
+-(n_cols-1)/2 * col_pitch)``, whose physical (0, 0) is the pixel-grid centre (what
+``robot-ct export --format rtk`` assumes); another origin moves our detector centre to the
+world point of the grid centre.
+
+ASTRA (:func:`astra_geometry`): ``cone_vec`` rows of 12 numbers ``(src, d, u, v)`` (mm; d the
+detector centre, u and v one column and one row step, :meth:`ConeGeometry.from_astra_vec`) or
+``fanflat_vec`` rows of 6 ``(srcX, srcY, dX, dY, uX, uY)``: a fan in the plane z = 0 on a one-row
+detector with v = +z and a row pitch ``row_pitch_mm`` (default the column pitch; it only sets
+the slice thickness). ``.npy`` or text (``numpy.loadtxt``; ``#`` comments).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from robot_ct_ros.ct.geometry import ConeGeometry
+from robot_ct_ros.jobs.output import say as _say
+
+__all__ = ["read_stack", "read_frame", "dark_corrected", "rtk_geometry", "read_astra_vectors", "astra_geometry",
+           "import_rtk", "import_astra", "LAYOUTS"]
+
+LAYOUTS = ("views-first", "astra")
+"""Projection array layouts: (views, rows, cols), or ASTRA's 3-D (rows, views, cols)."""
+MIN_PITCH_MM = 1e-3
+MAX_PITCH_MM = 10.0
+
+
+def _load(path, what: str) -> np.ndarray:
+    path = Path(path)
+    with open(path, "rb"):  # a missing or unreadable file is an OSError with its name
+        pass
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".npy":
+            arr = np.load(path, allow_pickle=False)
+        elif suffix in (".tif", ".tiff"):
+            import tifffile
+
+            arr = tifffile.imread(path)
+        else:
+            raise ValueError(f"{path}: {what} must be a .npy or .tif/.tiff file")
+    except ValueError as exc:
+        if str(exc).startswith(str(path)):
+            raise
+        raise ValueError(f"{path}: cannot read {what} ({' '.join(str(exc).split())})") from None
+    except Exception as exc:  # tifffile raises its own errors for what is no TIFF
+        raise ValueError(f"{path}: cannot read {what} ({type(exc).__name__}: {' '.join(str(exc).split())})") \
+            from None
+    if arr.dtype.kind not in "iuf":
+        raise ValueError(f"{path}: {what} must be numeric, got dtype {arr.dtype}")
+    return arr
+
+
+def read_stack(path, layout: str = "views-first", *, allow_2d: bool = False) -> np.ndarray:
+    """The projection stack at ``path`` as (views, rows, cols) (module docstring); a 2-D array
+    (views, cols) only with ``allow_2d`` (a fan-beam sinogram: one row)."""
+    if layout not in LAYOUTS:
+        raise ValueError(f"unknown layout {layout!r}; one of {', '.join(LAYOUTS)}")
+    arr = _load(path, "projections")
+    if arr.ndim == 2 and allow_2d:
+        return arr[:, None, :]
+    if arr.ndim != 3:
+        raise ValueError(f"{path}: projections must be 3-D ({'rows, views, cols' if layout == 'astra' else 'views, rows, cols'})"
+                         f"{' or a 2-D sinogram (views, cols)' if allow_2d else ''}, got shape {arr.shape}")
+    return arr.transpose(1, 0, 2) if layout == "astra" else arr
+
+
+def read_frame(path, shape, what: str) -> np.ndarray:
+    """A 2-D frame (rows, cols) of ``shape``; a 3-D stack is averaged over its first axis."""
+    arr = _load(path, what).astype(np.float64)
+    if arr.ndim == 3:
+        arr = arr.mean(axis=0)
+    elif arr.ndim == 1 and shape[0] == 1:
+        arr = arr[None]
+    if arr.shape != tuple(shape):
+        raise ValueError(f"{path}: the {what} is {arr.shape} pixels but the projections are {tuple(shape)}")
+    return arr
+
+
+def dark_corrected(counts, flat, dark=None) -> tuple[np.ndarray, np.ndarray]:
+    """Frames ``I - D`` (NaN where <= 0: unusable) and flat field ``F - D`` as float32 (module docstring)."""
+    counts = np.asarray(counts, np.float64)
+    flat = np.asarray(flat, np.float64)
+    d = 0.0 if dark is None else np.asarray(dark, np.float64)
+    frames = counts - d
+    frames = np.where(frames > 0, frames, np.nan).astype(np.float32)
+    return frames, (flat - d).astype(np.float32)
+
+
+def _check_pitch(pitch_mm: float, what: str) -> float:
+    pitch = float(pitch_mm)
+    if not np.isfinite(pitch) or pitch <= 0:
+        raise ValueError(f"{what} must be positive, got {pitch:g} mm")
+    if pitch < MIN_PITCH_MM or pitch > MAX_PITCH_MM:
+        raise ValueError(f"{what} is {pitch:g} mm, outside {MIN_PITCH_MM:g}..{MAX_PITCH_MM:g} mm; give millimetres")
+    return pitch
+
+
+# ---------------------------------------------------------------------------------- RTK
+def rtk_geometry(xml_path, n_rows: int, n_cols: int, row_pitch_mm: float, col_pitch_mm: float,
+                 origin_mm=None) -> ConeGeometry:
+    """The views of RTK's geometry XML on an ``n_rows`` x ``n_cols`` detector (module docstring)."""
+    xml_path = Path(xml_path)
+    with open(xml_path, "rb"):
+        pass
+    row_pitch_mm = _check_pitch(row_pitch_mm, "the row pitch")
+    col_pitch_mm = _check_pitch(col_pitch_mm, "the column pitch")
+    try:
+        from robot_ct_ros.ct import rtk_bridge
+        _, rtk = rtk_bridge._rtk()
+    except ImportError:
+        raise ValueError("import rtk needs itk-rtk to read RTK's XML (pip install itk-rtk, see "
+                         "requirements-test.txt); import astra does not") from None
+    reader = rtk.ThreeDCircularProjectionGeometryXMLFileReader.New()
+    reader.SetFilename(str(xml_path))
+    try:
+        reader.GenerateOutputInformation()
+    except Exception as exc:  # ITK raises RuntimeError with a multi-line message
+        first = next((ln.strip() for ln in str(exc).splitlines() if ln.strip().startswith(("Desc", "what"))), "")
+        raise ValueError(f"{xml_path}: not an RTK ThreeDCircularProjectionGeometry XML file"
+                         f"{' (' + first + ')' if first else ''}") from None
+    rtk_geom = reader.GetOutputObject()
+    if len(rtk_geom.GetGantryAngles()) == 0:
+        raise ValueError(f"{xml_path}: the RTK geometry holds no projection")
+    geom = rtk_bridge.from_rtk_geometry(rtk_geom, n_rows, n_cols, row_pitch_mm, col_pitch_mm)
+    if origin_mm is not None:
+        o_row, o_col = (float(x) for x in origin_mm)
+        dc = o_col + 0.5 * (n_cols - 1) * col_pitch_mm  # physical coordinate of the grid centre
+        dr = o_row + 0.5 * (n_rows - 1) * row_pitch_mm
+        geom = geom.replace(detector_mm=geom.detector_mm + dc * geom.u + dr * geom.v)
+    return geom
+
+
+# -------------------------------------------------------------------------------- ASTRA
+def read_astra_vectors(path) -> np.ndarray:
+    """ASTRA vector rows (n, 12) or (n, 6) from ``.npy`` or text."""
+    path = Path(path)
+    with open(path, "rb"):
+        pass
+    try:
+        vec = np.load(path, allow_pickle=False) if path.suffix.lower() == ".npy" else np.loadtxt(path, ndmin=2)
+    except ValueError as exc:
+        raise ValueError(f"{path}: cannot read ASTRA vectors ({' '.join(str(exc).split())})") from None
+    vec = np.asarray(vec, dtype=np.float64)
+    if vec.ndim == 1 and vec.size in (6, 12):
+        vec = vec[None]
+    if vec.ndim != 2 or vec.shape[1] not in (6, 12):
+        raise ValueError(f"{path}: ASTRA vectors must have 12 (cone_vec) or 6 (fanflat_vec) columns, got shape "
+                         f"{vec.shape}")
+    if not np.all(np.isfinite(vec)):
+        raise ValueError(f"{path}: ASTRA vectors contain NaN or infinite values")
+    return vec
+
+
+def astra_geometry(vectors, n_rows: int, n_cols: int, row_pitch_mm: float | None = None) -> ConeGeometry:
+    """The :class:`ConeGeometry` of ASTRA ``cone_vec`` (n, 12) or ``fanflat_vec`` (n, 6) rows (module docstring)."""
+    vec = np.asarray(vectors, dtype=np.float64)
+    n = vec.shape[0]
+    if vec.shape[1] == 6:
+        if n_rows != 1:
+            raise ValueError(f"fanflat_vec describes a one-row detector but the projections have {n_rows} rows")
+        cu = np.linalg.norm(vec[:, 4:6], axis=1)
+        if np.any(cu == 0):
+            raise ValueError("fanflat_vec: a zero detector vector u")
+        col_pitch = _check_pitch(cu[0], "the column pitch |u|")
+        row_pitch = col_pitch if row_pitch_mm is None else _check_pitch(row_pitch_mm, "--row-pitch-mm")
+        z = np.zeros(n)
+        vec = np.stack([vec[:, 0], vec[:, 1], z, vec[:, 2], vec[:, 3], z, vec[:, 4], vec[:, 5], z,
+                        z, z, np.full(n, row_pitch)], axis=1)
+    for k, what in ((6, "column pitch |u|"), (9, "row pitch |v|")):
+        p = np.linalg.norm(vec[:, k:k + 3], axis=1)
+        _check_pitch(p.min(), f"the {what}")
+        _check_pitch(p.max(), f"the {what}")
+    u, v = vec[:, 6:9], vec[:, 9:12]
+    cosang = np.abs(np.einsum("ij,ij->i", u, v)) / (np.linalg.norm(u, axis=1) * np.linalg.norm(v, axis=1))
+    if np.any(cosang > 1e-6):
+        raise ValueError(f"ASTRA vectors: u and v are not orthogonal in view {int(np.argmax(cosang))}")
+    return ConeGeometry.from_astra_vec(vec, n_rows, n_cols)
+
+
+# ------------------------------------------------------------------------------- import
+def _write(out, proj, geom: ConeGeometry, *, counts: bool, flat, dark, notes: dict, say) -> Path:
+    from robot_ct_ros.bag import scan_info_for, write_scan
+
+    shape = geom.det_shape
+    if counts:
+        if flat is None:
+            raise ValueError("--counts needs --flat (the flat field, a frame or a stack averaged)")
+        flat_frame = read_frame(flat, shape, "flat field")
+        dark_frame = None if dark is None else read_frame(dark, shape, "dark frame")
+        frames, flat_frame = dark_corrected(proj, flat_frame, dark_frame)
+        units = "counts"
+    else:
+        if flat is not None or dark is not None:
+            raise ValueError("--flat and --dark go with --counts (raw counts); without it the projections are "
+                             "line integrals")
+        frames, flat_frame, units = np.asarray(proj, np.float32), None, "line_integral"
+    info = scan_info_for(geom, projection_units=units, notes=notes)
+    write_scan(out, frames, geom, info=info, flat=flat_frame)
+    bad = int(np.isnan(frames).sum()) if counts else 0
+    say(f"wrote {out}: {geom.n_views} views, {geom.n_rows} x {geom.n_cols} detector of {geom.row_pitch_mm:g} x "
+        f"{geom.col_pitch_mm:g} mm, {units}{f' ({bad} pixel values <= dark marked unusable)' if bad else ''}")
+    return Path(out)
+
+
+def _same_views(n_proj: int, n_geom: int, proj_path, geom_path):
+    if n_proj != n_geom:
+        raise ValueError(f"{proj_path} holds {n_proj} views but {geom_path} describes {n_geom}")
+
+
+def import_rtk(projections, geometry_xml, out, *, pitch_mm, origin_mm=None, counts: bool = False, flat=None,
+               dark=None, say=_say) -> Path:
+    """Write projections with RTK's geometry XML as a scan bag at ``out`` (a new directory).
+
+    ``pitch_mm`` = (row, col) pitch; ``origin_mm`` = (row, col) origin of RTK's stack (default
+    centred); module docstring.
+    """
+    out = Path(out)
+    if out.exists():
+        raise ValueError(f"{out} exists already; a bag is never overwritten")
+    proj = read_stack(projections)
+    geom = rtk_geometry(geometry_xml, proj.shape[1], proj.shape[2], pitch_mm[0], pitch_mm[1], origin_mm)
+    _same_views(proj.shape[0], geom.n_views, projections, geometry_xml)
+    notes = {"generator": "robot-ct import rtk", "projections": Path(projections).name,
+             "geometry": f"{Path(geometry_xml).name} (RTK ThreeDCircularProjectionGeometry, rotation about y)",
+             "rtk_projection_origin_mm": None if origin_mm is None else [float(x) for x in origin_mm][::-1]}
+    return _write(out, proj, geom, counts=counts, flat=flat, dark=dark, notes=notes, say=say)
+
+
+def import_astra(projections, vectors, out, *, layout: str = "views-first", row_pitch_mm=None, counts: bool = False,
+                 flat=None, dark=None, say=_say) -> Path:
+    """Write projections with ASTRA ``cone_vec``/``fanflat_vec`` vectors as a scan bag at ``out``."""
+    out = Path(out)
+    if out.exists():
+        raise ValueError(f"{out} exists already; a bag is never overwritten")
+    vec = read_astra_vectors(vectors)
+    proj = read_stack(projections, layout, allow_2d=vec.shape[1] == 6)
+    _same_views(proj.shape[0], vec.shape[0], projections, vectors)
+    if row_pitch_mm is not None and vec.shape[1] == 12:
+        raise ValueError("--row-pitch-mm is for fanflat_vec only; cone_vec's v holds the row pitch")
+    geom = astra_geometry(vec, proj.shape[1], proj.shape[2], row_pitch_mm)
+    notes = {"generator": "robot-ct import astra", "projections": Path(projections).name, "layout": layout,
+             "geometry": f"{Path(vectors).name} (ASTRA {'cone_vec' if vec.shape[1] == 12 else 'fanflat_vec'})"}
+    return _write(out, proj, geom, counts=counts, flat=flat, dark=dark, notes=notes, say=say)

@@ -1,0 +1,154 @@
+"""robot-ct import astra: projections with ASTRA cone_vec / fanflat_vec vectors become a scan bag with
+the same geometry and bit-equal frames; raw counts keep their flat and dark correction; bad inputs
+are refused in one line."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import tifffile
+
+from robot_ct_ros.bag import read_scan, write_scan
+from robot_ct_ros.cli import main
+from robot_ct_ros.ct.trajectory import circular_scan
+from robot_ct_ros.jobs.htc2022 import fan_beam_geometry
+
+
+def _geometry(seed=0, n=8):
+    """A circular scan with per-view errors: every parameter of every view differs."""
+    rng = np.random.default_rng(seed)
+    return circular_scan(n, 60.0, 150.0, 12, 20, 0.8, 0.7).perturbed(rng.normal(0, [0.3] * 6 + [0.01] * 3, (n, 9)))
+
+
+def _proj(shape, seed=1):
+    return np.random.default_rng(seed).normal(1.0, 0.5, shape).astype(np.float32)
+
+
+def _one_line_error(capsys, *words):
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    assert all(w in err for w in words), err
+    return err
+
+
+@pytest.mark.parametrize("vec_suffix,proj_suffix,layout", [(".txt", ".tif", "views-first"), (".npy", ".npy", "astra")])
+def test_cone_vec_round_trip(tmp_path, capsys, vec_suffix, proj_suffix, layout):
+    g = _geometry()
+    proj = _proj((g.n_views,) + g.det_shape)
+    src = write_scan(tmp_path / "src", proj, g, projection_units="line_integral")
+    vec = tmp_path / f"v{vec_suffix}"
+    assert main(["export", str(src), "--format", "astra", "--out", str(vec)]) == 0
+    stored = proj.transpose(1, 0, 2) if layout == "astra" else proj  # ASTRA's 3-D data: (rows, views, cols)
+    p = tmp_path / f"p{proj_suffix}"
+    np.save(p, stored) if proj_suffix == ".npy" else tifffile.imwrite(p, stored, photometric="minisblack")
+    bag = tmp_path / "bag"
+    args = ["import", "astra", "--projections", str(p), "--vectors", str(vec), "--out", str(bag)]
+    assert main(args + (["--layout", "astra"] if layout == "astra" else [])) == 0
+    assert "8 views, 12 x 20 detector" in capsys.readouterr().out
+    scan, nominal = read_scan(bag), read_scan(src)
+    assert scan.warnings == [] and scan.units == "line_integral"
+    assert scan.geom.allclose(nominal.geom, atol=1e-9)
+    assert scan.geom.allclose(g, atol=1e-9)
+    np.testing.assert_array_equal(scan.counts, proj)  # bit-equal
+    if layout == "astra":  # the default layout is views-first: the same file is then refused (12 rows != 8 views)
+        assert main(args[:-2] + ["--out", str(tmp_path / "bag2")]) == 2
+        _one_line_error(capsys, "holds 12 views", "describes 8")
+
+
+def test_fanflat_vec_is_a_one_row_fan_in_the_plane_z0(tmp_path):
+    angles = np.arange(0.0, 360.0, 30.0)
+    g = fan_beam_geometry(angles, 410.66, 553.74, 40, 0.2)
+    vec6 = g.to_astra_vec()[:, [0, 1, 3, 4, 6, 7]]  # ASTRA fanflat_vec: src, detector centre, u (2-D)
+    sino = _proj((len(angles), 40))
+    np.save(tmp_path / "v.npy", vec6)
+    np.save(tmp_path / "s.npy", sino)
+    base = ["import", "astra", "--projections", str(tmp_path / "s.npy"), "--vectors", str(tmp_path / "v.npy")]
+    assert main(base + ["--out", str(tmp_path / "a")]) == 0
+    scan = read_scan(tmp_path / "a")
+    assert scan.geom.allclose(g, atol=1e-9)  # v = +z, row pitch = column pitch
+    np.testing.assert_array_equal(scan.counts[:, 0], sino)
+    assert main(base + ["--row-pitch-mm", "1.5", "--out", str(tmp_path / "b")]) == 0
+    g2 = read_scan(tmp_path / "b").geom
+    assert g2.row_pitch_mm == pytest.approx(1.5, abs=1e-12) and g2.replace(row_pitch_mm=0.2).allclose(g, atol=1e-9)
+
+
+@pytest.mark.parametrize("with_dark", [True, False])
+def test_raw_counts_keep_flat_and_dark_and_mark_dead_pixels(tmp_path, with_dark):
+    g = _geometry()
+    rng = np.random.default_rng(3)
+    shape = g.det_shape
+    dark = rng.uniform(90, 110, (5,) + shape) if with_dark else None  # a stack: averaged
+    d = dark.mean(axis=0) if with_dark else 0.0
+    flat = rng.uniform(3000, 4000, (3,) + shape)
+    f = flat.mean(axis=0)
+    counts = d + (f - d) * np.exp(-rng.uniform(0, 3, (g.n_views,) + shape))
+    counts[2, 3, 4] = d[3, 4] if with_dark else 0.0  # I - D = 0: unusable in that frame
+    counts[5, 1, 1] = (d[1, 1] if with_dark else 0.0) - 5.0  # below the dark
+    flat[:, 7, 9] = d[7, 9] if with_dark else 0.0  # F - D = 0: a dead pixel in every frame
+    np.save(tmp_path / "p.npy", counts)
+    tifffile.imwrite(tmp_path / "flat.tif", flat.astype(np.float32), photometric="minisblack")
+    f = flat.astype(np.float32).astype(np.float64).mean(axis=0)
+    args = ["import", "astra", "--projections", str(tmp_path / "p.npy"), "--vectors", str(tmp_path / "v.txt"),
+            "--counts", "--flat", str(tmp_path / "flat.tif"), "--out", str(tmp_path / "bag")]
+    np.savetxt(tmp_path / "v.txt", g.to_astra_vec())
+    if with_dark:
+        np.save(tmp_path / "dark.npy", dark)
+        args += ["--dark", str(tmp_path / "dark.npy")]
+    assert main(args) == 0
+    scan = read_scan(tmp_path / "bag")
+    assert scan.units == "counts"
+    expected_valid = ((counts - d) > 0) & ((f - d) > 0)[None]
+    assert not expected_valid[2, 3, 4] and not expected_valid[5, 1, 1] and not expected_valid[:, 7, 9].any()
+    np.testing.assert_array_equal(scan.valid_mask, expected_valid)
+    li, mask = scan.to_line_integrals()
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ref = -np.log((counts - d) / (f - d))
+    np.testing.assert_array_equal(mask, expected_valid)
+    np.testing.assert_allclose(li[mask], ref[mask], rtol=0, atol=2e-6)
+    np.testing.assert_array_equal(scan.flat, (f - d).astype(np.float32))
+
+
+def test_import_errors_are_one_line(tmp_path, capsys):
+    g = _geometry()
+    np.save(tmp_path / "p.npy", _proj((g.n_views,) + g.det_shape))
+    np.savetxt(tmp_path / "v.txt", g.to_astra_vec())
+    p, v = str(tmp_path / "p.npy"), str(tmp_path / "v.txt")
+
+    def run(*args, out="bag"):
+        return main(["import", "astra", *args, "--out", str(tmp_path / out)])
+
+    np.savetxt(tmp_path / "v6.txt", g.to_astra_vec()[:6])
+    assert run("--projections", p, "--vectors", str(tmp_path / "v6.txt")) == 2
+    _one_line_error(capsys, "holds 8 views", "describes 6")
+    np.savetxt(tmp_path / "v7.txt", g.to_astra_vec()[:, :7])
+    assert run("--projections", p, "--vectors", str(tmp_path / "v7.txt")) == 2
+    _one_line_error(capsys, "12 (cone_vec) or 6 (fanflat_vec) columns")
+    np.savetxt(tmp_path / "vm.txt", g.to_astra_vec() * 1e-3)  # metres
+    assert run("--projections", p, "--vectors", str(tmp_path / "vm.txt")) == 2
+    _one_line_error(capsys, "give millimetres")
+    assert run("--projections", str(tmp_path / "missing.npy"), "--vectors", v) == 2
+    _one_line_error(capsys, "cannot access", "missing.npy")
+    assert run("--projections", p, "--vectors", str(tmp_path / "missing.txt")) == 2
+    _one_line_error(capsys, "cannot access", "missing.txt")
+    np.save(tmp_path / "p4.npy", np.zeros((2, 8, 12, 20), np.float32))
+    assert run("--projections", str(tmp_path / "p4.npy"), "--vectors", v) == 2
+    _one_line_error(capsys, "must be 3-D", "(2, 8, 12, 20)")
+    (tmp_path / "p.txt").write_text("1 2 3")
+    assert run("--projections", str(tmp_path / "p.txt"), "--vectors", v) == 2
+    _one_line_error(capsys, ".npy or .tif")
+    (tmp_path / "bad.tif").write_bytes(b"not a tiff at all")
+    assert run("--projections", str(tmp_path / "bad.tif"), "--vectors", v) == 2
+    _one_line_error(capsys, "cannot read projections")
+    assert run("--projections", p, "--vectors", v, "--counts") == 2
+    _one_line_error(capsys, "--counts needs --flat")
+    assert run("--projections", p, "--vectors", v, "--flat", p) == 2
+    _one_line_error(capsys, "go with --counts")
+    np.save(tmp_path / "f.npy", np.ones((12, 19)))
+    assert run("--projections", p, "--vectors", v, "--counts", "--flat", str(tmp_path / "f.npy")) == 2
+    _one_line_error(capsys, "flat field is (12, 19) pixels", "(12, 20)")
+    assert run("--projections", p, "--vectors", v, "--row-pitch-mm", "0.5") == 2
+    _one_line_error(capsys, "fanflat_vec only")
+    assert not (tmp_path / "bag").exists()
+    (tmp_path / "bag").mkdir()
+    assert run("--projections", p, "--vectors", v) == 2
+    _one_line_error(capsys, "exists already")
