@@ -1,0 +1,114 @@
+"""robot-ct import rtk: projections with RTK's geometry XML become a scan bag with the same geometry
+(RTK's rotation about y, its projection-stack origin) and bit-equal frames; errors in one line."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import tifffile
+
+from robot_ct_ros.bag import read_scan, write_scan
+from robot_ct_ros.cli import main
+from robot_ct_ros.ct.trajectory import circular_scan
+
+
+def _geometry(seed=0, n=8):
+    rng = np.random.default_rng(seed)
+    return circular_scan(n, 60.0, 150.0, 12, 20, 0.8, 0.7).perturbed(rng.normal(0, [0.3] * 6 + [0.01] * 3, (n, 9)))
+
+
+def _one_line_error(capsys, *words):
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    assert all(w in err for w in words), err
+    return err
+
+
+def _write_xml(params, path):
+    from robot_ct_ros.ct import rtk_bridge
+
+    _, rtk = rtk_bridge._rtk()
+    g = rtk_bridge.rtk_geometry_from_parameters(params)
+    writer = rtk.ThreeDCircularProjectionGeometryXMLFileWriter.New()
+    writer.SetFilename(str(path))
+    writer.SetObject(g)
+    writer.WriteFile()
+    return path
+
+
+def test_rtk_xml_round_trip_through_export(tmp_path, capsys):
+    pytest.importorskip("itk")
+    g = _geometry()
+    proj = np.random.default_rng(1).normal(1, 0.5, (g.n_views,) + g.det_shape).astype(np.float32)
+    src = write_scan(tmp_path / "src", proj, g, projection_units="line_integral")
+    xml = tmp_path / "g.xml"
+    assert main(["export", str(src), "--format", "rtk", "--out", str(xml)]) == 0
+    tifffile.imwrite(tmp_path / "p.tif", proj, photometric="minisblack")
+    assert main(["import", "rtk", "--projections", str(tmp_path / "p.tif"), "--geometry", str(xml),
+                 "--pitch-mm", "0.8,0.7", "--out", str(tmp_path / "bag")]) == 0
+    scan = read_scan(tmp_path / "bag")
+    assert scan.warnings == [] and scan.units == "line_integral"
+    assert scan.geom.allclose(read_scan(src).geom, atol=1e-9)
+    np.testing.assert_array_equal(scan.counts, proj)
+    # the pitches are ROW,COL: swapped, the geometry differs
+    assert main(["import", "rtk", "--projections", str(tmp_path / "p.tif"), "--geometry", str(xml),
+                 "--pitch-mm", "0.7,0.8", "--out", str(tmp_path / "swapped")]) == 0
+    assert not read_scan(tmp_path / "swapped").geom.allclose(g, atol=1e-3)
+
+
+def test_rtk_convention_rotation_about_y_and_the_stack_origin(tmp_path):
+    pytest.importorskip("itk")
+    sid, sdd = 500.0, 800.0
+    xml = _write_xml([[sid, sdd, a, 0, 0, 0, 0, 0, 0] for a in (0.0, 90.0, 180.0, 270.0)], tmp_path / "g.xml")
+    np.save(tmp_path / "p.npy", np.ones((4, 6, 10), np.float32))
+    assert main(["import", "rtk", "--projections", str(tmp_path / "p.npy"), "--geometry", str(xml),
+                 "--pitch-mm", "0.5,0.25", "--out", str(tmp_path / "c")]) == 0
+    g = read_scan(tmp_path / "c").geom
+    t = np.deg2rad([0.0, 90.0, 180.0, 270.0])
+    s, c, z = np.sin(t), np.cos(t), np.zeros(4)
+    np.testing.assert_allclose(g.source_mm, sid * np.c_[s, z, c], atol=1e-9)  # about +y, from +z towards +x
+    np.testing.assert_allclose(g.detector_mm, (sid - sdd) * np.c_[s, z, c], atol=1e-9)
+    np.testing.assert_allclose(g.u, np.c_[c, z, -s], atol=1e-12)
+    np.testing.assert_allclose(g.v, [[0, 1, 0]] * 4, atol=1e-12)
+    # origin (0, 0): pixel (0, 0) sits at RTK's detector position, the grid centre (2.5 rows, 4.5 columns) beyond
+    assert main(["import", "rtk", "--projections", str(tmp_path / "p.npy"), "--geometry", str(xml),
+                 "--pitch-mm", "0.5,0.25", "--origin-mm", "0,0", "--out", str(tmp_path / "o")]) == 0
+    go = read_scan(tmp_path / "o").geom
+    np.testing.assert_allclose(go.pixel_centers_mm(1)[0, 0], g.detector_mm[1], atol=1e-9)
+    np.testing.assert_allclose(go.detector_mm, g.detector_mm + 4.5 * 0.25 * g.u + 2.5 * 0.5 * g.v, atol=1e-9)
+    assert go.replace(detector_mm=g.detector_mm).allclose(g, atol=1e-12)
+
+
+def test_rtk_import_errors_are_one_line(tmp_path, capsys, monkeypatch):
+    pytest.importorskip("itk")
+    xml = _write_xml([[500.0, 800.0, a, 0, 0, 0, 0, 0, 0] for a in (0.0, 90.0, 180.0)], tmp_path / "g.xml")
+    np.save(tmp_path / "p.npy", np.ones((4, 6, 10), np.float32))
+    p = str(tmp_path / "p.npy")
+
+    def run(*args):
+        return main(["import", "rtk", "--projections", p, *args, "--out", str(tmp_path / "bag")])
+
+    assert run("--geometry", str(xml), "--pitch-mm", "0.5") == 2
+    _one_line_error(capsys, "holds 4 views", "describes 3")
+    assert run("--geometry", str(xml), "--pitch-mm", "0.0005") == 2
+    _one_line_error(capsys, "give millimetres")
+    with pytest.raises(SystemExit):  # argparse's usage and one error line
+        run("--geometry", str(xml), "--pitch-mm", "0.5,0.5,0.5")
+    assert "--pitch-mm is ROW,COL in mm" in capsys.readouterr().err.splitlines()[-1]
+    assert run("--geometry", str(tmp_path / "none.xml"), "--pitch-mm", "0.5") == 2
+    _one_line_error(capsys, "cannot access", "none.xml")
+    (tmp_path / "bad.xml").write_text("<?xml version=\"1.0\"?><nothing/>")
+    assert run("--geometry", str(tmp_path / "bad.xml"), "--pitch-mm", "0.5") == 2
+    _one_line_error(capsys, "bad.xml")
+    with pytest.raises(SystemExit):  # argparse: --pitch-mm is required
+        run("--geometry", str(xml))
+    capsys.readouterr()
+
+    from robot_ct_ros.ct import rtk_bridge
+
+    def no_rtk():
+        raise ImportError("No module named 'itk'")
+    monkeypatch.setattr(rtk_bridge, "_rtk", no_rtk)
+    assert run("--geometry", str(xml), "--pitch-mm", "0.5") == 2
+    _one_line_error(capsys, "needs itk-rtk")
+    assert not (tmp_path / "bag").exists()
