@@ -362,11 +362,12 @@ def build_parser() -> argparse.ArgumentParser:
         q.add_argument("--dark", default=None, metavar="D", help="dark frame with --counts (a frame, or a stack averaged)")
         q.add_argument("--out", required=True, help="output bag directory (must not exist)")
 
-    p = sub.add_parser("export", help="write a bag's geometry (or a calibration's corrected one) for RTK or ASTRA")
+    p = sub.add_parser("export", help="write a bag's geometry (or a calibration's corrected one) for RTK, ASTRA or TIGRE")
     p.add_argument("bag")
-    p.add_argument("--format", choices=("rtk", "astra"), required=True,
+    p.add_argument("--format", choices=("rtk", "astra", "tigre"), required=True,
                    help="rtk: RTK ThreeDCircularProjectionGeometry XML (needs itk-rtk); astra: cone_vec rows of 12 "
-                        "numbers per view (.npy, else text)")
+                        "numbers per view (.npy, else text); tigre: TIGRE's per-view arrays (.npz; "
+                        "robot_ct_ros/jobs/tigre.py)")
     p.add_argument("--corrected", default=None, metavar="DIR_OR_REPORT",
                    help="write the corrected geometry of this calibration output (robot-ct calibrate's --out folder, "
                         "its report.json, or a corrected bag) instead of the bag's nominal one")

@@ -1,4 +1,4 @@
-"""Export of a scan's per-view geometry for other CT toolkits: RTK XML and ASTRA ``cone_vec``.
+"""Export of a scan's per-view geometry for other CT toolkits: RTK XML, ASTRA ``cone_vec``, TIGRE.
 
 :func:`export_geometry` writes the nominal geometry of a scan bag (/ct/geometry), or the
 corrected geometry of a calibration (:func:`corrected_geometry`), in millimetres, one view per
@@ -19,6 +19,10 @@ paired frame in stamp order (the order of the bag's frames as :func:`read_scan` 
   ``n_rows`` rows and ``n_cols`` columns; its 3-D projection data are ``proj.transpose(1, 0, 2)``
   (rows, views, columns). ``.npy`` writes a float64 array (n_views, 12), any other suffix a text
   file (``numpy.savetxt``, 17 significant digits, a ``#`` header with the detector size).
+* ``tigre``: an ``.npz`` of TIGRE's Python geometry arrays per view (``DSO``, ``DSD``, ``angles``
+  (n, 3) ZYZ, ``offOrigin``, ``offDetector``, ``rotDetector``) with ``nDetector``, ``dDetector``,
+  ``sDetector`` and ``center_mm``, our world position of TIGRE's origin (the bag's ROI centre):
+  :mod:`robot_ct_ros.jobs.tigre` states the exact mapping and the views it refuses.
 """
 
 from __future__ import annotations
@@ -34,7 +38,7 @@ from robot_ct_ros.jobs.output import say as _say
 __all__ = ["FORMATS", "corrected_geometry", "export_geometry", "write_astra_vectors", "read_astra_vectors",
            "write_rtk_xml"]
 
-FORMATS = ("rtk", "astra")
+FORMATS = ("rtk", "astra", "tigre")
 
 
 def _read(bag):
@@ -104,6 +108,16 @@ def write_astra_vectors(geom: ConeGeometry, path) -> Path:
     return path
 
 
+def write_tigre(geom: ConeGeometry, path, center_mm) -> Path:
+    """TIGRE's geometry arrays of ``geom`` about ``center_mm`` as an .npz at ``path`` (:mod:`robot_ct_ros.jobs.tigre`)."""
+    from robot_ct_ros.jobs.tigre import to_tigre
+
+    params = to_tigre(geom, center_mm)  # refused views raise before the file is created
+    with open(path, "wb") as f:
+        np.savez(f, **params)
+    return Path(path)
+
+
 def read_astra_vectors(path, n_rows: int, n_cols: int) -> ConeGeometry:
     """The :class:`ConeGeometry` of ASTRA ``cone_vec`` rows saved by :func:`write_astra_vectors`."""
     path = Path(path)
@@ -112,7 +126,7 @@ def read_astra_vectors(path, n_rows: int, n_cols: int) -> ConeGeometry:
 
 
 def export_geometry(bag, out, fmt: str = "rtk", *, corrected=None, say=_say) -> dict:
-    """Write the geometry of the scan bag ``bag`` as ``fmt`` (``rtk`` or ``astra``) to the file ``out``.
+    """Write the geometry of the scan bag ``bag`` as ``fmt`` (``rtk``, ``astra`` or ``tigre``) to the file ``out``.
 
     ``corrected``: a calibration output (see :func:`corrected_geometry`) whose corrected geometry
     is written instead of the bag's nominal one. Returns what was written (paths, detector, the
@@ -130,6 +144,11 @@ def export_geometry(bag, out, fmt: str = "rtk", *, corrected=None, say=_say) -> 
     which = "nominal" if corrected is None else "corrected"
     if fmt == "rtk":
         write_rtk_xml(geom, out)
+    elif fmt == "tigre":
+        try:
+            write_tigre(geom, out, scan.scan_center_mm())
+        except ValueError as exc:
+            raise ValueError(f"--format tigre: {which} geometry, {exc}") from None
     else:
         write_astra_vectors(geom, out)
     result = {"path": str(out), "format": fmt, "geometry": which, "n_views": geom.n_views,

@@ -160,3 +160,105 @@ def test_export_errors_are_one_line(tmp_path, bag, capsys, monkeypatch):
     assert main(["export", str(bag), "--format", "rtk", "--out", str(tmp_path / "g.xml")]) == 2
     _one_line_error(capsys, "needs itk-rtk")
     assert not (tmp_path / "g.xml").exists()
+
+
+# ----------------------------------------------------------------------------------- TIGRE
+def _tigre_pixels(p, i, c):
+    """TIGRE's pixel positions of view i, transcribed from its CUDA computeDeltas (rollPitchYaw,
+    offsets, eulerZYZ, -offOrigin), Python arrays as its convert_to_c_geometry reads them; plus our
+    world offset ``c``. Returns (nV, nU, 3) indexed [pV, pU]."""
+    nV, nU = (int(x) for x in p["nDetector"])
+    dV, dU = (float(x) for x in p["dDetector"])
+    DSO, DSD = p["DSO"][i], p["DSD"][i]
+    offV, offU = p["offDetector"][i]
+    yaw, pitch, roll = p["rotDetector"][i]
+    alpha, theta, psi = p["angles"][i]
+    oz, oy, ox = p["offOrigin"][i]
+
+    def roll_pitch_yaw(q):
+        x, y, z = q
+        cr, sr, cp, sp, cy, sy = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch), np.cos(yaw), np.sin(yaw)
+        return np.array([cr * cp * x + (cr * sp * sy - sr * cy) * y + (cr * sp * cy + sr * sy) * z,
+                         sr * cp * x + (sr * sp * sy + cr * cy) * y + (sr * sp * cy - cr * sy) * z,
+                         -sp * x + cp * sy * y + cp * cy * z])
+
+    def euler_zyz(q):
+        x, y, z = q
+        ca, sa, ct, st, cs, ss = np.cos(alpha), np.sin(alpha), np.cos(theta), np.sin(theta), np.cos(psi), np.sin(psi)
+        return np.array([(ca * ct * cs - sa * ss) * x + (-ca * ct * ss - sa * cs) * y + ca * st * z,
+                         (sa * ct * cs + ca * ss) * x + (-sa * ct * ss + ca * cs) * y + sa * st * z,
+                         -st * cs * x + st * ss * y + ct * z])
+
+    def place(pu, pv):
+        q = roll_pitch_yaw(np.array([0.0, dU * (pu - nU / 2 + 0.5), dV * (nV / 2 - 0.5 - pv)]))
+        q = q + np.array([-(DSD - DSO), offU, offV])
+        return euler_zyz(q) - np.array([ox, oy, oz]) + c
+
+    origin, du, dv = place(0, 0), place(1, 0) - place(0, 0), place(0, 1) - place(0, 0)
+    pu, pv = np.meshgrid(np.arange(nU), np.arange(nV))
+    source = euler_zyz(np.array([DSO, 0.0, 0.0])) - np.array([ox, oy, oz]) + c
+    return origin + pu[..., None] * du + pv[..., None] * dv, source
+
+
+def test_tigre_round_trip_and_tigres_own_pixel_formula(tmp_path, bag):
+    from robot_ct_ros.jobs.tigre import from_tigre, to_tigre
+
+    out = tmp_path / "geometry.npz"
+    assert main(["export", str(bag), "--format", "tigre", "--out", str(out)]) == 0
+    scan = read_scan(bag)
+    p = dict(np.load(out))
+    assert p["angles"].shape == (8, 3) and p["offDetector"].shape == (8, 2) and p["rotDetector"].shape == (8, 3)
+    np.testing.assert_allclose(p["center_mm"], scan.scan_center_mm(), atol=0)
+    np.testing.assert_array_equal(p["nDetector"], [12, 20])
+    assert from_tigre(p).allclose(scan.geom, atol=1e-9)
+    for i in (0, 5):  # our row r is TIGRE's pV = nV - 1 - r
+        px, src = _tigre_pixels(p, i, p["center_mm"])
+        np.testing.assert_allclose(px[::-1], scan.geom.pixel_centers_mm(i), atol=1e-9)
+        np.testing.assert_allclose(src, scan.geom.source_mm[i], atol=1e-9)
+
+    # arbitrary TIGRE parameters (offOrigin, every angle, detector tilts): TIGRE -> ours -> TIGRE -> ours
+    rng = np.random.default_rng(4)
+    n = 6
+    q = {"DSO": rng.uniform(400, 600, n), "angles": rng.uniform(-np.pi, np.pi, (n, 3)),
+         "offOrigin": rng.normal(0, 5, (n, 3)), "offDetector": rng.normal(0, 10, (n, 2)),
+         "rotDetector": rng.normal(0, 0.3, (n, 3)), "nDetector": np.array([5, 7]), "dDetector": np.array([0.4, 0.3]),
+         "center_mm": np.array([1.0, -2.0, 3.0])}
+    q["DSD"] = q["DSO"] + rng.uniform(200, 400, n)
+    g = from_tigre(q)
+    for i in range(n):
+        px, src = _tigre_pixels(q, i, q["center_mm"])
+        np.testing.assert_allclose(px[::-1], g.pixel_centers_mm(i), atol=1e-9)
+        np.testing.assert_allclose(src, g.source_mm[i], atol=1e-9)
+    assert from_tigre(to_tigre(g, q["center_mm"])).allclose(g, atol=1e-9)
+    assert not from_tigre(q | {"rotDetector": q["rotDetector"][:, ::-1]}).allclose(g, atol=1e-3)  # the order matters
+
+
+def test_tigre_export_of_a_circular_scan_is_tigres_standard_circle(tmp_path):
+    angles = np.arange(0.0, 360.0, 30.0)
+    g = fan_beam_geometry(angles, 410.66, 553.74, 64, 1.6)
+    src = write_scan(tmp_path / "scan", np.ones((g.n_views,) + g.det_shape, np.float32), g,
+                     projection_units="line_integral")
+    out = tmp_path / "t.npz"
+    assert main(["export", str(src), "--format", "tigre", "--out", str(out)]) == 0
+    p = np.load(out)
+    np.testing.assert_allclose(p["center_mm"], 0.0, atol=1e-9)
+    alpha = np.deg2rad(angles - 90.0)
+    np.testing.assert_allclose(np.angle(np.exp(1j * (p["angles"][:, 0] - alpha))), 0.0, atol=1e-12)
+    np.testing.assert_allclose(p["angles"][:, 1:], 0.0, atol=1e-12)
+    np.testing.assert_allclose(p["rotDetector"], 0.0, atol=1e-12)
+    np.testing.assert_allclose(p["offDetector"], 0.0, atol=1e-9)
+    np.testing.assert_allclose(p["offOrigin"], 0.0, atol=0)
+    np.testing.assert_allclose(p["DSO"], 410.66, atol=1e-9)
+    np.testing.assert_allclose(p["DSD"], 553.74, atol=1e-9)
+    np.testing.assert_allclose(p["dDetector"], [1.6, 1.6], atol=1e-12)
+
+
+def test_tigre_refuses_a_view_it_cannot_represent(tmp_path, capsys):
+    g = _geometry()
+    beyond = 2.0 * g.detector_mm[0]  # a volume centre behind view 0's detector
+    src = write_scan(tmp_path / "scan", np.ones((g.n_views,) + g.det_shape, np.float32), g,
+                     projection_units="line_integral", roi_center_mm=tuple(beyond))
+    out = tmp_path / "t.npz"
+    assert main(["export", str(src), "--format", "tigre", "--out", str(out)]) == 2
+    _one_line_error(capsys, "view 0", "DSD", "<= DSO")
+    assert not out.exists()
