@@ -278,7 +278,7 @@ def _cmd_demo(args) -> int:
                     phantom=args.phantom, method=args.method, iterations=args.iterations, truncated=args.truncated)
 
 
-def importers_layouts():
+def _import_layouts():
     from robot_ct_ros.jobs.importers import LAYOUTS
 
     return LAYOUTS
@@ -353,7 +353,7 @@ def build_parser() -> argparse.ArgumentParser:
                                 "centred: -(n-1)/2 * pitch)")
         else:
             q.add_argument("--vectors", required=True, metavar="V", help="ASTRA vectors, .npy or text")
-            q.add_argument("--layout", choices=importers_layouts(), default="views-first",
+            q.add_argument("--layout", choices=_import_layouts(), default="views-first",
                            help="views-first: (views, rows, cols) [default]; astra: ASTRA's 3-D (rows, views, cols)")
             q.add_argument("--row-pitch-mm", type=_positive("--row-pitch-mm"), default=None,
                            help="fanflat_vec: the one row's height (mm; default the column pitch)")
