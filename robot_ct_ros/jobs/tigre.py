@@ -29,8 +29,14 @@ point on the central ray gets ``theta = psi = 0``, ``rotDetector = 0`` and ``off
 
 Limits: a view is refused when its source is at ``center_mm`` (no DSO) or its detector centre is
 not farther from the source than the centre (``DSD <= DSO``: TIGRE's projectors crop each ray
-assuming the volume lies between source and detector). The pixel layout was derived from
-TIGRE's source code, not run against a TIGRE install.
+assuming the volume lies between source and detector).
+
+Not checked by running TIGRE (none installed here): everything above is read from TIGRE's source
+(``computeDeltas``, ``rollPitchYaw``, ``eulerZYZ``, ``_types.pxd``) and tested against a
+transcription of it. In the kernels read, pixel (pU, y) sits at buffer index ``pU * nV + y``
+while the Python wrapper (``_Ax.pyx``) presents each view's buffer as (nV, nU): whether TIGRE's
+Python projection array equals our ``proj[view, row, col]`` or its transpose is unverified, so
+check one projection of a known object before feeding our projections to TIGRE.
 """
 
 from __future__ import annotations
