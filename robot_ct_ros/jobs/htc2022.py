@@ -40,6 +40,7 @@ is not a repeat of the first (modulo 360 degrees) is kept.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -57,19 +58,19 @@ RECON_SHAPE = 512
 """The dataset's reference reconstructions are 512 x 512 pixels of ``effectivePixelSizePost``."""
 
 
+@dataclass(frozen=True)
 class HtcData:
     """A HTC2022 scan read from its .mat file: sinogram (views, detectors) float64 with the
     duplicate last angle dropped, angles (deg), distances and pitch (mm), all parameters (dict)."""
 
-    def __init__(self, path, sinogram, angles_deg, dso_mm, dsd_mm, pitch_mm, parameters, dropped_last):
-        self.path = Path(path)
-        self.sinogram = sinogram
-        self.angles_deg = angles_deg
-        self.dso_mm = dso_mm
-        self.dsd_mm = dsd_mm
-        self.pitch_mm = pitch_mm
-        self.parameters = parameters
-        self.dropped_last = dropped_last
+    path: Path
+    sinogram: np.ndarray
+    angles_deg: np.ndarray
+    dso_mm: float
+    dsd_mm: float
+    pitch_mm: float
+    parameters: dict
+    dropped_last: bool
 
     @property
     def effective_pixel_mm(self) -> float:
