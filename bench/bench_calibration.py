@@ -45,7 +45,8 @@ from robot_ct_ros.ct.calibration.volume import projection_consistency  # noqa: E
 from robot_ct_ros.ct import simulation as sim  # noqa: E402
 from robot_ct_ros.ct.geometry import VolumeGrid  # noqa: E402
 from robot_ct_ros.ct.reconstruction import fdk  # noqa: E402
-from robot_ct_ros.jobs.figures import markdown_table, plot_cap_slabs, summarize, write_report  # noqa: E402
+from robot_ct_ros.ct.metrics import roi_points  # noqa: E402
+from robot_ct_ros.jobs.figures import markdown_table, method_notes, plot_cap_slabs, summarize, write_report  # noqa: E402
 from robot_ct_ros.ct.trajectory import SeedSystem, fov_radius_mm, robotic_roi_scan  # noqa: E402
 
 DRIFT_METHOD = "ncc-lle-exact + drift(3)"
@@ -351,8 +352,10 @@ def main(argv=None) -> int:
                 title=f"cap, unbinned strip, {CAP_VOXEL_MM * 1000:.0f} um voxels, axial mean over "
                       f"{strip.grid.extent_mm[2]:.0f} mm of vessel")
         say("\n" + markdown_table(rows))
+        notes = method_notes(results, sc.nominal, sc.true, roi_points(sc.grid))
         scatter = sampling_scatter(sc, results, rows, truth_vol, args.repeats, args.iterations, say)
-        scenarios.append({"key": key, "title": title, "rows": rows, "via": via, "sampling_scatter": scatter,
+        scenarios.append({"key": key, "title": title, "rows": rows, "via": via, "notes": notes,
+                          "sampling_scatter": scatter,
                           "true_cap_um": None if cap is None else 1000 * cap.thickness_mm,
                           "initial_projection_rmse": initial,
                           "figures": [os.path.basename(str(paths[k])) for k in ("slices", "cap", "rmse", "param_error")
@@ -385,7 +388,8 @@ def main(argv=None) -> int:
                       f"({CAP_STRIP_ROWS} rows of {SeedSystem().raw_pixel_mm * 1000:.0f} um) with each method's "
                       f"gauge-aligned geometry (bench_calibration.CapStrip); '-': no ridge 3 standard errors above "
                       f"its surroundings at the cap (metrics.cap_thickness_mm).", ""]
-        lines += [markdown_table(s["rows"])] + scatter_lines(s["sampling_scatter"]) \
+        lines += [markdown_table(s["rows"]), ""] + [f"- {m}: {'; '.join(n)}" for m, n in s["notes"].items()] \
+            + [""] + scatter_lines(s["sampling_scatter"]) \
             + [f"![{f}]({f})" for f in s["figures"]] + [""]
     with open(os.path.join(out, "results.md"), "w") as f:
         f.write("\n".join(lines) + "\n")

@@ -41,7 +41,7 @@ from robot_ct_ros.ct.metrics import reprojection_error, roi_points  # noqa: E402
 from robot_ct_ros.ct.reconstruction import fdk  # noqa: E402
 from robot_ct_ros.ct.rtk_bridge import rtk_ellipsoid_projections  # noqa: E402
 from robot_ct_ros.ct.trajectory import SeedSystem, fov_radius_mm, robotic_roi_scan  # noqa: E402
-from robot_ct_ros.jobs.figures import markdown_table, write_report  # noqa: E402
+from robot_ct_ros.jobs.figures import markdown_table, method_notes, write_report  # noqa: E402
 
 AXES = {"y": Rotation.from_rotvec([-np.pi / 2, 0.0, 0.0]),        # the scan's z axis becomes +y (RTK)
         "z": Rotation.identity(),
@@ -189,12 +189,7 @@ def main(argv=None) -> int:
         paths = write_report(args.out, results, sc.grid, (sc.true, truth_vol, None), sc.nominal, name=name,
                              title=title, reconstruct=sc.reconstruct, notes={"sigma": sigma, "fov_mm": sc.fov_mm})
         rows_ = paths["rows"]
-        notes = {m: list(getattr(r, "notes", ())) for m, r in results.items() if getattr(r, "notes", ())}
-        pts = roi_points(sc.grid)
-        for m, r in results.items():  # what the guard kept at nominal: the estimate before it
-            if getattr(r, "params_unguarded", None) is not None:
-                e = reprojection_error(sc.nominal.perturbed(r.params_unguarded), sc.true, pts)
-                notes[m].append(f"before the guard {e['mean_px']:.3f} px mean, {e['p95_px']:.3f} px p95")
+        notes = method_notes(results, sc.nominal, sc.true, roi_points(sc.grid))
         report["scans"].append({"sigma": sigma, "fov_mm": sc.fov_mm, "body_mm": sc.body_mm, "rows": rows_,
                                 "notes": notes})
         table = markdown_table(rows_)

@@ -29,7 +29,7 @@ from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
 from robot_ct_ros.jobs.output import write_json
 from robot_ct_ros.ct.metrics import cap_thickness_mm, edge_sharpness, remove_gauge, reprojection_error, roi_points, ssim
 
-__all__ = ["COLUMNS", "summarize", "markdown_table", "plot_slices", "plot_cap_slabs", "plot_rmse",
+__all__ = ["COLUMNS", "summarize", "markdown_table", "method_notes", "plot_slices", "plot_cap_slabs", "plot_rmse",
            "gauge_aligned_param_error", "plot_param_error", "write_report"]
 
 COLUMNS = (
@@ -134,6 +134,22 @@ def markdown_table(rows: list[dict], columns=COLUMNS) -> str:
 
 
 # ----------------------------------------------------------------------------- figures
+def method_notes(results: dict, nominal: ConeGeometry, true_geom: ConeGeometry, points_mm) -> dict:
+    """Each calibrated method's notes (the guard's verdict, skipped views, models used), and where the
+    guard kept views at their nominal geometry, the error of the estimate before it, against
+    ``true_geom`` on ``points_mm``: {method: [note, ...]} for the methods that have any."""
+    notes = {}
+    for method, result in results.items():
+        lines = list(getattr(result, "notes", ()))
+        unguarded = getattr(result, "params_unguarded", None)
+        if unguarded is not None:
+            e = reprojection_error(nominal.perturbed(unguarded), true_geom, points_mm)
+            lines.append(f"before the guard {e['mean_px']:.3f} px mean, {e['p95_px']:.3f} px p95")
+        if lines:
+            notes[method] = lines
+    return notes
+
+
 def _plt():
     import matplotlib
 

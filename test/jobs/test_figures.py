@@ -8,7 +8,7 @@ import pytest
 from robot_ct_ros.ct.calibration import CalibrationResult, IterationRecord
 from robot_ct_ros.ct.geometry import VolumeGrid
 from robot_ct_ros.ct.metrics import cap_thickness_mm, edge_sharpness, reprojection_error, roi_points, ssim
-from robot_ct_ros.jobs.figures import markdown_table, write_report
+from robot_ct_ros.jobs.figures import markdown_table, method_notes, write_report
 from robot_ct_ros.ct.simulation import carotid_plaque_phantom, robot_coordination, voxelize
 from robot_ct_ros.ct.trajectory import circular_scan
 
@@ -162,3 +162,14 @@ def test_cap_slab_figure(tmp_path, inputs):
                           reference=truth_vol, title="cap")
     data = path.read_bytes()
     assert data.startswith(PNG) and len(data) > 1000
+
+
+def test_method_notes_carry_the_guard_verdict_and_the_error_of_the_estimate_before_it(inputs):
+    _, grid, _, nominal, true, results = inputs
+    m1 = results["m1"]
+    kept = CalibrationResult("m2", np.zeros_like(m1.params), nominal, m1.volume, m1.history, 1.0,
+                             notes=("guard: kept",), params_unguarded=m1.params)
+    notes = method_notes({**results, "m2": kept}, nominal, true, roi_points(grid))
+    assert set(notes) == {"m2"}  # nothing to say for the others
+    e = reprojection_error(nominal.perturbed(m1.params), true, roi_points(grid))
+    assert notes["m2"] == ["guard: kept", f"before the guard {e['mean_px']:.3f} px mean, {e['p95_px']:.3f} px p95"]
