@@ -7,7 +7,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 export PYTHONPATH := $(CURDIR)$(if $(PYTHONPATH),:$(PYTHONPATH))
 
-.PHONY: venv demo test bench bench-calibration bench-calibration-speed bench-interior bench-sweep clean
+.PHONY: venv demo test bench bench-calibration bench-calibration-speed bench-interior bench-realdata bench-sweep clean
 
 venv: $(STAMP)
 
@@ -35,6 +35,9 @@ bench-calibration-speed: $(STAMP)
 
 bench-interior: $(STAMP)
 	$(PY) bench/bench_interior.py --oracle --out docs/results
+
+bench-realdata: $(STAMP)
+	$(PY) bench/bench_realdata.py --out docs/results
 
 bench-sweep: $(STAMP)
 	$(PY) bench/bench_truncation_sweep.py --out docs/results
