@@ -9,8 +9,11 @@ from pathlib import Path
 
 import pytest
 
-REAL = Path("/work/shared/realdata/htc2022")
-BENCH = Path(__file__).resolve().parents[2] / "bench" / "bench_realdata.py"
+ROOT = Path(__file__).resolve().parents[2]
+BENCH = ROOT / "bench" / "bench_realdata.py"
+# the project's shared folder sits beside the repository (../shared); /work/shared on the project's machines
+REAL = next((p for p in (ROOT.parent / "shared" / "realdata" / "htc2022", Path("/work/shared/realdata/htc2022"))
+             if p.is_dir()), Path("/work/shared/realdata/htc2022"))
 
 
 @pytest.mark.slow
