@@ -35,7 +35,7 @@ import numpy as np
 from robot_ct_ros.ct.geometry import ConeGeometry
 from robot_ct_ros.jobs.output import say as _say
 
-__all__ = ["FORMATS", "corrected_geometry", "export_geometry", "write_astra_vectors", "read_astra_vectors",
+__all__ = ["FORMATS", "corrected_geometry", "export_geometry", "write_astra_vectors",
            "write_rtk_xml"]
 
 FORMATS = ("rtk", "astra", "tigre")
@@ -116,13 +116,6 @@ def write_tigre(geom: ConeGeometry, path, center_mm) -> Path:
     with open(path, "wb") as f:
         np.savez(f, **params)
     return Path(path)
-
-
-def read_astra_vectors(path, n_rows: int, n_cols: int) -> ConeGeometry:
-    """The :class:`ConeGeometry` of ASTRA ``cone_vec`` rows saved by :func:`write_astra_vectors`."""
-    path = Path(path)
-    vec = np.load(path) if path.suffix == ".npy" else np.loadtxt(path, ndmin=2)
-    return ConeGeometry.from_astra_vec(vec, n_rows, n_cols)
 
 
 def export_geometry(bag, out, fmt: str = "rtk", *, corrected=None, say=_say) -> dict:

@@ -12,7 +12,7 @@ from robot_ct_ros.bag import read_scan, write_scan
 from robot_ct_ros.cli import main
 from robot_ct_ros.ct.geometry import VolumeGrid
 from robot_ct_ros.ct.trajectory import circular_scan
-from robot_ct_ros.jobs.export import read_astra_vectors
+from robot_ct_ros.jobs.importers import astra_geometry, read_astra_vectors
 from robot_ct_ros.jobs.htc2022 import fan_beam_geometry
 
 
@@ -90,7 +90,7 @@ def test_astra_vectors_round_trip_and_follow_astras_pixel_convention(tmp_path, b
     nominal = read_scan(bag).geom
     vec = np.load(out) if suffix == ".npy" else np.loadtxt(out)
     assert vec.shape == (nominal.n_views, 12)
-    assert read_astra_vectors(out, nominal.n_rows, nominal.n_cols).allclose(nominal, atol=1e-9)
+    assert astra_geometry(read_astra_vectors(out), nominal.n_rows, nominal.n_cols).allclose(nominal, atol=1e-9)
     # ASTRA: src, detector centre, u = pixel (0,0) -> (0,1) (next column), v = pixel (0,0) -> (1,0) (next row)
     for i in (0, nominal.n_views - 1):
         px = nominal.pixel_centers_mm(i)
@@ -121,12 +121,12 @@ def test_export_of_a_corrected_geometry(tmp_path, bag, capsys):
         out = tmp_path / f"corrected{i}.npy"
         assert main(["export", str(bag), "--format", "astra", "--corrected", str(where), "--out", str(out)]) == 0
         assert "corrected geometry" in capsys.readouterr().out
-        assert read_astra_vectors(out, 12, 20).allclose(expected, atol=1e-9)
+        assert astra_geometry(read_astra_vectors(out), 12, 20).allclose(expected, atol=1e-9)
     moved = tmp_path / "moved"
     calib.rename(moved)  # report.json names the old place: the bag next to it is used
     assert main(["export", str(bag), "--format", "astra", "--corrected", str(moved), "--out",
                  str(tmp_path / "m.npy")]) == 0
-    assert read_astra_vectors(tmp_path / "m.npy", 12, 20).allclose(expected, atol=1e-9)
+    assert astra_geometry(read_astra_vectors(tmp_path / "m.npy"), 12, 20).allclose(expected, atol=1e-9)
 
     other = _geometry(seed=1, n=6)
     other_bag = write_scan(tmp_path / "other", np.ones((6, 12, 20), np.float32), other,
