@@ -33,8 +33,6 @@ ArmRunner), the simulated arm's sim_* parameters robot_ct_ros.hardware.simulated
 
 from __future__ import annotations
 
-import threading
-import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -48,6 +46,7 @@ from std_msgs.msg import Bool
 
 from robot_ct_ros.hardware.arm import ArmError, ArmRunner, ArmSettings
 from robot_ct_ros.hardware.arms import make_arm
+from robot_ct_ros.hardware.connection import BackgroundConnection
 from robot_ct_ros.hardware.simulated_arm import JOINT_NAMES, SimulatedArmSettings
 from robot_ct_ros.nodes.common import (LifecycleSettings, WorkerFaults, declare_settings, error_transition,
                                       publish_diagnostic, run_settings_node, transition_result)
@@ -115,13 +114,8 @@ class ArmDriverNode(LifecycleNode):
         self.faults = WorkerFaults(self, self._on_fault)
         self.error_transition_pending = False
         self.arm = None                     # the connected arm (between a successful connect and cleanup)
-        self.connecting = False             # a connection attempt is under way (background thread)
-        self._connect_started = 0.0
-        self._attempt = 0                   # a connection result of an older attempt is discarded
         self._connected_gc = self.create_guard_condition(self._on_connect_done)
-        self._connect_result = None
-        self._connect_lock = threading.Lock()
-        self._release_threads: list[threading.Thread] = []
+        self.connection = BackgroundConnection(self._connected_gc.trigger, self.get_logger().warn, f"{s.role}_arm")
         self._want_active = False
         self.runner = ArmRunner(self.arm_settings, s.publish_rate_hz, self._move_failed,
                                 on_thread_died=self.faults.report)
@@ -137,6 +131,11 @@ class ArmDriverNode(LifecycleNode):
     @property
     def lifecycle_state(self) -> str:
         return self._state_machine.current_state[1]
+
+    @property
+    def connecting(self) -> bool:
+        """A connection attempt is under way (background thread)."""
+        return self.connection.connecting
 
     @property
     def moves_completed(self) -> int:
@@ -202,41 +201,13 @@ class ArmDriverNode(LifecycleNode):
 
     # -- connection, off the executor -------------------------------------------------------
     def _start_connect(self, arm) -> None:
-        with self._connect_lock:
-            self._attempt += 1
-            attempt = self._attempt
-            self.connecting, self._connect_started = True, time.monotonic()
-        where = self.robot_ip or "simulated arm"
-        self.get_logger().info(f"{self.role} arm: connecting to {where}")
-
-        def connect():
-            try:
-                arm.connect()
-                result = None
-            except Exception as exc:  # noqa: BLE001 - ArmError, OSError, or a driver bug: all reported
-                result = f"{type(exc).__name__}: {exc}" if not isinstance(exc, (ArmError, OSError)) else str(exc)
-            with self._connect_lock:
-                current = attempt == self._attempt
-                if current:
-                    self._connect_result = (attempt, arm, result)
-            if not current:  # abandoned meanwhile (cleanup, shutdown): let go of it here, off the executor
-                if result is None:
-                    _quiet_disconnect(arm)
-                return
-            try:
-                self._connected_gc.trigger()
-            except Exception:  # noqa: BLE001 - the node is being destroyed
-                _quiet_disconnect(arm)
-
-        threading.Thread(target=connect, name=f"{self.role}_arm_connect", daemon=True).start()
+        self.get_logger().info(f"{self.role} arm: connecting to {self.robot_ip or 'simulated arm'}")
+        self.connection.start(arm)
 
     def _on_connect_done(self) -> None:
-        with self._connect_lock:
-            result, self._connect_result = self._connect_result, None
-            if result is None or result[0] != self._attempt:
-                return
-            self.connecting = False
-        _, arm, error = result
+        if (result := self.connection.take()) is None:
+            return
+        arm, error = result
         if error is not None:
             self.last_error = f"connect failed: {error}"
             self.get_logger().error(f"{self.role} arm {self.last_error}; going to unconfigured (configure to retry)")
@@ -245,7 +216,7 @@ class ArmDriverNode(LifecycleNode):
             return
         self.arm = arm
         self.get_logger().info(f"{self.role} arm connected ({self.robot_ip or 'simulated'}) in "
-                               f"{time.monotonic() - self._connect_started:.2f} s")
+                               f"{self.connection.elapsed_s:.2f} s")
         if self._want_active and self.lifecycle_state == "active":
             self._start_runner()
 
@@ -258,22 +229,16 @@ class ArmDriverNode(LifecycleNode):
     def _disconnect(self) -> None:
         """Abandon a connection attempt, and disconnect the arm on a background thread (a hung
         controller's disconnect takes its timeout; the executor never waits for it)."""
-        with self._connect_lock:
-            self._attempt += 1  # a connect still under way cleans up after itself
-            self.connecting, self._connect_result = False, None
+        self.connection.abandon()  # a connect still under way cleans up after itself
         arm, self.arm = self.arm, None
         if arm is not None:
-            t = threading.Thread(target=_quiet_disconnect, args=(arm, self.get_logger()), name="arm_disconnect",
-                                 daemon=True)
-            t.start()
-            self._release_threads = [x for x in self._release_threads if x.is_alive()] + [t]
+            self.connection.release(arm)
 
     def destroy_node(self):
         # the context may already be shut down (SIGINT): no publishing here
         self._stop_activity(publish=self.context.ok())
         self._disconnect()
-        for t in self._release_threads:
-            t.join(5.0)
+        self.connection.close(5.0)
         return super().destroy_node()
 
     # -- faults ------------------------------------------------------------------------------
@@ -356,7 +321,7 @@ class ArmDriverNode(LifecycleNode):
         elif self.connecting:
             level = DiagnosticStatus.WARN
             message = (f"connecting to {self.robot_ip or 'simulated arm'} "
-                       f"({time.monotonic() - self._connect_started:.1f} s)")
+                       f"({self.connection.elapsed_s:.1f} s)")
         elif stale:
             level = DiagnosticStatus.WARN
             message = (f"state stale: no new sample from the controller for {self.runner.state_age_s():.2f} s "
@@ -378,14 +343,6 @@ class ArmDriverNode(LifecycleNode):
             ("moves_completed", self.moves_completed), ("state_age_s", None if age is None else f"{age:.3f}"),
             ("goals_refused", self.goal_rejections), ("target_pose", target), ("base_frame", self.base_frame),
             ("tool_frame", self.tool_frame)))
-
-
-def _quiet_disconnect(arm, logger=None) -> None:
-    try:
-        arm.disconnect()
-    except Exception as exc:  # noqa: BLE001 - letting go of an arm never fails the caller
-        if logger is not None:
-            logger.warn(f"disconnect: {exc}")
 
 
 def main(argv=None) -> int:
