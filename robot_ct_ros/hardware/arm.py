@@ -25,6 +25,8 @@ host-minus-controller offset, so transport latency does not age it) and calls th
 when the controller clock has not advanced for ``max_state_age_s``: a frozen controller keeps
 answering with its last sample, which must not be republished as fresh. Stale for longer than
 ``call_timeout_s`` counts as a lost connection. An arm without a clock is never stale.
+
+:func:`arm_health` is the arm driver's /diagnostics status (level, message, values) from its runner.
 """
 
 from __future__ import annotations
@@ -40,7 +42,7 @@ import numpy as np
 from robot_ct_ros.parameters import setting, validate
 
 __all__ = ["ArmError", "ArmConnectionError", "ArmMotionError", "ArmSnapshot", "Arm", "as_pose", "pose_distance",
-           "ArmSettings", "ArmRunner"]
+           "ArmSettings", "ArmRunner", "ARM_ERRORS", "arm_health"]
 
 
 class ArmError(RuntimeError):
@@ -355,3 +357,42 @@ class ArmRunner:
             if self.lost_reason is None:
                 self.lost_reason = reason
             self._moving, self._move_ok = False, False
+
+
+ARM_ERRORS = ("connection lost", "configure failed", "connect failed", "fault")
+"""How an arm driver's last error starts when it is an ERROR on /diagnostics (any other one is a WARN)."""
+
+
+def arm_health(runner: ArmRunner, arm, lifecycle_state: str, last_error: str, *, connecting_s: float | None,
+               where: str, goal_problem: str, goals_refused: int, base_frame: str, tool_frame: str):
+    """The /diagnostics status of an arm driver: ``(level, message, values)``, level "ok", "warn" or "error".
+
+    ``arm`` is the connected arm (None: none); ``connecting_s`` how long a connection attempt to
+    ``where`` has been under way (None: none is). In order: a last error starting with one of
+    :data:`ARM_ERRORS` is an ERROR; connecting, a stale state, another last error, or a lifecycle
+    state other than active a WARN; else OK (with "in position" when it is), made a WARN when
+    ``goal_problem`` (the last refused goal) is set. ``values`` are (key, value) pairs."""
+    in_position = runner.in_position()
+    if last_error.startswith(ARM_ERRORS):
+        level, message = "error", last_error
+    elif connecting_s is not None:
+        level, message = "warn", f"connecting to {where} ({connecting_s:.1f} s)"
+    elif runner.active and runner.latest() is not None and runner.stale():
+        level = "warn"
+        message = (f"state stale: no new sample from the controller for {runner.state_age_s():.2f} s "
+                   f"(limit {runner.settings.max_state_age_s} s)")
+    elif lifecycle_state != "active" or last_error:
+        level, message = "warn", last_error or lifecycle_state
+    else:
+        level, message = "ok", f"{lifecycle_state}, in position" if in_position else lifecycle_state
+    if goal_problem and level == "ok":
+        level, message = "warn", f"{message}; last goal refused: {goal_problem}"
+    target = None if runner.target is None else [round(float(v), 6) for v in runner.target]
+    age = runner.state_age_s() if runner.latest() is not None else None
+    connection = "connecting" if connecting_s is not None else "connected" if (
+        arm is not None and arm.is_connected) else "disconnected"
+    return level, message, (
+        ("lifecycle_state", lifecycle_state), ("connection", connection), ("connected", connection == "connected"),
+        ("in_position", in_position), ("moves_completed", runner.moves_completed),
+        ("state_age_s", None if age is None else f"{age:.3f}"), ("goals_refused", goals_refused),
+        ("target_pose", target), ("base_frame", base_frame), ("tool_frame", tool_frame))

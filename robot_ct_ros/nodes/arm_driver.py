@@ -35,22 +35,20 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
 from rclpy.duration import Duration
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
-from scipy.spatial.transform import Rotation
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Bool
 
-from robot_ct_ros.hardware.arm import ArmError, ArmRunner, ArmSettings
+from robot_ct_ros.hardware.arm import ArmError, ArmRunner, ArmSettings, arm_health
 from robot_ct_ros.hardware.arms import make_arm
 from robot_ct_ros.hardware.connection import BackgroundConnection
 from robot_ct_ros.hardware.simulated_arm import JOINT_NAMES, SimulatedArmSettings
 from robot_ct_ros.nodes.common import (LifecycleSettings, WorkerFaults, declare_settings, error_transition,
                                       publish_diagnostic, run_settings_node, transition_result)
-from robot_ct_ros.nodes.hand_eye_params import check_pose
+from robot_ct_ros.nodes.hand_eye_params import pose_msg_to_ur, ur_to_pose_msg  # noqa: F401 - re-exported
 from robot_ct_ros.parameters import setting, validate
 
 TOPIC_DIAGNOSTICS = "/diagnostics"
@@ -70,24 +68,6 @@ class ArmDriverSettings:
 
     def __post_init__(self):
         validate(self)
-
-
-def pose_msg_to_ur(msg: PoseStamped) -> np.ndarray:
-    """The UR pose [x, y, z, rx, ry, rz] (m, rad) of a PoseStamped; ValueError when it holds a NaN or
-    infinite value or a quaternion whose norm is not 1 (robot_ct_ros.nodes.hand_eye_params.check_pose)."""
-    xyz, q = check_pose(msg.pose)
-    return np.array([*xyz, *Rotation.from_quat(q).as_rotvec()])
-
-
-def ur_to_pose_msg(pose, frame_id: str, stamp) -> PoseStamped:
-    msg = PoseStamped()
-    msg.header.frame_id = frame_id
-    msg.header.stamp = stamp
-    msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = (float(v) for v in pose[:3])
-    x, y, z, w = Rotation.from_rotvec(pose[3:6]).as_quat()
-    msg.pose.orientation.x, msg.pose.orientation.y = float(x), float(y)
-    msg.pose.orientation.z, msg.pose.orientation.w = float(z), float(w)
-    return msg
 
 
 class ArmDriverNode(LifecycleNode):
@@ -314,35 +294,13 @@ class ArmDriverNode(LifecycleNode):
         self._publish_diagnostics()
 
     def _publish_diagnostics(self) -> None:
-        state = self.lifecycle_state
-        stale = self.runner.active and self.runner.latest() is not None and self.runner.stale()
-        if self.last_error.startswith(("connection lost", "configure failed", "connect failed", "fault")):
-            level, message = DiagnosticStatus.ERROR, self.last_error
-        elif self.connecting:
-            level = DiagnosticStatus.WARN
-            message = (f"connecting to {self.robot_ip or 'simulated arm'} "
-                       f"({self.connection.elapsed_s:.1f} s)")
-        elif stale:
-            level = DiagnosticStatus.WARN
-            message = (f"state stale: no new sample from the controller for {self.runner.state_age_s():.2f} s "
-                       f"(limit {self.arm_settings.max_state_age_s} s)")
-        elif state != "active" or self.last_error:
-            level, message = DiagnosticStatus.WARN, self.last_error or state
-        else:
-            level, message = DiagnosticStatus.OK, f"{state}, in position" if self.in_position() else state
-        if self.last_goal_problem and level == DiagnosticStatus.OK:
-            level, message = DiagnosticStatus.WARN, f"{message}; last goal refused: {self.last_goal_problem}"
-        target = self.runner.target
-        target = None if target is None else [round(float(v), 6) for v in target]
-        age = self.runner.state_age_s() if self.runner.latest() is not None else None
-        connection = "connecting" if self.connecting else "connected" if (
-            self.arm is not None and self.arm.is_connected) else "disconnected"
-        publish_diagnostic(self, self.diag_pub, level, f"{self.role} arm", self.robot_ip or "simulated_arm", message, (
-            ("lifecycle_state", state), ("connection", connection),
-            ("connected", connection == "connected"), ("in_position", self.in_position()),
-            ("moves_completed", self.moves_completed), ("state_age_s", None if age is None else f"{age:.3f}"),
-            ("goals_refused", self.goal_rejections), ("target_pose", target), ("base_frame", self.base_frame),
-            ("tool_frame", self.tool_frame)))
+        level, message, values = arm_health(
+            self.runner, self.arm, self.lifecycle_state, self.last_error,
+            connecting_s=self.connection.elapsed_s if self.connecting else None,
+            where=self.robot_ip or "simulated arm", goal_problem=self.last_goal_problem,
+            goals_refused=self.goal_rejections, base_frame=self.base_frame, tool_frame=self.tool_frame)
+        publish_diagnostic(self, self.diag_pub, level, f"{self.role} arm", self.robot_ip or "simulated_arm", message,
+                           values)
 
 
 def main(argv=None) -> int:

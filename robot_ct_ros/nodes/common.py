@@ -245,9 +245,12 @@ def _unset_parameter_type(spec):
 def publish_diagnostic(node, publisher, level, what: str, hardware_id: str, message: str, values) -> None:
     """Publish one /diagnostics status named ``"<node's fully qualified name>: <what>"``, stamped now.
 
-    ``level`` is a DiagnosticStatus level (OK, WARN, ERROR); ``values`` (key, value) pairs, each value
-    shown as ``str(value)``."""
+    ``level`` is a DiagnosticStatus level (OK, WARN, ERROR) or its name in lower case ("ok", "warn",
+    "error"); ``values`` (key, value) pairs, each value shown as ``str(value)``."""
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+    if isinstance(level, str):
+        level = getattr(DiagnosticStatus, level.upper())
 
     status = DiagnosticStatus(level=level, name=f"{node.get_fully_qualified_name()}: {what}", hardware_id=hardware_id,
                               message=message, values=[KeyValue(key=k, value=str(v)) for k, v in values])

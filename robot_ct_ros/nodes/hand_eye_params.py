@@ -1,4 +1,5 @@
-"""What the acquisition nodes share: the hand-eye parameters and pose/stamp conversions (m <-> mm).
+"""What the acquisition nodes share: the hand-eye parameters and pose/stamp conversions (m <-> mm, and
+PoseStamped <-> UR pose for the arm_driver).
 
 Hand-eye parameters (identical in pcd_grabber, geometry_publisher and scan_orchestrator;
 config/hand_eye.yaml sets them for all nodes at once), per device ``source`` and ``detector``:
@@ -20,7 +21,7 @@ from scipy.spatial.transform import Rotation
 from robot_ct_ros.ct.hand_eye import HandEye, mount_from_si
 
 __all__ = ["declare_hand_eye", "stamp_to_ns", "ns_to_stamp", "check_pose", "pose_to_matrix_mm", "matrix_mm_to_pose",
-           "QUATERNION_TOLERANCE"]
+           "pose_msg_to_ur", "ur_to_pose_msg", "QUATERNION_TOLERANCE"]
 
 QUATERNION_TOLERANCE = 1e-3
 """How far from 1 the norm of an incoming orientation quaternion may be (as the bag reader accepts)."""
@@ -109,3 +110,24 @@ def matrix_mm_to_pose(T, pose=None):
         q = -q
     pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w = (float(v) for v in q)
     return pose
+
+
+def pose_msg_to_ur(msg) -> np.ndarray:
+    """The UR pose [x, y, z, rx, ry, rz] (m, rad) of a geometry_msgs/PoseStamped; ValueError when it holds a
+    NaN or infinite value or a quaternion whose norm is not 1 (:func:`check_pose`)."""
+    xyz, q = check_pose(msg.pose)
+    return np.array([*xyz, *Rotation.from_quat(q).as_rotvec()])
+
+
+def ur_to_pose_msg(pose, frame_id: str, stamp):
+    """geometry_msgs/PoseStamped of a UR pose [x, y, z, rx, ry, rz] (m, rad), with this frame_id and stamp."""
+    from geometry_msgs.msg import PoseStamped
+
+    msg = PoseStamped()
+    msg.header.frame_id = frame_id
+    msg.header.stamp = stamp
+    msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = (float(v) for v in pose[:3])
+    x, y, z, w = Rotation.from_rotvec(pose[3:6]).as_quat()
+    msg.pose.orientation.x, msg.pose.orientation.y = float(x), float(y)
+    msg.pose.orientation.z, msg.pose.orientation.w = float(z), float(w)
+    return msg

@@ -144,3 +144,58 @@ def test_runner_newest_goal_wins():
         np.testing.assert_allclose(arm.pose, second)
     finally:
         runner.stop()
+
+
+class _RunnerState:
+    """What arm_health reads of an ArmRunner, set by hand."""
+
+    def __init__(self, active=True, snapshot=True, stale=False, age_s=0.01, in_position=False, target=None):
+        self.active, self.settings, self.moves_completed = active, ArmSettings(max_state_age_s=0.25), 2
+        self._snap = ArmSnapshot(np.zeros(6), np.zeros(6)) if snapshot else None
+        self._stale, self._age, self._in_position, self.target = stale, age_s, in_position, target
+
+    def latest(self):
+        return self._snap
+
+    def stale(self):
+        return self._stale
+
+    def state_age_s(self):
+        return self._age
+
+    def in_position(self):
+        return self._in_position
+
+
+def _health(runner, state="active", error="", *, arm=None, connecting_s=None, goal_problem=""):
+    from robot_ct_ros.hardware.arm import arm_health
+
+    return arm_health(runner, arm, state, error, connecting_s=connecting_s, where="10.0.0.9", goal_problem=goal_problem,
+                      goals_refused=3, base_frame="world", tool_frame="source_arm_tool0")
+
+
+def test_arm_health_levels_and_messages():
+    connected = _FlakyArm()
+    level, message, values = _health(_RunnerState(in_position=True, target=np.arange(6) / 3), arm=connected)
+    assert (level, message) == ("ok", "active, in position")
+    assert dict(values) == {"lifecycle_state": "active", "connection": "connected", "connected": True,
+                            "in_position": True, "moves_completed": 2, "state_age_s": "0.010", "goals_refused": 3,
+                            "target_pose": [0.0, 0.333333, 0.666667, 1.0, 1.333333, 1.666667],
+                            "base_frame": "world", "tool_frame": "source_arm_tool0"}
+    assert _health(_RunnerState(), arm=connected)[:2] == ("ok", "active")
+    assert _health(_RunnerState(), goal_problem="frame 'map'")[:2] == ("warn", "active; last goal refused: frame 'map'")
+    # errors first, whatever else holds; a goal problem does not change a non-OK message
+    for error in ("connection lost: gone", "configure failed: x", "connect failed: y", "fault: z"):
+        assert _health(_RunnerState(stale=True), error=error, connecting_s=1.0, goal_problem="p")[:2] == ("error", error)
+    level, message, values = _health(_RunnerState(snapshot=False), "inactive", connecting_s=2.345, goal_problem="p")
+    assert (level, message) == ("warn", "connecting to 10.0.0.9 (2.3 s)")
+    assert dict(values)["connection"] == "connecting" and dict(values)["state_age_s"] is None
+    assert dict(values)["target_pose"] is None
+    assert _health(_RunnerState(stale=True, age_s=0.5))[:2] == (
+        "warn", "state stale: no new sample from the controller for 0.50 s (limit 0.25 s)")
+    assert _health(_RunnerState(active=False, stale=True), "inactive")[:2] == ("warn", "inactive")
+    assert _health(_RunnerState(), "active", "move failed: protective stop")[:2] == (
+        "warn", "move failed: protective stop")
+    assert dict(_health(_RunnerState())[2])["connection"] == "disconnected"
+    connected.is_connected = False
+    assert dict(_health(_RunnerState(), arm=connected)[2])["connected"] is False
