@@ -4,10 +4,11 @@ A controller that is slow to answer (or never answers) must not stall the caller
 executor of the arm_driver node: :class:`BackgroundConnection` runs ``connect()`` on a daemon
 thread, keeps the result of the newest attempt, and calls ``notify()`` (the node wires it to a
 guard condition's ``trigger``) so that the caller collects it on its own thread with
-:meth:`BackgroundConnection.take`. Abandoning an attempt (:meth:`BackgroundConnection.abandon`)
+:meth:`BackgroundConnection.take` (which keeps a connected arm as ``arm``). Abandoning an attempt (:meth:`BackgroundConnection.abandon`)
 makes any result still to come stale: the connect thread then discards it and disconnects its arm
 there. :meth:`BackgroundConnection.release` disconnects a connected arm on a thread too (a hung
-controller's disconnect takes its timeout); :meth:`BackgroundConnection.close` waits for those.
+controller's disconnect takes its timeout); :meth:`BackgroundConnection.disconnect` does both;
+:meth:`BackgroundConnection.close` waits for those disconnects.
 """
 
 from __future__ import annotations
@@ -56,6 +57,7 @@ class BackgroundConnection:
         self._result = None
         self._release_threads: list[threading.Thread] = []
         self.connecting = False  # an attempt is under way (or its result not yet taken)
+        self.arm = None  # the connected arm: taken from a successful attempt, until disconnect()
         self.started_s = 0.0  # time.monotonic() when the current attempt started
 
     @property
@@ -93,13 +95,16 @@ class BackgroundConnection:
             quiet_disconnect(arm)
 
     def take(self):
-        """``(arm, error)`` of the current attempt once it has ended (error None: connected; else why
-        not), and the attempt is over; None when there is nothing (yet), or only a stale result."""
+        """``(arm, error)`` of the current attempt once it has ended (error None: connected, and the
+        arm is kept as :attr:`arm`; else why not), and the attempt is over; None when there is
+        nothing (yet), or only a stale result."""
         with self._lock:
             result, self._result = self._result, None
             if result is None or result[0] != self._attempt:
                 return None
             self.connecting = False
+        if result[2] is None:
+            self.arm = result[1]
         return result[1], result[2]
 
     def abandon(self) -> None:
@@ -107,6 +112,13 @@ class BackgroundConnection:
         with self._lock:
             self._attempt += 1
             self.connecting, self._result = False, None
+
+    def disconnect(self) -> None:
+        """:meth:`abandon` any attempt under way and :meth:`release` the connected arm (if any)."""
+        self.abandon()  # a connect still under way cleans up after itself
+        arm, self.arm = self.arm, None
+        if arm is not None:
+            self.release(arm)
 
     def release(self, arm) -> None:
         """Disconnect ``arm`` on a background thread (failures go to ``warn``); :meth:`close` waits for it."""

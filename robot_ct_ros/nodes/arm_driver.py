@@ -47,7 +47,7 @@ from robot_ct_ros.hardware.arms import make_arm
 from robot_ct_ros.hardware.connection import BackgroundConnection
 from robot_ct_ros.hardware.simulated_arm import JOINT_NAMES, SimulatedArmSettings
 from robot_ct_ros.nodes.common import (LifecycleSettings, WorkerFaults, declare_settings, error_transition,
-                                      publish_diagnostic, run_settings_node, transition_result)
+                                      publish_diagnostic, run_settings_node, to_unconfigured, transition_result)
 from robot_ct_ros.nodes.hand_eye_params import pose_msg_to_ur, ur_to_pose_msg  # noqa: F401 - re-exported
 from robot_ct_ros.parameters import setting, validate
 
@@ -93,7 +93,6 @@ class ArmDriverNode(LifecycleNode):
 
         self.faults = WorkerFaults(self, self._on_fault)
         self.error_transition_pending = False
-        self.arm = None                     # the connected arm (between a successful connect and cleanup)
         self._connected_gc = self.create_guard_condition(self._on_connect_done)
         self.connection = BackgroundConnection(self._connected_gc.trigger, self.get_logger().warn, f"{s.role}_arm")
         self._want_active = False
@@ -111,6 +110,11 @@ class ArmDriverNode(LifecycleNode):
     @property
     def lifecycle_state(self) -> str:
         return self._state_machine.current_state[1]
+
+    @property
+    def arm(self):
+        """The connected arm (between a successful connect and cleanup), else None."""
+        return self.connection.arm
 
     @property
     def connecting(self) -> bool:
@@ -138,7 +142,8 @@ class ArmDriverNode(LifecycleNode):
             self.get_logger().error(self.last_error)
             return TransitionCallbackReturn.FAILURE
         self.last_error = ""
-        self._start_connect(arm)
+        self.get_logger().info(f"{self.role} arm: connecting to {self.robot_ip or 'simulated arm'}")
+        self.connection.start(arm)
         return TransitionCallbackReturn.SUCCESS
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
@@ -153,12 +158,12 @@ class ArmDriverNode(LifecycleNode):
 
     def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
         self._stop_activity()
-        self._disconnect()
+        self.connection.disconnect()  # off the executor
         return transition_result(self)
 
     def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
         self._stop_activity()
-        self._disconnect()
+        self.connection.disconnect()  # off the executor
         return TransitionCallbackReturn.SUCCESS
 
     on_shutdown = on_error
@@ -180,44 +185,27 @@ class ArmDriverNode(LifecycleNode):
             self.in_position_pub.publish(Bool(data=False))
 
     # -- connection, off the executor -------------------------------------------------------
-    def _start_connect(self, arm) -> None:
-        self.get_logger().info(f"{self.role} arm: connecting to {self.robot_ip or 'simulated arm'}")
-        self.connection.start(arm)
-
     def _on_connect_done(self) -> None:
         if (result := self.connection.take()) is None:
             return
         arm, error = result
         if error is not None:
-            self.last_error = f"connect failed: {error}"
-            self.get_logger().error(f"{self.role} arm {self.last_error}; going to unconfigured (configure to retry)")
-            self._to_unconfigured()
-            self._publish_diagnostics()
-            return
-        self.arm = arm
+            return self._unconfigure(f"connect failed: {error}", "retry")
         self.get_logger().info(f"{self.role} arm connected ({self.robot_ip or 'simulated'}) in "
                                f"{self.connection.elapsed_s:.2f} s")
         if self._want_active and self.lifecycle_state == "active":
             self._start_runner()
 
-    def _to_unconfigured(self) -> None:
-        if self.lifecycle_state == "active":
-            self.trigger_deactivate()
-        if self.lifecycle_state == "inactive":
-            self.trigger_cleanup()
-
-    def _disconnect(self) -> None:
-        """Abandon a connection attempt, and disconnect the arm on a background thread (a hung
-        controller's disconnect takes its timeout; the executor never waits for it)."""
-        self.connection.abandon()  # a connect still under way cleans up after itself
-        arm, self.arm = self.arm, None
-        if arm is not None:
-            self.connection.release(arm)
+    def _unconfigure(self, error: str, retry: str) -> None:
+        self.last_error = error
+        self.get_logger().error(f"{self.role} arm {error}; going to unconfigured (configure to {retry})")
+        to_unconfigured(self)
+        self._publish_diagnostics()
 
     def destroy_node(self):
         # the context may already be shut down (SIGINT): no publishing here
         self._stop_activity(publish=self.context.ok())
-        self._disconnect()
+        self.connection.disconnect()  # off the executor
         self.connection.close(5.0)
         return super().destroy_node()
 
@@ -236,25 +224,18 @@ class ArmDriverNode(LifecycleNode):
         self._publish_diagnostics()
 
     # -- executor side ---------------------------------------------------------------------
-    def _refuse_goal(self, problem: str) -> None:
-        self.goal_rejections += 1
-        self.last_goal_problem = problem
-        self.get_logger().error(f"goal refused: {problem}", throttle_duration_sec=1.0)
-
     def _on_goal(self, msg: PoseStamped) -> None:
         if not self.runner.active:
             self.get_logger().warn(f"goal ignored: node is {self.lifecycle_state}"
                                    f"{' (connecting)' if self.connecting else ''}, not active",
                                    throttle_duration_sec=1.0)
             return
-        if msg.header.frame_id not in ("", self.base_frame):
-            self._refuse_goal(f"frame {msg.header.frame_id!r} is not {self.base_frame!r}")
-            return
         try:
-            goal = pose_msg_to_ur(msg)
-            self.runner.command(goal)
+            self.runner.command(pose_msg_to_ur(msg, self.base_frame))
         except ValueError as exc:
-            self._refuse_goal(str(exc))
+            self.goal_rejections += 1
+            self.last_goal_problem = problem = str(exc)
+            self.get_logger().error(f"goal refused: {problem}", throttle_duration_sec=1.0)
             return
         self.in_position_pub.publish(Bool(data=False))
 
@@ -265,9 +246,9 @@ class ArmDriverNode(LifecycleNode):
         return (now - Duration(nanoseconds=int(age * 1e9))).to_msg() if age != float("inf") else now.to_msg()
 
     def _publish(self) -> None:
-        if self.runner.lost_reason is not None:
-            self._handle_connection_loss()
-            return
+        if (reason := self.runner.lost_reason) is not None:
+            self.in_position_pub.publish(Bool(data=False))
+            return self._unconfigure(f"connection lost: {reason}", "reconnect")
         snap = self.runner.latest()
         if not self.runner.active or snap is None:
             return
@@ -285,13 +266,6 @@ class ArmDriverNode(LifecycleNode):
                 self.true_pose_pub.publish(ur_to_pose_msg(snap.true_tcp_pose, self.base_frame, stamp))
         self.in_position_pub.publish(Bool(data=self.in_position()))
 
-    def _handle_connection_loss(self) -> None:
-        reason = self.runner.lost_reason
-        self.in_position_pub.publish(Bool(data=False))
-        self.last_error = f"connection lost: {reason}"
-        self.get_logger().error(f"{self.role} arm {self.last_error}; going to unconfigured (configure to reconnect)")
-        self._to_unconfigured()
-        self._publish_diagnostics()
 
     def _publish_diagnostics(self) -> None:
         level, message, values = arm_health(

@@ -174,6 +174,14 @@ def error_transition(node) -> bool:
     return True
 
 
+def to_unconfigured(node) -> None:
+    """Take a lifecycle node back to unconfigured (deactivate if active, then cleanup; call on its executor)."""
+    if node._state_machine.current_state[1] == "active":
+        node.trigger_deactivate()
+    if node._state_machine.current_state[1] == "inactive":
+        node.trigger_cleanup()
+
+
 def transition_result(node):
     """What a deactivate or cleanup callback answers: ERROR during :func:`error_transition`, else SUCCESS."""
     from rclpy.lifecycle import TransitionCallbackReturn

@@ -112,9 +112,12 @@ def matrix_mm_to_pose(T, pose=None):
     return pose
 
 
-def pose_msg_to_ur(msg) -> np.ndarray:
+def pose_msg_to_ur(msg, frame_id: str | None = None) -> np.ndarray:
     """The UR pose [x, y, z, rx, ry, rz] (m, rad) of a geometry_msgs/PoseStamped; ValueError when it holds a
-    NaN or infinite value or a quaternion whose norm is not 1 (:func:`check_pose`)."""
+    NaN or infinite value or a quaternion whose norm is not 1 (:func:`check_pose`), or, given ``frame_id``,
+    when its frame_id is neither that nor empty."""
+    if frame_id is not None and msg.header.frame_id not in ("", frame_id):
+        raise ValueError(f"frame {msg.header.frame_id!r} is not {frame_id!r}")
     xyz, q = check_pose(msg.pose)
     return np.array([*xyz, *Rotation.from_quat(q).as_rotvec()])
 

@@ -59,10 +59,15 @@ def test_a_connection_is_made_off_the_callers_thread_and_handed_over_once():
     assert notify.event.wait(5.0) and notify.count == 1
     assert arm.connect_threads == [t] and t is not threading.current_thread()
     assert conn.connecting  # until the caller takes the result
-    assert conn.take() == (arm, None)
+    assert conn.arm is None and conn.take() == (arm, None)
     assert not conn.connecting and conn.take() is None  # once
-    assert arm.connected and not arm.disconnect_threads
+    assert arm.connected and not arm.disconnect_threads and conn.arm is arm
     assert conn.elapsed_s >= 0.0
+    conn.disconnect()  # let go of on a thread of its own
+    assert conn.arm is None
+    conn.close(5.0)
+    assert len(arm.disconnect_threads) == 1 and arm.disconnect_threads[0] is not threading.current_thread()
+    assert arm.disconnect_threads[0].name == "source_arm_disconnect" and not arm.connected
 
 
 def test_a_connect_that_raises_is_reported_not_lost():
@@ -75,7 +80,7 @@ def test_a_connect_that_raises_is_reported_not_lost():
         conn.start(arm)
         assert notify.event.wait(5.0)
         assert conn.take() == (arm, reported)
-        assert not conn.connecting and not arm.disconnect_threads
+        assert not conn.connecting and not arm.disconnect_threads and conn.arm is None
 
 
 def test_a_hung_attempt_abandoned_then_succeeding_is_disconnected_on_its_own_thread():
@@ -91,7 +96,17 @@ def test_a_hung_attempt_abandoned_then_succeeding_is_disconnected_on_its_own_thr
     t.join(5.0)
     assert not t.is_alive()
     assert arm.disconnect_threads == [t] and not arm.connected  # let go of there, not on the caller's thread
-    assert notify.count == 0 and conn.take() is None
+    assert notify.count == 0 and conn.take() is None and conn.arm is None
+    # disconnect() while connecting abandons the attempt the same way
+    hold2 = threading.Event()
+    arm2 = FakeArm(hold=hold2)
+    t2 = conn.start(arm2)
+    assert _wait(lambda: arm2.connect_threads)
+    conn.disconnect()
+    assert not conn.connecting
+    hold2.set()
+    t2.join(5.0)
+    assert arm2.disconnect_threads == [t2] and conn.take() is None and conn.arm is None
 
 
 def test_a_stale_result_of_an_older_attempt_is_discarded():
