@@ -184,6 +184,7 @@ class ArmRunner:
         self.failure: str | None = None
         self.moves_completed = 0
         self.samples = 0                        # new controller samples seen since start
+        self._handed_out = -1                   # self.samples when new_sample() last returned one
         self._sample_host_s: float | None = None  # host time at which the latest sample was measured
         self._offset_s: float | None = None       # smallest host - controller clock offset seen
         self._lock = threading.Lock()
@@ -199,6 +200,7 @@ class ArmRunner:
         self.arm, self.lost_reason, self.failure = arm, None, None
         with self._lock:
             self.snapshot, self._sample_host_s, self._offset_s, self.samples = None, None, None, 0
+            self._handed_out = -1
         self._stop.clear()
         self.active = True
         self._threads = [threading.Thread(target=self._guarded, args=(self._poll_loop, "arm_poll", arm),
@@ -258,6 +260,15 @@ class ArmRunner:
     def latest(self) -> ArmSnapshot | None:
         with self._lock:
             return self.snapshot
+
+    def new_sample(self) -> ArmSnapshot | None:
+        """The latest snapshot if it is fresh (not :meth:`stale`) and a sample this method has not
+        returned since :meth:`start`, else None: each sample is handed out (published) once."""
+        snap = self.latest()
+        if snap is None or self.stale() or self.samples == self._handed_out:
+            return None
+        self._handed_out = self.samples
+        return snap
 
     def sample_time_s(self) -> float | None:
         """Host monotonic time (s) at which the latest sample was measured (None before the first)."""

@@ -4,11 +4,12 @@ A controller that is slow to answer (or never answers) must not stall the caller
 executor of the arm_driver node: :class:`BackgroundConnection` runs ``connect()`` on a daemon
 thread, keeps the result of the newest attempt, and calls ``notify()`` (the node wires it to a
 guard condition's ``trigger``) so that the caller collects it on its own thread with
-:meth:`BackgroundConnection.take` (which keeps a connected arm as ``arm``). Abandoning an attempt (:meth:`BackgroundConnection.abandon`)
-makes any result still to come stale: the connect thread then discards it and disconnects its arm
-there. :meth:`BackgroundConnection.release` disconnects a connected arm on a thread too (a hung
-controller's disconnect takes its timeout); :meth:`BackgroundConnection.disconnect` does both;
-:meth:`BackgroundConnection.close` waits for those disconnects.
+:meth:`BackgroundConnection.take`, which keeps a connected arm as ``arm``. Abandoning an attempt
+(:meth:`BackgroundConnection.abandon`) makes any result still to come stale: the connect thread
+then discards it and disconnects its arm there. :meth:`BackgroundConnection.release` disconnects
+a connected arm on a thread too (a hung controller's disconnect takes its timeout);
+:meth:`BackgroundConnection.disconnect` abandons and releases; :meth:`BackgroundConnection.close`
+waits for those disconnects.
 """
 
 from __future__ import annotations

@@ -40,7 +40,7 @@ from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackRet
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Bool
+from std_msgs.msg import Bool, Header
 
 from robot_ct_ros.hardware.arm import ArmError, ArmRunner, ArmSettings, arm_health
 from robot_ct_ros.hardware.arms import make_arm
@@ -80,6 +80,7 @@ class ArmDriverNode(LifecycleNode):
         self.role, self.base_frame, self.robot_ip = s.role, s.base_frame, self.arm_settings.robot_ip
         self.tool_frame = s.tool_frame or f"{s.role}_arm_tool0"
         self.joint_prefix = s.joint_prefix or f"{s.role}_arm_"
+        self.joint_names = [self.joint_prefix + n for n in JOINT_NAMES]
         self._arm_factory = arm_factory or (lambda: make_arm(self.arm_settings, self.sim_settings))
 
         ns = f"{self.role}_arm"
@@ -99,7 +100,6 @@ class ArmDriverNode(LifecycleNode):
         self.runner = ArmRunner(self.arm_settings, s.publish_rate_hz, self._move_failed,
                                 on_thread_died=self.faults.report)
         self._publish_timer = None
-        self._published_sample = -1
         self.last_error = ""
         self.goal_rejections = 0
         self.last_goal_problem = ""
@@ -157,8 +157,7 @@ class ArmDriverNode(LifecycleNode):
         return transition_result(self)
 
     def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self._stop_activity()
-        self.connection.disconnect()  # off the executor
+        self.on_error(state)  # stop, and disconnect off the executor
         return transition_result(self)
 
     def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
@@ -171,7 +170,6 @@ class ArmDriverNode(LifecycleNode):
     def _start_runner(self) -> None:
         if self.runner.active:
             return
-        self._published_sample = -1
         self.runner.start(self.arm)
         self._publish_timer = self.create_timer(self.runner.period_s, self._publish)
 
@@ -249,18 +247,12 @@ class ArmDriverNode(LifecycleNode):
         if (reason := self.runner.lost_reason) is not None:
             self.in_position_pub.publish(Bool(data=False))
             return self._unconfigure(f"connection lost: {reason}", "reconnect")
-        snap = self.runner.latest()
-        if not self.runner.active or snap is None:
+        if not self.runner.active or self.runner.latest() is None:
             return
-        fresh = not self.runner.stale()
-        if fresh and self.runner.samples != self._published_sample:  # each sample once, with its own time
-            self._published_sample = self.runner.samples
+        if (snap := self.runner.new_sample()) is not None:  # fresh, each sample once, with its own time
             stamp = self._stamp()
-            js = JointState()
-            js.header.stamp = stamp
-            js.name = [self.joint_prefix + n for n in JOINT_NAMES]
-            js.position = [float(v) for v in snap.joint_positions]
-            self.joint_pub.publish(js)
+            self.joint_pub.publish(JointState(header=Header(stamp=stamp), name=self.joint_names,
+                                              position=[float(v) for v in snap.joint_positions]))
             self.pose_pub.publish(ur_to_pose_msg(snap.tcp_pose, self.base_frame, stamp))
             if snap.true_tcp_pose is not None:
                 self.true_pose_pub.publish(ur_to_pose_msg(snap.true_tcp_pose, self.base_frame, stamp))

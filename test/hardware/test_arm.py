@@ -199,3 +199,39 @@ def test_arm_health_levels_and_messages():
     assert dict(_health(_RunnerState())[2])["connection"] == "disconnected"
     connected.is_connected = False
     assert dict(_health(_RunnerState(), arm=connected)[2])["connected"] is False
+
+
+def test_runner_hands_out_each_fresh_sample_once():
+    class ClockedArm(_FlakyArm):
+        """A controller clock that follows the host's until frozen (a hung controller answering its last state)."""
+        frozen = None
+
+        def snapshot(self):
+            t = time.monotonic() if self.frozen is None else self.frozen
+            return ArmSnapshot(self.pose.copy(), np.zeros(6), timestamp_s=t)
+
+    arm = ClockedArm(reads=10 ** 9)
+    runner = ArmRunner(ArmSettings(max_state_age_s=0.5), rate_hz=200.0)
+    assert runner.new_sample() is None
+    for _ in range(2):  # a restart hands out samples afresh
+        arm.frozen = None
+        runner.start(arm)
+        try:
+            assert _wait(lambda: runner.samples >= 2)
+            n = runner.samples
+            arm.frozen = time.monotonic()
+            assert _wait(lambda: runner.samples > n)  # the frozen sample, seen once
+            first = runner.new_sample()
+            assert first is not None and first.timestamp_s == arm.frozen
+            time.sleep(0.05)
+            assert runner.new_sample() is None  # nothing new: not handed out again
+            time.sleep(0.6)
+            n = runner.samples
+            arm.frozen += 0.001  # a new sample, but measured long ago: stale, never handed out
+            assert _wait(lambda: runner.samples > n) and runner.stale()
+            assert runner.new_sample() is None
+            arm.frozen = None
+            assert _wait(lambda: not runner.stale())
+            assert runner.new_sample() is not None
+        finally:
+            runner.stop()
