@@ -28,7 +28,8 @@ through the lifecycle error transition (on_error releases the arm; the node ends
 With autostart (default) the node configures and activates itself, so a plain ``ros2 run`` works
 without a lifecycle manager.
 Parameters: config/arm_driver.yaml; the arm itself is robot_ct_ros.hardware.arm (ArmSettings,
-ArmRunner), the simulated arm's sim_* parameters robot_ct_ros.hardware.simulated_arm.
+ArmRunner, arm_health), connecting it robot_ct_ros.hardware.connection, the simulated arm's sim_*
+parameters robot_ct_ros.hardware.simulated_arm.
 """
 
 from __future__ import annotations
@@ -186,7 +187,7 @@ class ArmDriverNode(LifecycleNode):
     def _on_connect_done(self) -> None:
         if (result := self.connection.take()) is None:
             return
-        arm, error = result
+        _, error = result
         if error is not None:
             return self._unconfigure(f"connect failed: {error}", "retry")
         self.get_logger().info(f"{self.role} arm connected ({self.robot_ip or 'simulated'}) in "
@@ -257,7 +258,6 @@ class ArmDriverNode(LifecycleNode):
             if snap.true_tcp_pose is not None:
                 self.true_pose_pub.publish(ur_to_pose_msg(snap.true_tcp_pose, self.base_frame, stamp))
         self.in_position_pub.publish(Bool(data=self.in_position()))
-
 
     def _publish_diagnostics(self) -> None:
         level, message, values = arm_health(
