@@ -10,8 +10,10 @@ points with how far errors of that accuracy move them:
 * R = (mean displacement of the ROI points' projections by the correction) / (the same mean for
   random errors of the stated accuracy). R well above 1 means the loop moved the views much
   further than the robots can err: the whole scan keeps its nominal geometry.
-* Otherwise a view moved further than the ``view_quantile`` of the random displacements keeps its
-  nominal geometry alone.
+* Otherwise a view moved further than ``max_ratio`` times the ``view_quantile`` of the random
+  displacements keeps its nominal geometry alone: the same tolerance for an understated accuracy
+  as the scan's (without it, robots that err 1.4 times more than stated lose their largest,
+  correct corrections).
 
 It needs the robots' accuracy stated within about a factor two. Evidence: docs/calibration.md,
 "Never worse than the robots".
@@ -64,7 +66,8 @@ def plausibility_guard(nominal: ConeGeometry, params: np.ndarray, points_mm, sta
     max_ratio : float
         Above this R the scan keeps its nominal geometry.
     view_quantile : float
-        A view displaced beyond this quantile of the random displacements keeps its nominal geometry.
+        A view displaced beyond ``max_ratio`` times this quantile of the random displacements keeps
+        its nominal geometry.
     draws : int
         Random scans drawn to estimate the displacements errors of the stated accuracy cause.
     """
@@ -81,7 +84,7 @@ def plausibility_guard(nominal: ConeGeometry, params: np.ndarray, points_mm, sta
     ratio = float(moved.mean() / max(drawn.mean(), 1e-300))
     if ratio > max_ratio:
         return GuardResult(np.zeros_like(params), ratio, tuple(range(nominal.n_views)), True)
-    beyond = np.flatnonzero(moved > np.quantile(drawn, view_quantile))
+    beyond = np.flatnonzero(moved > max_ratio * np.quantile(drawn, view_quantile))
     out = params.copy()
     out[beyond] = 0.0
     return GuardResult(out, ratio, tuple(int(v) for v in beyond), False)

@@ -143,8 +143,9 @@ class CalibrationSettings:
     guard_min_ncc: float = setting(0.5, "the scan keeps its nominal geometry when the estimation model explains the "
                                    "data this poorly: the final projection NCC of its reprojection against the data",
                                    minimum=0.0, maximum=1.0)
-    guard_view_quantile: float = setting(0.999, "a view moved beyond this quantile of the stated accuracy's "
-                                         "displacements keeps its nominal geometry", minimum=0.5, maximum=1.0)
+    guard_view_quantile: float = setting(0.999, "a view moved beyond guard_max_ratio times this quantile of the "
+                                         "stated accuracy's displacements keeps its nominal geometry", minimum=0.5,
+                                         maximum=1.0)
 
     def __post_init__(self):
         validate(self)
