@@ -15,7 +15,7 @@ points with how far errors of that accuracy move them:
   as the scan's (without it, robots that err 1.4 times more than stated lose their largest,
   correct corrections).
 
-It needs the robots' accuracy stated within about a factor two. Evidence: docs/calibration.md,
+It needs the robots' accuracy stated to within ``max_ratio``. Evidence: docs/calibration.md,
 "Never worse than the robots".
 """
 
