@@ -26,3 +26,16 @@ def test_demo_quick(tmp_path):
     # the correction's prior is the simulated arms' accuracy (0.1 mm, 0.05 deg per axis), not the default
     report = json.loads(Path(summary["paths"]["report_json"]).read_text())
     assert report["prior_sigma"] == pytest.approx([0.1] * 6 + [np.deg2rad(0.05)] * 3)
+
+
+def test_a_truncated_demo_models_the_phantom_around_the_roi():
+    """--truncated scans the whole phantom through the field of view: the correction models the
+    object outside the ROI (the exterior model), out to the phantom's far side; a scan inside the
+    field of view does not."""
+    from robot_ct_ros.testing.demo import demo_settings, recon_parameters
+
+    truncated = recon_parameters(demo_settings(truncated=True))
+    assert truncated["exterior"] == "on"
+    # the 25 mm wide mouse, its spine (6.6 mm off its centre) in the ROI: its far side 17 mm away
+    assert truncated["exterior_half_width_mm"] == pytest.approx(17.0, abs=0.1)
+    assert "exterior" not in recon_parameters(demo_settings())
