@@ -159,6 +159,13 @@ def itk_to_volume(image) -> tuple[np.ndarray, VolumeGrid]:
     return vol, grid
 
 
+def rtk_stack_origin_spacing(geom: ConeGeometry) -> tuple[list, list]:
+    """(origin, spacing) in mm of the RTK projection stack of ``geom``: the centred origin that
+    puts physical (0, 0) at the pixel-grid centre (our ``detector_mm``), in ITK's (x, y, z) order."""
+    origin = [-0.5 * (geom.n_cols - 1) * geom.col_pitch_mm, -0.5 * (geom.n_rows - 1) * geom.row_pitch_mm, 0.0]
+    return origin, [geom.col_pitch_mm, geom.row_pitch_mm, 1.0]
+
+
 def projections_to_itk(proj: np.ndarray | None, geom: ConeGeometry):
     """RTK projection stack (size n_cols x n_rows x n_views) of ``proj[view, row, col]``.
 
@@ -174,8 +181,9 @@ def projections_to_itk(proj: np.ndarray | None, geom: ConeGeometry):
         if arr.shape != shape:
             raise ValueError(f"projections shape {arr.shape} does not match geometry {shape}")
     img = itk.image_from_array(arr)
-    img.SetSpacing([geom.col_pitch_mm, geom.row_pitch_mm, 1.0])
-    img.SetOrigin([-0.5 * (geom.n_cols - 1) * geom.col_pitch_mm, -0.5 * (geom.n_rows - 1) * geom.row_pitch_mm, 0.0])
+    origin, spacing = rtk_stack_origin_spacing(geom)
+    img.SetSpacing(spacing)
+    img.SetOrigin(origin)
     return img
 
 

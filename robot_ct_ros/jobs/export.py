@@ -144,12 +144,13 @@ def export_geometry(bag, out, fmt: str = "rtk", *, corrected=None, say=_say) -> 
             raise ValueError(f"--format tigre: {which} geometry, {exc}") from None
     else:
         write_astra_vectors(geom, out)
+    from robot_ct_ros.ct.rtk_bridge import rtk_stack_origin_spacing  # pure numpy, no itk
+
+    origin, spacing = rtk_stack_origin_spacing(geom)
     result = {"path": str(out), "format": fmt, "geometry": which, "n_views": geom.n_views,
               "n_rows": geom.n_rows, "n_cols": geom.n_cols, "row_pitch_mm": geom.row_pitch_mm,
-              "col_pitch_mm": geom.col_pitch_mm,
-              "rtk_projection_origin_mm": [-0.5 * (geom.n_cols - 1) * geom.col_pitch_mm,
-                                           -0.5 * (geom.n_rows - 1) * geom.row_pitch_mm, 0.0],
-              "rtk_projection_spacing_mm": [geom.col_pitch_mm, geom.row_pitch_mm, 1.0]}
+              "col_pitch_mm": geom.col_pitch_mm, "rtk_projection_origin_mm": origin,
+              "rtk_projection_spacing_mm": spacing}
     detector = (f"detector {geom.n_rows} x {geom.n_cols} pixels of {geom.row_pitch_mm:g} x {geom.col_pitch_mm:g} mm "
                 "(rows x columns)")
     if fmt == "rtk":
