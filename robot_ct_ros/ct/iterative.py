@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
-from robot_ct_ros.ct.projector import back_project, forward_project
+from robot_ct_ros.ct.projector import back_project as bp, forward_project as fp
 
 __all__ = ["sirt", "cgls"]
 
@@ -25,7 +25,6 @@ def sirt(line_integrals: np.ndarray, geom: ConeGeometry, grid: VolumeGrid, n_ite
     valid ray crosses keeps its ``x0`` value. ``callback(it, x, residual_norm)`` is called after
     each iteration with the norm of the masked residual of the iterate *before* the update.
     """
-    fp, bp = forward_project, back_project
     b = np.asarray(line_integrals, dtype=np.float32)
     mask = np.isfinite(b) if valid_mask is None else (np.broadcast_to(np.asarray(valid_mask, bool), b.shape)
                                                       & np.isfinite(b))
@@ -53,7 +52,6 @@ def cgls(line_integrals: np.ndarray, geom: ConeGeometry, grid: VolumeGrid, n_ite
     ``callback(it, x, residual_norm)`` gets the residual norm ``||b - A x||`` of the new
     iterate (monotonically non-increasing in exact arithmetic).
     """
-    fp, bp = forward_project, back_project
     b = np.asarray(line_integrals, dtype=np.float32)
     x = np.zeros(grid.shape_zyx, dtype=np.float32) if x0 is None else np.array(x0, dtype=np.float32)
     r = b - fp(x, grid, geom) if x0 is not None else b.copy()
