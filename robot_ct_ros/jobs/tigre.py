@@ -109,7 +109,7 @@ def to_tigre(geom: ConeGeometry, center_mm=(0.0, 0.0, 0.0)) -> dict:
         i = int(bad[0])
         raise ValueError(f"view {i}: the detector centre is not beyond the volume centre seen from the source "
                          f"(DSD {dsd[i]:.6g} <= DSO {dso[i]:.6g} mm); TIGRE's projectors need the volume between "
-                         "source and detector; {bad.size} of {dso.size} views are so")
+                         f"source and detector; {bad.size} of {dso.size} views are so")
     Q = np.einsum("nji,njk->nik", R, geom.local_frames()[:, :, [2, 0, 1]])  # R^T [w, u, v]
     n = geom.n_views
     det_n = np.array([geom.n_rows, geom.n_cols])

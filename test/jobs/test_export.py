@@ -260,5 +260,6 @@ def test_tigre_refuses_a_view_it_cannot_represent(tmp_path, capsys):
                      projection_units="line_integral", roi_center_mm=tuple(beyond))
     out = tmp_path / "t.npz"
     assert main(["export", str(src), "--format", "tigre", "--out", str(out)]) == 2
-    _one_line_error(capsys, "view 0", "DSD", "<= DSO")
+    err = _one_line_error(capsys, "view 0", "DSD", "<= DSO", f"of {g.n_views} views are so")
+    assert "{" not in err  # every count filled in
     assert not out.exists()
