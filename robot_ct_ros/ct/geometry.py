@@ -176,6 +176,15 @@ class VolumeGrid:
         return self.resized(tuple(s // k for s, k in zip(self.shape_zyx, f)),
                             tuple(v * k for v, k in zip(self.voxel_size_mm, f[::-1])))
 
+    def slab(self, z0: int, z1: int) -> "VolumeGrid":
+        """Voxel planes ``z0`` to ``z1 - 1`` along the first axis of ``shape_zyx`` (the grid's own z):
+        the same voxels, so a volume on it is ``volume[z0:z1]`` of one on this grid."""
+        nz = self.shape_zyx[0]
+        if not 0 <= z0 < z1 <= nz:
+            raise ValueError(f"a slab needs 0 <= z0 < z1 <= {nz}, got {z0}, {z1}")
+        return VolumeGrid((z1 - z0,) + self.shape_zyx[1:], self.voxel_size_mm,
+                          tuple(self.index_to_world((0.0, 0.0, float(z0)))), self.direction)
+
     def in_own_frame(self) -> tuple["VolumeGrid", np.ndarray]:
         """This grid axis-aligned in its own frame, and the rotation R (= direction transposed)
         that takes world coordinates into that frame: a kernel that assumes an axis-aligned grid

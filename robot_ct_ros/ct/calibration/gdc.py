@@ -38,7 +38,7 @@ from scipy import ndimage
 
 from robot_ct_ros.ct.calibration.kernels import blas_single_threaded, detector_homographies, warp_projections
 from robot_ct_ros.ct.calibration.model import as_model, project
-from robot_ct_ros.ct.calibration.masks import estimator_inputs, usable_views, view_chunks
+from robot_ct_ros.ct.calibration.masks import estimator_inputs, summarise_views, usable_views, view_chunks
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid, observable_params
 
 __all__ = ["GDC_METHODS", "GDCConfig", "default_gdc_configs", "estimate_views_gdc", "with_log"]
@@ -169,7 +169,7 @@ def _jacobian_chunk(vol, grid, nom_c: ConeGeometry, g: np.ndarray, fd: np.ndarra
 @blas_single_threaded
 def estimate_views_gdc(measured: np.ndarray, nominal: ConeGeometry, params0: np.ndarray, volume: np.ndarray,
                        grid: VolumeGrid, config: GDCConfig = GDCConfig(), valid_mask=None,
-                       progress=None) -> tuple[np.ndarray, dict]:
+                       progress=None, *, support_mask=None, view_ids=None) -> tuple[np.ndarray, dict]:
     """One GDC (or GDC-LoG) pass: new 9-DOF parameters (n, 9) of every view, relative to ``nominal``.
 
     Same contract as :func:`robot_ct_ros.ct.calibration.estimate_views`: ``measured``
@@ -185,10 +185,16 @@ def estimate_views_gdc(measured: np.ndarray, nominal: ConeGeometry, params0: np.
     (:func:`~robot_ct_ros.ct.geometry.observable_params`); the others keep ``params0``'s values.
     On a detector of few rows the LoG mask is eroded along the rows by at most a quarter of
     them, so a thin detector keeps its rows.
+
+    The views are independent: a block of them (``view_ids``, their indices in the whole scan;
+    ``support_mask``, the whole scan's ROI support for them) gets what the whole scan gets, and
+    ``info["per_view"]`` holds the per-view values behind ``cost`` and ``accepted``
+    (:func:`~robot_ct_ros.ct.calibration.masks.summarise_views`).
     """
     n = nominal.n_views
     meas, params, valid, mask = estimator_inputs(measured, nominal, params0, valid_mask, grid,
-                                                 config.roi_support_fraction)
+                                                 config.roi_support_fraction, support_mask)
+    view_ids = np.arange(n) if view_ids is None else np.asarray(view_ids, np.int64)
     vol = as_model(volume)
     sigma = config.log_sigma_px
     if sigma is None:
@@ -214,8 +220,9 @@ def estimate_views_gdc(measured: np.ndarray, nominal: ConeGeometry, params0: np.
     cost = np.full(n, np.nan)
     cost_start = np.full(n, np.nan)
     prior_w = np.zeros(n)
+    per_view = {"cost": ("nanmean", float("nan"), []), "accepted": ("mean", 0.0, [])}
     info = {"metric": "l2" if sigma is None else f"log(sigma={sigma:g} px)", "cost": [], "accepted": [],
-            "skipped_views": [int(v) for v in np.setdiff1d(np.arange(n), views)]}
+            "skipped_views": [int(v) for v in view_ids[np.setdiff1d(np.arange(n), views)]], "per_view": per_view}
     for it in range(config.iterations):
         accepted = np.zeros(n, bool)
         for idx in view_chunks(views, config.chunk_views):
@@ -251,9 +258,10 @@ def estimate_views_gdc(measured: np.ndarray, nominal: ConeGeometry, params0: np.
             accepted[idx] = ok
             cost[idx] = np.where(ok, cost_new, cost_cur)
         if it == 0:
-            info["cost"].append(float(np.nanmean(cost_start)) if views.size else float("nan"))
-        info["cost"].append(float(np.nanmean(cost)) if views.size else float("nan"))
-        info["accepted"].append(float(accepted[views].mean()) if views.size else 0.0)
+            per_view["cost"][2].append(cost_start.copy())
+        per_view["cost"][2].append(cost.copy())
+        per_view["accepted"][2].append(accepted[views].astype(np.float64))
+        info.update(summarise_views(per_view))
         if progress is not None:
             progress(it, config.iterations, info)
     return params, info

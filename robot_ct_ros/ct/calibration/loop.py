@@ -14,6 +14,7 @@ from dataclasses import replace
 import numpy as np
 
 from robot_ct_ros.ct.calibration.constraints import fit_drift, focus_conjugate_modes, hold_magnification, moved_px
+from robot_ct_ros.ct.calibration.distributed import InProcess, executor_for
 from robot_ct_ros.ct.calibration.ensemble import average_estimates, member_seeds
 from robot_ct_ros.ct.calibration.exterior import reconstruct_with_exterior
 from robot_ct_ros.ct.calibration.guard import plausibility_guard
@@ -100,15 +101,18 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
         settings = settings.without_prior()
         if method.estimate is not None:
             say(f"{method.name} has no prior: the robots' error (prior_sigma) is not used")
-    kw = dict(valid_mask=valid_mask, drift_times=drift_times, gauge_points_mm=gauge_points_mm, configs=configs,
-              focus_modes=focus_modes, fdk_kwargs=fdk_kwargs, progress=progress, on_iteration=on_iteration,
-              accuracy=accuracy)
-    if settings.ensemble <= 1 or not method.samples or configs is not None:
-        return _calibrate_once(line_integrals, nominal, grid, settings, **kw)
-    runs = []
-    for k, seed in enumerate(member_seeds(settings.seed, settings.ensemble)):
-        say(f"ensemble member {k + 1}/{settings.ensemble} (sampling seed {seed})")
-        runs.append(_calibrate_once(line_integrals, nominal, grid, settings.replace(seed=seed), **kw))
+    with executor_for(settings) as executor:  # in-process, or Dask tasks (settings.scheduler)
+        if settings.scheduler:
+            say(f"estimation and FDK run on {executor.description}")
+        kw = dict(valid_mask=valid_mask, drift_times=drift_times, gauge_points_mm=gauge_points_mm, configs=configs,
+                  focus_modes=focus_modes, fdk_kwargs=fdk_kwargs, progress=progress, on_iteration=on_iteration,
+                  accuracy=accuracy, executor=executor)
+        if settings.ensemble <= 1 or not method.samples or configs is not None:
+            return _calibrate_once(line_integrals, nominal, grid, settings, **kw)
+        runs = []
+        for k, seed in enumerate(member_seeds(settings.seed, settings.ensemble)):
+            say(f"ensemble member {k + 1}/{settings.ensemble} (sampling seed {seed})")
+            runs.append(_calibrate_once(line_integrals, nominal, grid, settings.replace(seed=seed), **kw))
     result = average_estimates(runs, line_integrals, nominal, grid, valid_mask=valid_mask, points_mm=gauge_points_mm,
                                fdk_kwargs=fdk_kwargs)
     say(f"ensemble of {settings.ensemble}: the members lie {result.spread_px:.3f} px from their mean")
@@ -118,7 +122,7 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
 @blas_single_threaded
 def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, settings: CalibrationSettings, *,
                     valid_mask, drift_times, gauge_points_mm, configs, focus_modes, fdk_kwargs, progress,
-                    on_iteration, accuracy) -> CalibrationResult:
+                    on_iteration, accuracy, executor=None) -> CalibrationResult:
     """One run of the loop (the body of :func:`calibrate`).
 
     Each outer iteration reconstructs with the current geometry (FDK, then SIRT on a truncated
@@ -140,8 +144,12 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
     shift along the row, magnification, rotation within the fan plane:
     :data:`~robot_ct_ros.ct.geometry.FAN_BEAM_PARAMS`); the other four stay at their nominal
     values, which is also what the prior says of them.
+
+    ``executor`` runs the per-view estimation and the FDKs: in-process by default, or as Dask tasks
+    (:mod:`robot_ct_ros.ct.calibration.distributed`), with the same result.
     """
-    from robot_ct_ros.ct.reconstruction import fdk
+    executor = executor or InProcess()
+    fdk = executor.fdk
 
     method = get_method(settings.method)
     plan = settings.plan()
@@ -187,7 +195,7 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
                                               subsets=settings.exterior_subsets)
             return EstimationVolume(parts, float("nan"), None)
         return reconstruct_for_estimation(li_l, geom_l, grid_l, mask_l, sirt_n, fdk_kwargs, inner, correction=correction,
-                                          measure_fdk=measure_fdk)
+                                          measure_fdk=measure_fdk, fdk=fdk)
 
     points = roi_points(grid) if gauge_points_mm is None else np.asarray(gauge_points_mm, float)
     grid_e = estimation_grid(grid, settings.padding)
@@ -221,7 +229,7 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
             cfg = narrowed(coarse_cfg, it)
             if rep:
                 cfg = method.fresh_samples(cfg, rep)
-            params, coarse_info = estimate(li_c, nom_c, params, rec_c.volume, grid_c, cfg, mask_c)
+            params, coarse_info = executor.estimate(estimate, li_c, nom_c, params, rec_c.volume, grid_c, cfg, mask_c)
             skipped.update(coarse_info.get("skipped_views", ()))
             moved = moved_px(nom_c, params, before, points)
             say(f"iteration {it + 1}/{n_iter}: coarse estimate {rep + 1} done, views moved {moved:.3f} coarse px "
@@ -231,7 +239,7 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
         correction = (rec_c.volume - rec_c.fdk, grid_c) if fine_volume == "fdk+coarse-sirt" and not exterior else None
         vol = rebuild(li_f, nom_f.perturbed(params), grid_f, mask_f, sirt_iterations if fine_volume == "sirt" else 0,
                       inner_f, correction=correction, measure_fdk=False).volume
-        params, fine_info = estimate(li_f, nom_f, params, vol, grid_f, narrowed(fine_cfg, it), mask_f)
+        params, fine_info = executor.estimate(estimate, li_f, nom_f, params, vol, grid_f, narrowed(fine_cfg, it), mask_f)
         skipped.update(fine_info.get("skipped_views", ()))
         params = remove_gauge(nominal.perturbed(params), nominal, points).params_relative_to(nominal)
         params = hold_magnification(nominal, params, points)

@@ -7,7 +7,7 @@ import numpy as np
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
 
 __all__ = ["roi_support_mask", "ray_chords_mm", "as_view_mask", "usable_data", "bin_masked", "usable_views", "view_chunks",
-           "estimator_inputs", "MIN_VIEW_PIXELS", "FACE_MARGIN_SHARE"]
+           "estimator_inputs", "summarise_views", "MIN_VIEW_PIXELS", "FACE_MARGIN_SHARE"]
 
 MIN_VIEW_PIXELS = 16
 """A view with fewer usable pixels than this (its rays barely cross the grid, or its detector is
@@ -128,18 +128,26 @@ def usable_views(mask: np.ndarray, minimum: int = MIN_VIEW_PIXELS) -> np.ndarray
 
 
 def view_chunks(views: np.ndarray, size: int):
-    """The view indices ``views`` in consecutive chunks of at most ``size``."""
+    """The view indices ``views`` in chunks of at most ``size``: those in the same window of ``size``
+    consecutive indices (``v // size``) together, so a block of views starting at a multiple of
+    ``size`` chunks its views as the whole scan does (:mod:`robot_ct_ros.ct.calibration.distributed`)."""
     views = np.asarray(views, np.int64)
-    for v0 in range(0, views.size, max(1, int(size))):
-        yield views[v0:v0 + size]
+    if views.size == 0:
+        return
+    window = views // max(1, int(size))
+    yield from np.split(views, np.flatnonzero(np.diff(window)) + 1)
 
 
 def estimator_inputs(measured, nominal: ConeGeometry, params0, valid_mask, grid: VolumeGrid,
-                     support_fraction: float | None):
+                     support_fraction: float | None, support_mask=None):
     """What every per-view estimator starts from: the measured views as float32 (n, rows, cols)
     checked against ``nominal``, the starting parameters (n, 9) as a copy, the valid pixels
     (valid and finite) and the pixels to register (also on the ROI support, unless
     ``support_fraction`` is None: every ray modelled).
+
+    ``support_mask`` (n, rows, cols), when given, is that ROI support, computed beforehand: for a
+    block of views of a larger scan it must be the whole scan's (:func:`roi_support_mask` decides
+    between its margin and exact forms over all views).
 
     Raises
     ------
@@ -152,6 +160,34 @@ def estimator_inputs(measured, nominal: ConeGeometry, params0, valid_mask, grid:
         raise ValueError(f"measured {meas.shape} does not match the geometry ({n}, {nominal.det_shape})")
     params = np.array(params0, dtype=np.float64).reshape(n, 9)
     valid = as_view_mask(valid_mask, meas.shape) & np.isfinite(meas)
-    mask = valid if support_fraction is None else valid & roi_support_mask(nominal, params, grid, support_fraction)
+    if support_fraction is None:
+        mask = valid
+    elif support_mask is not None:
+        mask = valid & np.asarray(support_mask, bool).reshape(meas.shape)
+    else:
+        mask = valid & roi_support_mask(nominal, params, grid, support_fraction)
     return meas, params, valid, mask
+
+
+_REDUCERS = {"mean": np.mean, "median": np.median, "nanmean": np.nanmean}
+
+
+def summarise_views(per_view: dict) -> dict:
+    """An estimator's summaries from its per-view values: ``per_view`` maps a name to (reducer,
+    empty, [values per step]), reducer ``"mean"``, ``"median"`` or ``"nanmean"`` over one step's
+    views (a 1-D array each), ``empty`` the summary of a step without values (None: the step is
+    left out). Returns name -> [summary per step]. Blocks of views estimated apart are summarised
+    alike after joining their values step by step (:mod:`robot_ct_ros.ct.calibration.distributed`)."""
+    out = {}
+    for key, (reducer, empty, steps) in per_view.items():
+        summary = []
+        for values in steps:
+            values = np.asarray(values, np.float64)
+            if values.size == 0 or (reducer == "nanmean" and not np.isfinite(values).any()):
+                if empty is not None:
+                    summary.append(float(empty))
+                continue
+            summary.append(float(_REDUCERS[reducer](values)))
+        out[key] = summary
+    return out
 

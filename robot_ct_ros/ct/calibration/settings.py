@@ -146,9 +146,19 @@ class CalibrationSettings:
     guard_view_quantile: float = setting(0.999, "a view moved beyond guard_max_ratio times this quantile of the "
                                          "stated accuracy's displacements keeps its nominal geometry", minimum=0.5,
                                          maximum=1.0)
+    scheduler: str = setting("", "where estimation and FDK run: empty = in this process (default, no cluster); "
+                             "local = a Dask LocalCluster of dask_workers processes; tcp://host:8786 = that Dask "
+                             "scheduler (needs pip install dask distributed; docs/distributed.md)")
+    dask_workers: int = setting(2, "worker processes of the local Dask cluster (scheduler=local)", minimum=1,
+                                maximum=1024)
+    dask_threads: int = setting(0, "numba threads of each local Dask worker (scheduler=local; 0: the cores shared "
+                                "out among the workers)", minimum=0, maximum=1024)
 
     def __post_init__(self):
         validate(self)
+        if self.scheduler not in ("", "local") and "://" not in self.scheduler:
+            raise ValueError(f"scheduler must be empty (in-process), local or a Dask scheduler address such as "
+                             f"tcp://host:8786; got {self.scheduler!r}")
 
     @property
     def prior_sigma(self):

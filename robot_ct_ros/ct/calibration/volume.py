@@ -32,7 +32,8 @@ class EstimationVolume(NamedTuple):
 
 
 def reconstruct_for_estimation(line_integrals, geom, grid, mask, sirt_iterations: int, fdk_kwargs=None,
-                               fdk_shape_yx=None, correction=None, measure_fdk: bool = True) -> EstimationVolume:
+                               fdk_shape_yx=None, correction=None, measure_fdk: bool = True,
+                               fdk=None) -> EstimationVolume:
     """The volume the views are registered against: FDK, then ``sirt_iterations`` of masked SIRT.
 
     FDK of a truncated scan does not reproject to its own data (the extrapolated rows leave
@@ -51,11 +52,13 @@ def reconstruct_for_estimation(line_integrals, geom, grid, mask, sirt_iterations
     worse than the FDK alone). Returns an :class:`EstimationVolume`; its ``fdk_ncc`` measures how
     consistent the geometry is, which SIRT cannot inflate by fitting an underdetermined
     (few-view) problem. It costs a reprojection: without SIRT and with ``measure_fdk`` False it
-    is skipped (NaN).
+    is skipped (NaN). ``fdk`` is the FDK to run (default :func:`~robot_ct_ros.ct.reconstruction.fdk`;
+    the loop passes its executor's, :mod:`robot_ct_ros.ct.calibration.distributed`).
     """
     from robot_ct_ros.ct.iterative import sirt
-    from robot_ct_ros.ct.reconstruction import fdk, resample
+    from robot_ct_ros.ct.reconstruction import fdk as fdk_in_process, resample
 
+    fdk = fdk or fdk_in_process
     vol = fdk(line_integrals, geom, grid, valid_mask=mask, **(fdk_kwargs or {}))
     if fdk_shape_yx is not None:
         _, ny, nx = grid.shape_zyx

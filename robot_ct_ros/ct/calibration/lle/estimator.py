@@ -11,7 +11,7 @@ from robot_ct_ros.ct.calibration.lle.sampling import (best_fit_fraction, ranking
                                                       source_offsets, virtual_margin_px)
 from robot_ct_ros.ct.calibration.lle.weights import WEIGHTINGS, background_basis, lle_weights, view_distances
 from robot_ct_ros.ct.calibration.model import as_model, project
-from robot_ct_ros.ct.calibration.masks import estimator_inputs, usable_views, view_chunks
+from robot_ct_ros.ct.calibration.masks import estimator_inputs, summarise_views, usable_views, view_chunks
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid, observable_params
 
 __all__ = ["LLEConfig", "estimate_views", "default_lle_configs", "narrowed", "DEFAULT_BACKGROUND", "DRAWS",
@@ -118,10 +118,25 @@ def _shift_search(measured, nominal, params, vol, grid, config, mask_all):
     return out
 
 
+def _view_draws(seed: int, level: int, view_ids, n_src: int, D: int, S: int):
+    """The random part of each view's samples: source position indices (c, D, S), sample 0 of
+    each set the current one, and uniform detector offsets in [-1, 1] (c, D, S, 6), from one
+    generator per view seeded by (seed, level, view id), so any split of the views draws the same."""
+    c = len(view_ids)
+    a = np.empty((c, D, S), np.int64)
+    u = np.empty((c, D, S, 6))
+    for k, v in enumerate(view_ids):
+        rng = np.random.default_rng((int(seed), int(level), int(v)))
+        a[k] = rng.integers(0, n_src, size=(D, S))
+        u[k] = rng.uniform(-1.0, 1.0, size=(D, S, 6))
+    a[:, :, 0] = 0
+    return a, u
+
+
 @blas_single_threaded
 def estimate_views(measured: np.ndarray, nominal: ConeGeometry, params0: np.ndarray, volume: np.ndarray,
                    grid: VolumeGrid, config: LLEConfig = LLEConfig(), valid_mask=None,
-                   progress=None) -> tuple[np.ndarray, dict]:
+                   progress=None, *, support_mask=None, view_ids=None) -> tuple[np.ndarray, dict]:
     """One LLE pass: new 9-DOF parameters (n, 9) of every view, relative to ``nominal``.
 
     ``measured`` (n, rows, cols) line integrals on ``nominal``'s detector grid; ``params0``
@@ -135,29 +150,38 @@ def estimate_views(measured: np.ndarray, nominal: ConeGeometry, params0: np.ndar
     A one-row (fan-beam) ``nominal`` estimates only the parameters a fan beam sees
     (:func:`~robot_ct_ros.ct.geometry.observable_params`: in-plane source position, detector
     shift and distance, rotation within the fan plane); the other four keep ``params0``'s values.
+
+    Every view draws its samples from its own generator, seeded by (``config.seed``, level, view
+    id), and nothing couples the views, so a block of views estimated alone (``view_ids``: the
+    block's indices in the whole scan, default 0..n-1; ``support_mask``: the whole scan's ROI
+    support for the block's views, see :func:`~robot_ct_ros.ct.calibration.masks.estimator_inputs`)
+    gets what the whole scan gets for those views (:mod:`robot_ct_ros.ct.calibration.distributed`).
+    ``info["per_view"]`` holds the per-view values the summaries are taken over
+    (:func:`~robot_ct_ros.ct.calibration.masks.summarise_views`).
     """
     n = nominal.n_views
     measured, params, _, mask_all = estimator_inputs(measured, nominal, params0, valid_mask, grid,
-                                                     config.roi_support_fraction)
+                                                     config.roi_support_fraction, support_mask)
+    view_ids = np.arange(n) if view_ids is None else np.asarray(view_ids, np.int64)
     vol = as_model(volume)
     metric = "l2" if config.weighting == "l2" else "ncc"
     measured = np.where(mask_all, measured, np.float32(0.0))  # dead pixels may be nan or inf: see score_warped
     if config.shift_search_px > 0:
         params = _shift_search(measured, nominal, params, vol, grid, config, mask_all)
-    rng = np.random.default_rng(config.seed)
     h0 = np.asarray(config.half_width, dtype=np.float64) * observable_params(nominal)  # held parameters: no width
     views = usable_views(mask_all)  # the others keep their geometry (they lean on the prior)
-    info = {"best_distance": [], "chosen_distance": [], "independent_fraction": [],
-            "skipped_views": [int(v) for v in np.setdiff1d(np.arange(n), views)]}
+    per_view = {"best_distance": ("mean", float("nan"), []), "chosen_distance": ("mean", None, []),
+                "independent_fraction": ("median", None, [])}
+    info = {"skipped_views": [int(v) for v in view_ids[np.setdiff1d(np.arange(n), views)]], "per_view": per_view}
     for level in range(config.levels):
         h = h0 * config.shrink ** level
         src_offsets = source_offsets(config.source_positions, h)
         n_src = src_offsets.shape[0]
-        margin = virtual_margin_px(nominal, h)
         best_d, chosen_d, fractions = [], [], []
         for idx in view_chunks(views, config.chunk_views):
             c = idx.size
             nom_c, g = nominal.subset(idx), params[idx]
+            margin = virtual_margin_px(nom_c, h)  # the chunk's own: nothing couples the chunks
             # one ray-cast per source position; samples: a source position each, detector pose
             # uniform in the box; sample 0 = the current estimate
             src_params = np.repeat(g, n_src, axis=0)
@@ -165,11 +189,10 @@ def estimate_views(measured: np.ndarray, nominal: ConeGeometry, params0: np.ndar
             # config.draws independent sets of S samples, scored together: set d is samples
             # d * S ... d * S + S - 1, each with the current estimate first
             S, D = config.n_samples, config.draws
-            a = rng.integers(0, n_src, size=(c, D, S))
-            a[:, :, 0] = 0
+            a, u = _view_draws(config.seed, level, view_ids[idx], n_src, D, S)
             delta = np.zeros((c, D, S, 9))
             delta[..., 0:3] = src_offsets[a]
-            delta[..., 3:9] = rng.uniform(-1.0, 1.0, size=(c, D, S, 6)) * h[3:9]
+            delta[..., 3:9] = u * h[3:9]
             delta[:, :, 0, 3:9] = 0.0
             sample_params = (g[:, None, None, :] + delta).reshape(c, D * S, 9)
             image_index = (np.arange(c)[:, None] * n_src + a.reshape(c, D * S)).reshape(-1)
@@ -222,11 +245,10 @@ def estimate_views(measured: np.ndarray, nominal: ConeGeometry, params0: np.ndar
                 chosen_d.append(d_new)
             params[idx] = g_new
             best_d.append(d_best)
-        info["best_distance"].append(float(np.mean(np.concatenate(best_d))) if best_d else float("nan"))
-        if chosen_d:
-            info["chosen_distance"].append(float(np.mean(np.concatenate(chosen_d))))
-        if fractions:
-            info["independent_fraction"].append(float(np.median(np.concatenate(fractions))))
+        for key, values in (("best_distance", best_d), ("chosen_distance", chosen_d),
+                            ("independent_fraction", fractions)):
+            per_view[key][2].append(np.concatenate(values) if values else np.zeros(0))
+        info.update(summarise_views(per_view))
         if progress is not None:
             progress(level, config.levels, info)
     return params, info

@@ -1,0 +1,242 @@
+"""Where the loop's heavy steps run: in this process (the default), or as Dask tasks on a cluster.
+
+Per-view estimation is independent given the volume (every view draws its samples from its own
+generator and nothing couples the views: :func:`~robot_ct_ros.ct.calibration.lle.estimator.estimate_views`),
+and FDK back-projection splits into slabs of the grid's z planes. An executor runs both:
+
+* :class:`InProcess` calls the estimator and :func:`~robot_ct_ros.ct.reconstruction.fdk` here,
+  on numba's threads. It imports no dask, and needs none installed.
+* :class:`DaskExecutor` (``dask.distributed``, imported only when it is made) estimates blocks
+  of views as tasks and back-projects slabs as tasks. The volume is sent once per estimation
+  pass (``client.scatter(..., broadcast=True)``), the filtered projections once per FDK; the
+  measured projections once per level while the same arrays come back (a cache keyed by the
+  array), and with every task only its views' geometry, parameters and ROI support.
+
+Blocks are whole multiples of the estimator's ``chunk_views``, and the per-view values of the
+blocks' ``info`` are joined and summarised as one pass would
+(:func:`~robot_ct_ros.ct.calibration.masks.summarise_views`), skipped views by their index in
+the whole scan: the result is the in-process one. How to point it at a cluster, and what it sends:
+docs/distributed.md.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from robot_ct_ros.ct.calibration.masks import roi_support_mask, summarise_views
+from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
+
+__all__ = ["InProcess", "DaskExecutor", "DaskUnavailable", "executor_for", "view_blocks", "slab_bounds",
+           "join_infos", "LOCAL"]
+
+LOCAL = "local"
+"""The ``scheduler`` setting that starts a ``LocalCluster`` of worker processes on this machine."""
+
+
+class DaskUnavailable(ValueError):
+    """A scheduler was asked for, but dask.distributed is not installed."""
+
+
+class InProcess:
+    """Estimation and FDK in this process (numba threads): the default, no cluster, no dask."""
+
+    description = "in-process"
+
+    def estimate(self, estimate, measured, nominal: ConeGeometry, params, volume, grid: VolumeGrid, config,
+                 valid_mask):
+        """``estimate(measured, nominal, params, volume, grid, config, valid_mask)`` (a registry estimator)."""
+        return estimate(measured, nominal, params, volume, grid, config, valid_mask)
+
+    def fdk(self, line_integrals, geom: ConeGeometry, grid: VolumeGrid, **kwargs) -> np.ndarray:
+        """:func:`~robot_ct_ros.ct.reconstruction.fdk` with these arguments."""
+        from robot_ct_ros.ct.reconstruction import fdk
+
+        return fdk(line_integrals, geom, grid, **kwargs)
+
+    def close(self) -> None:
+        pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def executor_for(settings) -> "InProcess | DaskExecutor":
+    """The executor a :class:`~robot_ct_ros.ct.calibration.settings.CalibrationSettings` asks for:
+    in-process for ``scheduler=""``, else a :class:`DaskExecutor` on that scheduler (``"local"``:
+    a ``LocalCluster`` of ``dask_workers`` processes with ``dask_threads`` numba threads each)."""
+    if not settings.scheduler:
+        return InProcess()
+    return DaskExecutor(settings.scheduler, workers=settings.dask_workers, threads=settings.dask_threads)
+
+
+def _import_distributed():
+    try:
+        import distributed
+    except ImportError as exc:
+        raise DaskUnavailable("a Dask scheduler was asked for (scheduler / --scheduler), but dask.distributed is not "
+                              "installed: pip install dask distributed (or leave scheduler empty: in-process)") from exc
+    return distributed
+
+
+def view_blocks(n_views: int, chunk_views: int, n_blocks: int) -> list:
+    """(start, stop) of at most ``n_blocks`` consecutive blocks of views, each a whole number of
+    ``chunk_views`` chunks (the last one the rest), as even as that allows."""
+    chunk = max(1, int(chunk_views))
+    n_chunks = -(-n_views // chunk)
+    k = max(1, min(int(n_blocks), n_chunks))
+    edges = [min(n_views, (n_chunks * i // k) * chunk) for i in range(k + 1)]
+    return [(a, b) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+
+
+def slab_bounds(nz: int, n_slabs: int) -> list:
+    """(z0, z1) of at most ``n_slabs`` slabs of ``nz`` planes, as even as possible."""
+    k = max(1, min(int(n_slabs), nz))
+    edges = [nz * i // k for i in range(k + 1)]
+    return [(a, b) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+
+
+def join_infos(infos: list, blocks: list) -> dict:
+    """One ``info`` from those of consecutive blocks of views: per-view values joined step by step and
+    summarised (:func:`~robot_ct_ros.ct.calibration.masks.summarise_views`), ``skipped_views`` (already
+    indices in the whole scan) joined, the other entries the first block's."""
+    out = dict(infos[0])
+    per_view = {}
+    for key, (reducer, empty, steps) in infos[0].get("per_view", {}).items():
+        joined = [np.concatenate([np.asarray(i["per_view"][key][2][s]) for i in infos]) for s in range(len(steps))]
+        per_view[key] = (reducer, empty, joined)
+    out["per_view"] = per_view
+    out.update(summarise_views(per_view))
+    out["skipped_views"] = sorted(v for i in infos for v in i.get("skipped_views", ()))
+    out["blocks"] = [tuple(b) for b in blocks]
+    return out
+
+
+def _use_threads(threads: int) -> None:
+    """Numba's threads in this task's thread (a worker's setting; 0: leave them)."""
+    if threads > 0:
+        import numba
+
+        numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
+
+
+def _estimate_block(estimate, measured, nominal, params, volume, grid, config, valid_mask, support, view_ids,
+                    threads):
+    _use_threads(threads)
+    return estimate(measured, nominal, params, volume, grid, config, valid_mask, support_mask=support,
+                    view_ids=view_ids)
+
+
+def _backproject_slab(filtered, geom, grid, threads):
+    from robot_ct_ros.ct.reconstruction import fdk_backproject
+
+    _use_threads(threads)
+    return fdk_backproject(filtered, geom, grid)
+
+
+class DaskExecutor:
+    """Estimation blocks and FDK slabs as ``dask.distributed`` tasks.
+
+    ``scheduler``: ``"local"`` starts a ``LocalCluster`` of ``workers`` processes, one task at a
+    time each, whose tasks run numba on ``threads`` threads (0: the cores shared out); an address
+    (``tcp://host:8786``) connects to that scheduler, whose workers keep their own numba settings
+    (docs/distributed.md). ``blocks_per_worker`` sets how many blocks of views (slabs of the
+    grid) each worker thread gets per pass, for balance.
+
+    Raises
+    ------
+    DaskUnavailable
+        dask.distributed is not installed.
+    """
+
+    def __init__(self, scheduler: str = LOCAL, *, workers: int = 2, threads: int = 0, blocks_per_worker: int = 2,
+                 client=None):
+        distributed = _import_distributed()
+        self._cluster = None
+        self._own_client = client is None
+        self.threads = 0
+        if client is not None:
+            self.client = client
+        elif scheduler == LOCAL:
+            threads = int(threads) or max(1, (os.cpu_count() or 1) // max(1, int(workers)))
+            self.threads = threads
+            env = {"NUMBA_NUM_THREADS": str(threads), "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
+                   "MKL_NUM_THREADS": "1"}
+            self._cluster = distributed.LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
+                                                     dashboard_address=":0", env=env)
+            self.client = distributed.Client(self._cluster)
+        else:
+            self.client = distributed.Client(scheduler)
+        self.blocks_per_worker = max(1, int(blocks_per_worker))
+        self._cache = {}  # (id(array), start, stop) -> (array, future): the measured views of a level
+        self.description = f"dask ({scheduler}, {self.n_threads()} worker thread(s))"
+
+    def n_threads(self) -> int:
+        """Worker threads of the cluster now (tasks that run at once)."""
+        return max(1, sum(self.client.nthreads().values()))
+
+    def _scattered_blocks(self, array, blocks):
+        """Futures of ``array[a:b]`` per block, sent once while ``array`` is the same object."""
+        keys = [(id(array), a, b) for a, b in blocks]
+        missing = [k for k in keys if k not in self._cache]
+        if missing:
+            if len(self._cache) > 8 * len(keys):  # another scan's levels: drop the old ones
+                self._cache.clear()
+            futures = self.client.scatter([np.ascontiguousarray(array[a:b]) for _, a, b in missing], hash=False)
+            self._cache.update({k: (array, f) for k, f in zip(missing, futures)})
+        return [self._cache[k][1] for k in keys]
+
+    def estimate(self, estimate, measured, nominal: ConeGeometry, params, volume, grid: VolumeGrid, config,
+                 valid_mask):
+        """``estimate`` over blocks of views as tasks; the same parameters and info as one call."""
+        n = nominal.n_views
+        params = np.asarray(params, np.float64).reshape(n, 9)
+        fraction = getattr(config, "roi_support_fraction", None)
+        # the ROI support's margin-or-exact choice is the whole scan's: made here, for all views
+        support = None if fraction is None else roi_support_mask(nominal, params, grid, fraction)
+        blocks = view_blocks(n, getattr(config, "chunk_views", 8), self.blocks_per_worker * self.n_threads())
+        meas_f = self._scattered_blocks(measured, blocks)
+        per_view_mask = valid_mask is not None and np.ndim(valid_mask) == 3
+        mask_f = self._scattered_blocks(valid_mask, blocks) if per_view_mask else [valid_mask] * len(blocks)
+        vol_f = self.client.scatter(volume, broadcast=True, hash=False)
+        futures = [self.client.submit(_estimate_block, estimate, m, nominal.subset(np.arange(a, b)), params[a:b],
+                                      vol_f, grid, config, mk, None if support is None else support[a:b],
+                                      np.arange(a, b), self.threads, pure=False)
+                   for (a, b), m, mk in zip(blocks, meas_f, mask_f)]
+        results = self.client.gather(futures)
+        self.client.cancel([vol_f])
+        out = np.concatenate([p for p, _ in results], axis=0)
+        return out, join_infos([i for _, i in results], blocks)
+
+    def fdk(self, line_integrals, geom: ConeGeometry, grid: VolumeGrid, *, center_mm=None, **kwargs) -> np.ndarray:
+        """:func:`~robot_ct_ros.ct.reconstruction.fdk`: the projections filtered here, sent once, and
+        back-projected onto slabs of the grid's z planes as tasks."""
+        from robot_ct_ros.ct.reconstruction import fdk_filter_projections
+
+        q, q_geom = fdk_filter_projections(line_integrals, geom, center_mm=grid.center_mm if center_mm is None
+                                           else center_mm, **kwargs)
+        q_f = self.client.scatter(q, broadcast=True, hash=False)
+        g_f = self.client.scatter(q_geom, broadcast=True, hash=False)
+        slabs = slab_bounds(grid.shape_zyx[0], self.blocks_per_worker * self.n_threads())
+        futures = [self.client.submit(_backproject_slab, q_f, g_f, grid.slab(a, b), self.threads, pure=False)
+                   for a, b in slabs]
+        vol = np.concatenate(self.client.gather(futures), axis=0)
+        self.client.cancel([q_f, g_f])
+        return vol
+
+    def close(self) -> None:
+        self._cache.clear()
+        if self._own_client:
+            self.client.close()
+        if self._cluster is not None:
+            self._cluster.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()

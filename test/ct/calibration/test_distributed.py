@@ -1,0 +1,119 @@
+"""Estimation blocks and FDK slabs as Dask tasks on a LocalCluster give the in-process results."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from robot_ct_ros.ct.calibration import calibrate
+from robot_ct_ros.ct.calibration.distributed import (DaskExecutor, DaskUnavailable, InProcess, executor_for,
+                                                     slab_bounds, view_blocks)
+from robot_ct_ros.ct.calibration.gdc import default_gdc_configs, estimate_views_gdc
+from robot_ct_ros.ct.calibration.lle.estimator import default_lle_configs, estimate_views
+from robot_ct_ros.ct.calibration.model import VolumeParts
+from robot_ct_ros.ct.calibration.settings import CalibrationSettings
+from robot_ct_ros.ct.geometry import VolumeGrid
+from robot_ct_ros.ct.projector import forward_project
+from robot_ct_ros.ct.reconstruction import fdk
+from robot_ct_ros.ct.simulation import robot_coordination
+from robot_ct_ros.ct.trajectory import circular_scan
+
+pytest.importorskip("distributed")
+
+
+def _scan(n_views=20, n_det=32):
+    """A small circular scan of a few balls with robot errors, one view without usable pixels."""
+    nominal = circular_scan(n_views, 60.0, 150.0, n_det, n_det, 32.0 / n_det, 32.0 / n_det)
+    grid = VolumeGrid.centered((24, 24, 24), 12.0 / 24)
+    z, y, x = np.meshgrid(*(np.arange(24) - 11.5,) * 3, indexing="ij")
+    phantom = np.zeros(grid.shape_zyx, np.float32)
+    for (cz, cy, cx), r, mu in (((0, 0, 0), 9.0, 0.02), ((3, -2, 4), 3.0, 0.03), ((-4, 3, -2), 2.5, -0.01)):
+        phantom[(z - cz) ** 2 + (y - cy) ** 2 + (x - cx) ** 2 < r * r] += mu
+    true = nominal.perturbed(robot_coordination(0.3, 0.3, seed=3).sample(n_views))
+    measured = forward_project(phantom, grid, true)
+    mask = np.ones(measured.shape, bool)
+    mask[:, 5, 7] = False  # a dead pixel
+    mask[13] = False       # a view that cannot be estimated
+    return nominal, grid, measured, mask, fdk(measured, nominal, grid, valid_mask=mask)
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    """Two worker processes, one thread each (closed after the module's tests)."""
+    with DaskExecutor("local", workers=2, threads=1) as ex:
+        yield ex
+
+
+def test_blocks_and_slabs_are_whole_chunks_and_cover_everything():
+    assert view_blocks(20, 4, 4) == [(0, 4), (4, 8), (8, 12), (12, 20)]
+    assert view_blocks(21, 8, 10) == [(0, 8), (8, 16), (16, 21)]
+    assert view_blocks(5, 8, 3) == [(0, 5)]
+    assert slab_bounds(24, 5) == [(0, 4), (4, 9), (9, 14), (14, 19), (19, 24)]
+    grid = VolumeGrid.centered((6, 4, 5), (0.5, 0.6, 0.7), (1.0, -2.0, 3.0), np.eye(3)[[1, 0, 2]] * [1, -1, 1])
+    slab = grid.slab(2, 5)
+    assert slab.shape_zyx == (3, 4, 5)
+    np.testing.assert_allclose(slab.index_to_world((1, 2, 0)), grid.index_to_world((1, 2, 2)))
+
+
+@pytest.mark.parametrize("method", ["ncc-lle-exact", "gdc"])
+def test_estimation_on_two_worker_processes_equals_the_in_process_pass(cluster, method):
+    nominal, grid, measured, mask, vol = _scan()
+    if method == "gdc":
+        estimate, cfg = estimate_views_gdc, default_gdc_configs("gdc")[0]
+    else:  # with the prior: the independent fraction's median is taken over all views
+        estimate = estimate_views
+        cfg = default_lle_configs("ncc-exact", seed=5, prior_sigma=(0.3,) * 6 + (0.005,) * 3)[0]
+    from dataclasses import replace
+
+    cfg = replace(cfg, chunk_views=4)  # 5 chunks: blocks on both workers
+    params0 = np.zeros((nominal.n_views, 9))
+    p_in, info_in = InProcess().estimate(estimate, measured, nominal, params0, vol, grid, cfg, mask)
+    p_dask, info_dask = cluster.estimate(estimate, measured, nominal, params0, vol, grid, cfg, mask)
+    assert len(info_dask["blocks"]) > 1
+    np.testing.assert_allclose(p_dask, p_in, rtol=0, atol=1e-9)
+    assert info_dask["skipped_views"] == info_in["skipped_views"] == [13]
+    for key in ("best_distance", "chosen_distance", "independent_fraction", "cost", "accepted"):
+        if key in info_in:
+            np.testing.assert_allclose(info_dask[key], info_in[key], rtol=1e-9, err_msg=key)
+    assert np.abs(p_in).max() > 0  # the views moved
+
+
+def test_fdk_slabs_and_a_volume_of_parts_on_the_cluster(cluster):
+    nominal, grid, measured, mask, vol = _scan()
+    np.testing.assert_allclose(cluster.fdk(measured, nominal, grid, valid_mask=mask), vol, rtol=0,
+                               atol=1e-5 * np.abs(vol).max())
+    # the exterior model's two grids travel to the workers as one scattered object
+    coarse = VolumeGrid.centered((6, 6, 6), 2.0)
+    parts = VolumeParts(((vol, grid), (np.zeros(coarse.shape_zyx, np.float32), coarse)))
+    cfg = default_gdc_configs("gdc")[1]
+    params0 = np.zeros((nominal.n_views, 9))
+    p_in, _ = InProcess().estimate(estimate_views_gdc, measured, nominal, params0, parts, grid, cfg, mask[0])
+    p_dask, _ = cluster.estimate(estimate_views_gdc, measured, nominal, params0, parts, grid, cfg, mask[0])
+    np.testing.assert_allclose(p_dask, p_in, rtol=0, atol=1e-9)
+
+
+def test_the_loop_with_scheduler_local_equals_the_in_process_loop():
+    nominal, grid, measured, mask, _ = _scan(n_views=16)
+    kw = dict(method="ncc-lle", iterations=1, schedule="fast", projections="complete", fdk_kwargs={"window": "hann"})
+    said = []
+    ref = calibrate(measured, nominal, grid, valid_mask=mask, **kw)
+    out = calibrate(measured, nominal, grid, valid_mask=mask, scheduler="local", dask_workers=2, dask_threads=1,
+                    progress=said.append, **kw)
+    assert any("dask" in s for s in said)
+    np.testing.assert_allclose(out.params, ref.params, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(out.volume, ref.volume, rtol=0, atol=1e-5 * np.abs(ref.volume).max())
+
+
+def test_the_default_path_imports_no_dask_and_a_scheduler_without_dask_says_what_to_install(monkeypatch):
+    code = ("import sys; import robot_ct_ros.cli; from robot_ct_ros.ct.calibration.distributed import executor_for; "
+            "from robot_ct_ros.ct.calibration.settings import CalibrationSettings; "
+            "ex = executor_for(CalibrationSettings()); print(type(ex).__name__, "
+            "any(m.split('.')[0] in ('dask', 'distributed') for m in sys.modules))")
+    assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          check=True).stdout.split() == ["InProcess", "False"]
+    monkeypatch.setitem(sys.modules, "distributed", None)  # as if not installed
+    with pytest.raises(DaskUnavailable, match="pip install dask distributed"):
+        executor_for(CalibrationSettings(scheduler="tcp://127.0.0.1:8786"))
+    with pytest.raises(ValueError, match="scheduler"):
+        CalibrationSettings(scheduler="127.0.0.1:8786")
