@@ -7,7 +7,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 export PYTHONPATH := $(CURDIR)$(if $(PYTHONPATH),:$(PYTHONPATH))
 
-.PHONY: venv demo test bench bench-calibration bench-calibration-speed bench-interior bench-realdata bench-sweep clean
+.PHONY: venv demo test bench bench-calibration bench-calibration-speed bench-interior bench-realdata bench-sweep bench-dask clean
 
 venv: $(STAMP)
 
@@ -41,6 +41,9 @@ bench-realdata: $(STAMP)
 
 bench-sweep: $(STAMP)
 	$(PY) bench/bench_truncation_sweep.py --out docs/results
+
+bench-dask: $(STAMP)
+	$(PY) bench/bench_dask.py --out docs/results
 
 clean:
 	rm -rf out build install log .pytest_cache
