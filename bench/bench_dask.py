@@ -14,7 +14,8 @@ threads. The Dask estimation times include sending the measured projections (a f
 each run: the loop sends them once per level and calibration, the volume once per pass), the
 FDK times the filtering in the client process (on N threads) and sending the filtered
 projections. Each figure is the fastest of ``--repeats`` runs after a warm-up run (numba
-compiles in each worker on its first task). Writes dask.md and dask.json to ``--out``.
+compiles in each worker on its first task), the four kinds of run taking turns so that other
+jobs on the machine slow them alike. Writes dask.md and dask.json to ``--out``.
 
     .venv/bin/python bench/bench_dask.py --out docs/results          # about 5 min on 2 cores
     .venv/bin/python bench/bench_dask.py --views 48 --det 64 --repeats 1
@@ -61,14 +62,17 @@ def scan(n_views: int, n_det: int, n_vox: int, seed: int = 0):
     return nominal, true, grid, forward_project(phantom, grid, true)
 
 
-def fastest(fn, repeats: int) -> tuple[float, object]:
-    """Wall time of the fastest of ``repeats`` calls after one warm-up call, and the last result."""
-    out = fn()
-    best = float("inf")
+def fastest_interleaved(fns: dict, repeats: int) -> tuple[dict, dict]:
+    """Per name, the wall time of the fastest of ``repeats`` calls of ``fns[name]`` after one warm-up
+    call each, and its last result. The calls take turns (a, b, a, b, ...), so a load that comes and
+    goes on the machine falls on all of them alike."""
+    out = {k: f() for k, f in fns.items()}
+    best = {k: float("inf") for k in fns}
     for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t0)
+        for k, f in fns.items():
+            t0 = time.perf_counter()
+            out[k] = f()
+            best[k] = min(best[k], time.perf_counter() - t0)
     return best, out
 
 
@@ -81,7 +85,7 @@ def main(argv=None) -> int:
     ap.add_argument("--fdk-det", type=int, default=160, help="detector pixels across (FDK scan)")
     ap.add_argument("--fdk-vox", type=int, default=160, help="grid voxels across (FDK scan)")
     ap.add_argument("--workers", type=int, nargs="+", default=[1, 2], help="worker counts (= in-process threads)")
-    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--repeats", type=int, default=4)
     ap.add_argument("--out", default="docs/results", help="folder for dask.md and dask.json")
     args = ap.parse_args(argv)
     import numba
@@ -97,35 +101,32 @@ def main(argv=None) -> int:
     say(f"estimation: {args.views} views of {args.det}^2 on {args.vox}^3; FDK: {args.fdk_views} views of "
         f"{args.fdk_det}^2 onto {args.fdk_vox}^3; {os.cpu_count()} cores")
     rows = []
-    ref = {}
     for n in args.workers:
-        numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))
-        t_est, (p_in, _) = fastest(lambda: InProcess().estimate(estimate_views, measured, nominal, params0, vol, grid,
-                                                                cfg, None), args.repeats)
-        t_fdk, v_in = fastest(lambda: InProcess().fdk(f_meas, f_nom, f_grid), args.repeats)
-        ref[n] = (t_est, t_fdk)
-        say(f"in-process, {n} thread(s): estimation {t_est:.2f} s, FDK {t_fdk:.2f} s")
-        rows += [{"method": "estimation pass", "mode": "in-process threads", "n": n, "wall_s": t_est, "ratio": 1.0},
-                 {"method": "FDK", "mode": "in-process threads", "n": n, "wall_s": t_fdk, "ratio": 1.0}]
+        numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))  # in-process, and the Dask client's part
         with DaskExecutor("local", workers=n, threads=1) as ex:
-            def estimate():
+            def estimate_dask():
                 ex._cache.clear()  # the measured views travel in every timed run
                 return ex.estimate(estimate_views, measured, nominal, params0, vol, grid, cfg, None)
 
-            d_est, (p_dask, _) = fastest(estimate, args.repeats)
-            d_fdk, v_dask = fastest(lambda: ex.fdk(f_meas, f_nom, f_grid), args.repeats)
-        dp = float(np.abs(p_dask - p_in).max())
-        dv = float(np.abs(v_dask - v_in).max() / np.abs(v_in).max())
-        say(f"dask LocalCluster, {n} worker(s) x 1 thread: estimation {d_est:.2f} s ({d_est / t_est:.3f}x), FDK "
-            f"{d_fdk:.2f} s ({d_fdk / t_fdk:.3f}x); max difference to in-process: params {dp:.1e}, volume {dv:.1e} "
-            f"of its max")
-        rows += [{"method": "estimation pass", "mode": "dask LocalCluster (1 thread/worker)", "n": n, "wall_s": d_est,
-                  "ratio": d_est / t_est, "max_diff": dp},
-                 {"method": "FDK", "mode": "dask LocalCluster (1 thread/worker)", "n": n, "wall_s": d_fdk,
-                  "ratio": d_fdk / t_fdk, "max_diff": dv}]
+            t, res = fastest_interleaved({
+                "est_in": lambda: InProcess().estimate(estimate_views, measured, nominal, params0, vol, grid, cfg, None),
+                "est_dask": estimate_dask,
+                "fdk_in": lambda: InProcess().fdk(f_meas, f_nom, f_grid),
+                "fdk_dask": lambda: ex.fdk(f_meas, f_nom, f_grid)}, args.repeats)
+        dp = float(np.abs(res["est_dask"][0] - res["est_in"][0]).max())
+        dv = float(np.abs(res["fdk_dask"] - res["fdk_in"]).max() / np.abs(res["fdk_in"]).max())
+        say(f"in-process, {n} thread(s): estimation {t['est_in']:.2f} s, FDK {t['fdk_in']:.2f} s")
+        say(f"dask LocalCluster, {n} worker(s) x 1 thread: estimation {t['est_dask']:.2f} s "
+            f"({t['est_dask'] / t['est_in']:.3f}x), FDK {t['fdk_dask']:.2f} s ({t['fdk_dask'] / t['fdk_in']:.3f}x); "
+            f"max difference to in-process: params {dp:.1e}, volume {dv:.1e} of its max")
+        for step, key, diff in (("estimation pass", "est", dp), ("FDK", "fdk", dv)):
+            rows += [{"method": step, "mode": "in-process threads", "n": n, "wall_s": t[key + "_in"], "ratio": 1.0},
+                     {"method": step, "mode": "dask LocalCluster (1 thread/worker)", "n": n,
+                      "wall_s": t[key + "_dask"], "ratio": t[key + "_dask"] / t[key + "_in"], "max_diff": diff}]
     rows.sort(key=lambda r: (r["method"] != "estimation pass", r["n"], r["mode"]))
     columns = [("method", "step", "{}"), ("mode", "runs on", "{}"), ("n", "threads / workers", "{:d}"),
-               ("wall_s", "wall s (fastest of %d)" % args.repeats, "{:.2f}"), ("ratio", "/ in-process", "{:.3f}"),
+               ("wall_s", "wall s (fastest of %d, interleaved)" % args.repeats, "{:.2f}"),
+               ("ratio", "/ in-process", "{:.3f}"),
                ("max_diff", "max diff to in-process", "{:.1e}")]
     setup = {"estimation_scan": {"views": args.views, "det": args.det, "vox": args.vox,
                                  "config": "ncc-lle-exact fine level (192 samples, 2 sets, star source, prior)"},

@@ -190,8 +190,8 @@ class DaskExecutor:
             import dask
 
             # dask's nannies fix glibc's MALLOC_TRIM_THRESHOLD_ in their workers, which also fixes the mmap
-            # threshold: every large temporary array is then mapped and page-faulted anew (the estimation ran
-            # about 1.25x slower in such a worker than here); the workers keep glibc's adaptive default
+            # threshold: every large temporary array is then mapped and page-faulted anew, and the estimation
+            # runs slower in such a worker than in a plain process; the workers keep glibc's adaptive default
             with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}):
                 self._cluster = distributed.LocalCluster(n_workers=int(workers), threads_per_worker=1,
                                                          processes=True, dashboard_address=":0", env=env)
