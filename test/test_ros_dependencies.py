@@ -27,7 +27,9 @@ PROVIDERS = {"numpy": "python3-numpy", "scipy": "python3-scipy", "yaml": "python
              "rosbags": "pip:rosbags", "mcap": "pip:mcap", "rtde_control": "pip:ur-rtde", "rtde_receive": "pip:ur-rtde"}
 OPTIONAL = {"itk": "test/bench only (itk-rtk), imported lazily", "lz4": "compressed MCAP chunks, optional",
             "zstandard": "compressed MCAP chunks, optional", "backports": "zstd fallback, optional",
-            "compression": "Python >= 3.14 zstd, optional"}
+            "compression": "Python >= 3.14 zstd, optional",
+            "dask": "the scheduler setting only (pip install dask distributed), imported lazily",
+            "distributed": "the scheduler setting only (pip install dask distributed), imported lazily"}
 
 
 def _depends():
