@@ -7,7 +7,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 export PYTHONPATH := $(CURDIR)$(if $(PYTHONPATH),:$(PYTHONPATH))
 
-.PHONY: venv demo test bench bench-calibration bench-calibration-speed bench-interior bench-interior-diagnosis bench-realdata bench-sweep bench-dask clean
+.PHONY: venv demo test bench bench-calibration bench-calibration-speed bench-interior bench-interior-diagnosis bench-realdata bench-sweep bench-dask bench-fullsize clean
 
 venv: $(STAMP)
 
@@ -47,6 +47,9 @@ bench-sweep: $(STAMP)
 
 bench-dask: $(STAMP)
 	$(PY) bench/bench_dask.py --out docs/results
+
+bench-fullsize: $(STAMP)
+	$(PY) bench/bench_fullsize.py --rtk-binning 2 --out docs/results --volume-out out/bench_fullsize
 
 clean:
 	rm -rf out build install log .pytest_cache

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["say", "json_default", "clean_json", "write_json", "write_volume", "prepare_out", "available_memory_bytes",
-           "check_memory", "MEMORY_FACTORS"]
+__all__ = ["say", "json_default", "clean_json", "write_json", "write_volume", "write_ome_tiff", "prepare_out",
+           "available_memory_bytes", "check_memory", "MEMORY_FACTORS"]
 
 MEMORY_FACTORS = {"reconstruct": (2.0, 3.0), "calibrate": (8.0, 8.0), "report": (10.0, 8.0)}
 """Rough peak memory of each job, as (volumes, projection stacks): FDK holds its volume and its copy for
@@ -147,3 +147,58 @@ def write_volume(volume: np.ndarray, grid, out, stem: str = "volume") -> list[st
                      metadata={"spacing": vz, "unit": "mm", "axes": "ZYX"})
     write_json(out / f"{stem}_grid.json", grid.to_dict())
     return [str(out / f"{stem}.npy"), str(out / f"{stem}.tif"), str(out / f"{stem}_grid.json")]
+
+
+def write_ome_tiff(volume, grid, path, *, tile: tuple[int, int] = (256, 256), compression=None) -> Path:
+    """Write a float32 volume on ``grid`` as a tiled BigTIFF OME-TIFF (axes ZYX, voxel size in mm), slab by slab.
+
+    ``volume`` is the (nz, ny, nx) array, or an iterable of consecutive z slabs (k, ny, nx) that
+    add up to ``grid.shape_zyx`` (e.g. back-projected one after another). The tiles are taken from
+    one slab at a time and written as they come: no second copy of the volume is made (a slab that
+    is not float32 is converted on its own), and a volume that is never whole in memory can be
+    written as it is computed. Viewers (Fiji/Bio-Formats, napari, QuPath) read tiles on demand.
+    ``tile`` (rows, cols) must be multiples of 16; ``compression`` is tifffile's (None, "zlib", ...).
+    Returns the path.
+
+    Raises
+    ------
+    ValueError
+        The slabs do not add up to the grid's shape, or a slab's plane is not ``(ny, nx)``.
+    """
+    import tifffile
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    nz, ny, nx = (int(n) for n in grid.shape_zyx)
+    th, tw = (int(t) for t in tile)
+    slabs = [volume] if isinstance(volume, np.ndarray) else volume
+    written = [0]
+
+    def tiles():
+        for slab in slabs:
+            slab = np.asarray(slab)
+            if slab.ndim != 3 or slab.shape[1:] != (ny, nx):
+                raise ValueError(f"a slab of shape {slab.shape} does not fit the grid's planes ({ny}, {nx})")
+            written[0] += slab.shape[0]  # counted first: the writer stops drawing after the last tile
+            if written[0] > nz:
+                raise ValueError(f"the slabs hold more than the grid's {nz} planes")
+            for k in range(slab.shape[0]):
+                plane = slab[k].astype(np.float32, copy=False)
+                for y0 in range(0, ny, th):
+                    for x0 in range(0, nx, tw):
+                        yield np.ascontiguousarray(plane[y0:y0 + th, x0:x0 + tw])
+
+    vx, vy, vz = (float(v) for v in grid.voxel_size_mm)
+    metadata = {"axes": "ZYX", "PhysicalSizeX": vx, "PhysicalSizeXUnit": "mm", "PhysicalSizeY": vy,
+                "PhysicalSizeYUnit": "mm", "PhysicalSizeZ": vz, "PhysicalSizeZUnit": "mm"}
+    try:
+        with tifffile.TiffWriter(path, bigtiff=True, ome=True) as tif:
+            tif.write(tiles(), shape=(nz, ny, nx), dtype=np.float32, tile=(th, tw), compression=compression,
+                      metadata=metadata)
+    except (StopIteration, RuntimeError, ValueError) as exc:
+        if written[0] == nz:
+            raise
+        raise ValueError(f"the slabs hold {written[0]} planes, the grid {nz}") from exc
+    if written[0] != nz:
+        raise ValueError(f"the slabs hold {written[0]} planes, the grid {nz}")
+    return path

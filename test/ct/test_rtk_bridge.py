@@ -190,3 +190,25 @@ def test_rtk_analytic_ellipsoids_match_our_projection_of_their_voxelisation_in_a
         assert np.abs(exact - ours).mean() < 0.01 * exact.max()
     with pytest.raises(ValueError, match="additive ellipsoids"):
         rtk_ellipsoid_projections([sim.box((0, 0, 0), (1, 1, 1), 0.01)], g)
+
+
+def test_analytic_ellipsoid_line_integrals_equal_rtks():
+    """simulation.analytic's numba ray-ellipsoid chords and RTK's quadric intersections: the same
+    numbers, for an interior neck (rotated ellipsoids, some around the source-detector segment) on an
+    offset-detector ROI scan about an oblique axis."""
+    from scipy.spatial.transform import Rotation
+
+    from robot_ct_ros.ct import simulation as sim
+    from robot_ct_ros.ct.rtk_bridge import rtk_ellipsoid_projections
+    from robot_ct_ros.ct.simulation.analytic import ellipsoid_line_integrals
+    from robot_ct_ros.ct.trajectory import SeedSystem, robotic_roi_scan
+
+    R = Rotation.from_rotvec([0.5, -0.9, 0.3]).as_matrix()
+    geom = robotic_roi_scan(SeedSystem(), fov_diameter_mm=12.0, n_views=5, binning=8, n_rows=12, n_cols=40).moved(R)
+    phantom = sim.interior_neck_phantom(0, body_width_mm=60.0).moved(R)
+    ours = ellipsoid_line_integrals(phantom.primitives, geom)
+    exact = rtk_ellipsoid_projections(phantom.primitives, geom)
+    assert ours.dtype == np.float32 and ours.shape == exact.shape and exact.max() > 1.0
+    np.testing.assert_allclose(ours, exact, rtol=1e-4, atol=1e-4 * exact.max())
+    with pytest.raises(ValueError, match="additive ellipsoids"):
+        ellipsoid_line_integrals([sim.box((0, 0, 0), (1, 1, 1), 0.01)], geom)

@@ -49,7 +49,8 @@ def settings_with(settings: CalibrationSettings | None, changes: dict) -> Calibr
 def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGrid,
               settings: CalibrationSettings | None = None, *, valid_mask=None, drift_times=None,
               gauge_points_mm=None, configs: tuple | None = None, focus_modes: dict | None = None,
-              fdk_kwargs: dict | None = None, progress=None, on_iteration=None, **changes) -> CalibrationResult:
+              fdk_kwargs: dict | None = None, progress=None, on_iteration=None, final_volume: bool = True,
+              **changes) -> CalibrationResult:
     """Correct the per-view geometry of a scan by alternating reconstruction and per-view estimation.
 
     Parameters
@@ -81,6 +82,10 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
         ``progress(message)``, one line per step.
     on_iteration : callable, optional
         ``on_iteration(record, params)`` after each outer iteration.
+    final_volume : bool
+        Reconstruct the full-size FDK on ``grid`` with the final geometry (the result's ``volume``);
+        False leaves ``volume`` None, for a caller that reconstructs the full-size volume itself
+        (bench/bench_fullsize.py: in its own stage, and written slab by slab).
 
     Returns
     -------
@@ -106,7 +111,7 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
             say(f"estimation and FDK run on {executor.description}")
         kw = dict(valid_mask=valid_mask, drift_times=drift_times, gauge_points_mm=gauge_points_mm, configs=configs,
                   focus_modes=focus_modes, fdk_kwargs=fdk_kwargs, progress=progress, on_iteration=on_iteration,
-                  accuracy=accuracy, executor=executor)
+                  accuracy=accuracy, executor=executor, final_volume=final_volume)
         if settings.ensemble <= 1 or not method.samples or configs is not None:
             return _calibrate_once(line_integrals, nominal, grid, settings, **kw)
         runs = []
@@ -122,7 +127,7 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
 @blas_single_threaded
 def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, settings: CalibrationSettings, *,
                     valid_mask, drift_times, gauge_points_mm, configs, focus_modes, fdk_kwargs, progress,
-                    on_iteration, accuracy, executor=None) -> CalibrationResult:
+                    on_iteration, accuracy, executor=None, final_volume=True) -> CalibrationResult:
     """One run of the loop (the body of :func:`calibrate`).
 
     Each outer iteration reconstructs with the current geometry (FDK, then SIRT on a truncated
@@ -136,7 +141,7 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
     modes applied. The loop stops after ``iterations`` or after an iteration that moved the
     views less than ``stop_update_px``; with ``undo_inconsistent`` an iteration that lowers the
     data consistency is undone and ends it. The returned volume is the full-size FDK with the
-    final geometry.
+    final geometry (None with ``final_volume`` False).
 
     A one-row detector (fan beam) is calibrated as such: every level keeps one row
     (:meth:`~robot_ct_ros.ct.geometry.ConeGeometry.binned`), the grid may be one slice thick,
@@ -166,7 +171,7 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
     li, mask = usable_data(line_integrals, valid_mask)
     say = progress or (lambda message: None)
     if method.estimate is None:  # no correction: the nominal geometry
-        volume = fdk(li, nominal, grid, valid_mask=mask, **(fdk_kwargs or {}))
+        volume = fdk(li, nominal, grid, valid_mask=mask, **(fdk_kwargs or {})) if final_volume else None
         return CalibrationResult(method.name, np.zeros((nominal.n_views, 9)), nominal, volume, (),
                                  time.perf_counter() - t_start, settings=settings)
     truncated = settings.projections == "truncated"
@@ -305,7 +310,7 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
     for note in notes:
         say(note)
     geom = nominal.perturbed(params)
-    volume = fdk(li, geom, grid, valid_mask=mask, **fdk_kwargs)
+    volume = fdk(li, geom, grid, valid_mask=mask, **fdk_kwargs) if final_volume else None
     notes = tuple(notes)
     return CalibrationResult(method.name, params, geom, volume, tuple(history), time.perf_counter() - t_start,
                              settings=settings, notes=notes, params_unguarded=unguarded)

@@ -105,20 +105,43 @@ def as_view_mask(valid_mask, shape) -> np.ndarray:
 
 def usable_data(line_integrals, valid_mask) -> tuple[np.ndarray, np.ndarray]:
     """float32 line integrals with every pixel that is invalid or not finite set to 0, and the
-    (n, rows, cols) mask of the others."""
+    (n, rows, cols) mask of the others.
+
+    Data that are float32, C-contiguous and already 0 wherever the mask is False (a scan as
+    :func:`~robot_ct_ros.ct.simulation.simulate_scan` and the importers deliver it) are returned
+    as they are, not copied: the caller's array, which the calibration only reads (a full-size
+    stack is 250 MB)."""
     li = np.ascontiguousarray(line_integrals, dtype=np.float32)
     mask = as_view_mask(valid_mask, li.shape) & np.isfinite(li)
-    return np.where(mask, li, 0.0).astype(np.float32), mask
+    if mask.all() or not np.any(li[~mask]):  # nothing to zero (a NaN in li[~mask] counts as non-zero)
+        return li, mask
+    return np.where(mask, li, np.float32(0.0)), mask
+
+
+BIN_CHUNK_VIEWS = 32
+"""Views :func:`bin_masked` bins at a time (its float32 temporaries are a chunk, not the stack)."""
 
 
 def bin_masked(line_integrals: np.ndarray, valid_mask: np.ndarray, factor: int) -> tuple[np.ndarray, np.ndarray]:
-    """Average valid pixels in ``factor`` x ``factor`` bins; a bin with no valid pixel is invalid."""
-    from robot_ct_ros.ct.geometry import bin_projections
+    """Average valid pixels in ``factor`` x ``factor`` bins; a bin with no valid pixel is invalid.
 
-    m = as_view_mask(valid_mask, line_integrals.shape).astype(np.float32)
-    total = bin_projections(np.where(m > 0, line_integrals, 0.0).astype(np.float32), factor)
-    count = bin_projections(m, factor)
-    return (total / np.maximum(count, 1.0)).astype(np.float32), count > 0
+    Binned :data:`BIN_CHUNK_VIEWS` views at a time, so no full-size temporary is made."""
+    from robot_ct_ros.ct.geometry import bin_factors, bin_projections
+
+    shape = np.shape(line_integrals)
+    fr, fc = bin_factors(shape[-2:], factor)
+    n = shape[0]
+    out = np.empty((n, shape[-2] // fr, shape[-1] // fc), np.float32)
+    valid = np.empty(out.shape, bool)
+    full_mask = as_view_mask(valid_mask, shape)
+    for v0 in range(0, n, BIN_CHUNK_VIEWS):
+        sl = slice(v0, min(n, v0 + BIN_CHUNK_VIEWS))
+        m = full_mask[sl].astype(np.float32)
+        total = bin_projections(np.where(m > 0, line_integrals[sl], 0.0).astype(np.float32), factor)
+        count = bin_projections(m, factor)
+        out[sl] = total / np.maximum(count, 1.0)
+        valid[sl] = count > 0
+    return out, valid
 
 
 def usable_views(mask: np.ndarray, minimum: int = MIN_VIEW_PIXELS) -> np.ndarray:

@@ -36,11 +36,13 @@ Scan simulation
     rest of the irradiated object, which only feeds truncation), forward projects with
     :func:`robot_ct_ros.ct.projector.forward_project` onto the *raw* detector (one ray per
     raw pixel, so a binned pixel integrates binning**2 rays), applies the detector model
-    and bins. The geometry passed in is the readout (binned) geometry that reconstruction
+    and bins (or takes a ``projector``: :func:`ellipsoid_line_integrals`, the exact line integrals
+    of additive ellipsoids, for scans too large to voxelise at their resolution). The geometry passed in is the readout (binned) geometry that reconstruction
     uses; the raw geometry is ``raw_geometry(geom, binning)``.
 """
 
 
+from robot_ct_ros.ct.simulation.analytic import ellipsoid_line_integrals
 from robot_ct_ros.ct.simulation.detector import (DetectorModel, counts_to_line_integrals, simulate_counts,
                                                  simulate_flat)
 from robot_ct_ros.ct.simulation.errors import (GeometryErrorModel, SumOfErrorModels, detector_drift,
@@ -54,6 +56,6 @@ from robot_ct_ros.ct.simulation.scan import (SimulatedScan, irradiated_bounds_mm
 
 __all__ = ["MU", "Primitive", "Phantom", "CapGeometry", "ellipsoid", "elliptic_cylinder", "box", "spiral", "voxelize",
            "mouse_phantom", "battery_phantom", "carotid_plaque_phantom", "interior_neck_phantom", "DetectorModel", "simulate_flat",
-           "simulate_counts", "counts_to_line_integrals", "GeometryErrorModel", "SumOfErrorModels",
+           "simulate_counts", "counts_to_line_integrals", "ellipsoid_line_integrals", "GeometryErrorModel", "SumOfErrorModels",
            "robot_coordination", "detector_drift", "static_misalignment", "raw_geometry", "irradiated_bounds_mm",
            "scan_volumes", "SimulatedScan", "project_parts", "simulate_scan"]

@@ -107,13 +107,14 @@ class SimulatedScan:
     ``line_integrals`` float32 (n_views, rows, cols) on the readout detector ``geom``, 0 where
     ``valid_mask`` (bool (rows, cols)) is False; ``ideal_line_integrals`` the noiseless,
     defect-free line integrals (mean over the raw pixels of each bin); ``counts`` and
-    ``flat`` the binned detector output (None without a detector model).
+    ``flat`` the binned detector output (None without a detector model). ``ideal_line_integrals``
+    and ``counts`` are None when :func:`simulate_scan` ran with ``keep_intermediates=False``.
     """
 
     line_integrals: np.ndarray
     valid_mask: np.ndarray
     geom: ConeGeometry
-    ideal_line_integrals: np.ndarray
+    ideal_line_integrals: np.ndarray | None
     counts: np.ndarray | None = None
     flat: np.ndarray | None = None
     info: dict = field(default_factory=dict)
@@ -133,7 +134,8 @@ def project_parts(parts, geom: ConeGeometry) -> np.ndarray:
 def simulate_scan(phantom: Phantom, geom_true: ConeGeometry, detector: DetectorModel | None = None, *,
                   voxel_size_mm=0.02, roi_grid: VolumeGrid | None = None, outer_voxel_size_mm=None,
                   roi_margin_mm: float = 0.5, supersample: int = 2, pixel_supersample: int = 1, rng=None,
-                  chunk_views: int = 16, parts=None) -> SimulatedScan:
+                  chunk_views: int = 16, parts=None, projector=None,
+                  keep_intermediates: bool = True) -> SimulatedScan:
     """Simulate the measured projections of ``phantom`` along the true geometry.
 
     ``geom_true`` is the readout (binned) geometry. The phantom is voxelised at
@@ -143,28 +145,48 @@ def simulate_scan(phantom: Phantom, geom_true: ConeGeometry, detector: DetectorM
     detector (``raw_geometry(geom_true, binning)``), then :func:`simulate_counts` and
     :func:`counts_to_line_integrals`; without one, on ``pixel_supersample``-times finer
     pixels averaged back, noise free. Processed in chunks of ``chunk_views`` views.
+
+    ``projector(geom)``, when given, replaces the voxelised phantom: the line integrals of the
+    views of ``geom`` (the raw detector's, a chunk at a time), e.g. RTK's exact ray-ellipsoid
+    intersections (:func:`robot_ct_ros.ct.rtk_bridge.rtk_ellipsoid_projections`). With
+    ``keep_intermediates`` False only the line integrals are kept (``ideal_line_integrals`` and
+    ``counts`` are None), converted from counts chunk by chunk: one (n, rows, cols) float32
+    stack in all instead of three and the conversion's temporaries (a full-size scan is 250 MB
+    a stack); the line integrals and mask are identical.
     """
     sub = detector.binning if detector is not None else int(pixel_supersample)
     gproj = raw_geometry(geom_true, sub)
-    if parts is None:
-        parts = scan_volumes(phantom, gproj, voxel_size_mm, roi_grid, outer_voxel_size_mm, roi_margin_mm,
-                             supersample)
+    if projector is None:
+        if parts is None:
+            parts = scan_volumes(phantom, gproj, voxel_size_mm, roi_grid, outer_voxel_size_mm, roi_margin_mm,
+                                 supersample)
+
+        def projector(g):
+            return project_parts(parts, g)
+    info = {"parts": [g.to_dict() for _, g in (parts or ())]}
     rng = _rng(rng)
     nv, nr, nc = geom_true.n_views, geom_true.n_rows, geom_true.n_cols
-    ideal = np.empty((nv, nr, nc), np.float32)
-    counts = np.empty((nv, nr, nc), np.float32) if detector is not None else None
-    flat = valid = None
+    lean = detector is not None and not keep_intermediates
+    ideal = None if lean else np.empty((nv, nr, nc), np.float32)
+    counts = np.empty((nv, nr, nc), np.float32) if detector is not None else None  # lean: the line integrals
+    flat = valid = mask = None
     if detector is not None:
         flat, valid = simulate_flat((nr * sub, nc * sub), detector, rng)
     for v0 in range(0, nv, chunk_views):
-        sel = np.arange(v0, min(nv, v0 + chunk_views))
-        li = project_parts(parts, gproj.subset(sel))
-        ideal[sel] = bin_projections(li, sub, mean=True)
+        sel = slice(v0, min(nv, v0 + chunk_views))
+        li = projector(gproj.subset(np.arange(sel.start, sel.stop)))
+        if not lean:
+            ideal[sel] = bin_projections(li, sub, mean=True)
         if detector is not None:
-            counts[sel] = simulate_counts(li, detector, rng, flat=flat)[0]
+            c = simulate_counts(li, detector, rng, flat=flat)[0]
+            if lean:  # elementwise, so chunk by chunk is the same as all at once
+                counts[sel], mask = counts_to_line_integrals(c, flat, valid)
+            else:
+                counts[sel] = c
     if detector is None:
-        return SimulatedScan(ideal, np.ones((nr, nc), bool), geom_true, ideal,
-                             info={"parts": [g.to_dict() for _, g in parts]})
+        return SimulatedScan(ideal, np.ones((nr, nc), bool), geom_true, ideal, info=info)
+    info["detector"] = detector
+    if lean:
+        return SimulatedScan(counts, mask, geom_true, None, None, flat, info=info)
     li, mask = counts_to_line_integrals(counts, flat, valid)
-    return SimulatedScan(li, mask, geom_true, ideal, counts, flat,
-                         info={"parts": [g.to_dict() for _, g in parts], "detector": detector})
+    return SimulatedScan(li, mask, geom_true, ideal, counts, flat, info=info)

@@ -430,3 +430,43 @@ def test_averaged_sample_sets_scatter_less_between_seeds_than_one_set():
     assert four_error < 1.1 * one_error < 0.3 * before, (before, one_error, four_error)
     with pytest.raises(ValueError, match="draws"):
         LLEConfig(draws=0)
+
+
+def test_usable_data_and_binning_make_no_full_size_copy_and_change_nothing():
+    """Clean float32 data are used as they are (no copy); data with invalid pixels are zeroed there;
+    binning in chunks of views equals binning the stack at once."""
+    from robot_ct_ros.ct.calibration import masks
+    from robot_ct_ros.ct.calibration.masks import bin_masked, usable_data
+    from robot_ct_ros.ct.geometry import bin_projections
+
+    rng = np.random.default_rng(0)
+    li = rng.random((37, 12, 18), dtype=np.float32)
+    valid = rng.random((12, 18)) > 0.1
+    li[:, ~valid] = 0.0
+    same, mask = usable_data(li, valid)
+    assert same is li and mask.shape == li.shape and not mask[:, ~valid].any()
+    dirty = li.copy()
+    dirty[:, ~valid] = 5.0
+    dirty[3, 4, 5] = np.nan
+    clean, mask2 = usable_data(dirty, valid)
+    assert clean is not dirty and clean.dtype == np.float32
+    np.testing.assert_array_equal(clean, np.where(mask2, dirty, 0.0))
+    assert not mask2[3, 4, 5] and clean[3, 4, 5] == 0.0
+    for factor in (2, 3):
+        m = mask2.astype(np.float32)
+        total = bin_projections(np.where(m > 0, clean, 0.0).astype(np.float32), factor)
+        count = bin_projections(m, factor)
+        binned, ok = bin_masked(clean, mask2, factor)
+        assert masks.BIN_CHUNK_VIEWS < len(clean)  # several chunks
+        np.testing.assert_array_equal(binned, (total / np.maximum(count, 1.0)).astype(np.float32))
+        np.testing.assert_array_equal(ok, count > 0)
+
+
+def test_calibrate_without_the_final_volume_returns_the_same_geometry():
+    nominal, true, grid, measured = _small_scan(n_views=12, n_det=32)
+    kw = dict(method="ncc-lle", iterations=1, schedule="fast", projections="complete")
+    with_volume = calibrate(measured, nominal, grid, **kw)
+    without = calibrate(measured, nominal, grid, final_volume=False, **kw)
+    assert with_volume.volume.shape == grid.shape_zyx and without.volume is None
+    np.testing.assert_array_equal(without.params, with_volume.params)
+    assert calibrate(measured, nominal, grid, method="none", final_volume=False).volume is None
