@@ -18,6 +18,7 @@ from __future__ import annotations
 import os
 import time
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import wait as _wait_futures
 from dataclasses import dataclass, field
 from multiprocessing import get_context
 
@@ -193,6 +194,13 @@ class StreamingCorrector:
     def busy(self) -> bool:
         """A batch is being estimated, or frames wait for one."""
         return self._future is not None or bool(self._queue)
+
+    def wait(self, timeout_s: float) -> bool:
+        """Wait at most ``timeout_s`` for the batch in flight (poll afterwards); True when none is left
+        in flight. For tests and batch drivers: a node polls from its timer instead."""
+        if self._future is not None:
+            _wait_futures([self._future], timeout=timeout_s)
+        return self._future is None or self._future.done()
 
     def poll(self) -> list:
         """Collect the finished batch (a list of at most one :class:`LiveUpdate`) and hand the frames

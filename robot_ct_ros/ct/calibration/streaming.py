@@ -146,30 +146,43 @@ class StreamingEstimator:
 
     def add_views(self, line_integrals, valid_mask, nominal: ConeGeometry, view_ids) -> StreamStep | None:
         """Estimate these views (full-size data ``(k, rows, cols)``, their nominal geometry and scan
-        indices) and add them to the volume; None while the warm-up views are still being collected."""
+        indices) and add them to the volume; None while the warm-up views are still being collected.
+        The call that completes the warm-up returns the warm-up views and, when more views came with
+        it, those estimated against the first volume, in one step."""
         view_ids = np.asarray(view_ids, np.int64).reshape(-1)
         li, mask, nom = self._level(np.asarray(line_integrals, np.float32), valid_mask, nominal)
-        full = {"nominal": nominal}
+        parts = [(view_ids, li, mask, nom, nominal)]
         if not self.started:
-            self._pending.append((view_ids, li, mask, nom, nominal))
+            self._pending.append(parts[0])
             if sum(len(p[0]) for p in self._pending) < self.warmup_views:
                 return None
-            view_ids = np.concatenate([p[0] for p in self._pending])
-            li = np.concatenate([p[1] for p in self._pending])
-            mask = np.concatenate([p[2] for p in self._pending])
-            nom = ConeGeometry.concatenate([p[3] for p in self._pending])
-            full["nominal"] = ConeGeometry.concatenate([p[4] for p in self._pending])
+            joined = [np.concatenate([p[j] for p in self._pending]) for j in range(3)]
+            joined += [ConeGeometry.concatenate([p[j] for p in self._pending]) for j in (3, 4)]
             self._pending = []
-            self._sum += self._backproject(li, mask, nom)  # the first volume: nominal geometry
-            self._added = len(view_ids)
-            params = self._estimate(li, mask, nom, view_ids)
-            self._sum = self._backproject(li, mask, nom.perturbed(params))  # rebuilt with the estimates
-            scores = np.full(len(view_ids), np.nan)
-        else:
-            params = self._estimate(li, mask, nom, view_ids)
-            scores = self._score(li, mask, nom.perturbed(params))
-            self._sum += self._backproject(li, mask, nom.perturbed(params))
-            self._added += len(view_ids)
+            k = self.warmup_views
+            first, rest = np.arange(k), np.arange(k, len(joined[0]))
+            parts = [tuple(x[first] if j < 3 else x.subset(first) for j, x in enumerate(joined))]
+            if rest.size:
+                parts.append(tuple(x[rest] if j < 3 else x.subset(rest) for j, x in enumerate(joined)))
+        ids, params, geoms, scores = [], [], [], []
+        for ids_p, li_p, mask_p, nom_p, full_p in parts:
+            if not self.started:  # the first volume: nominal geometry, then rebuilt with the estimates
+                self._sum += self._backproject(li_p, mask_p, nom_p)
+                self._added = len(ids_p)
+                p = self._estimate(li_p, mask_p, nom_p, ids_p)
+                self._sum = self._backproject(li_p, mask_p, nom_p.perturbed(p))
+                sc = np.full(len(ids_p), np.nan)
+            else:
+                p = self._estimate(li_p, mask_p, nom_p, ids_p)
+                sc = self._score(li_p, mask_p, nom_p.perturbed(p))
+                self._sum += self._backproject(li_p, mask_p, nom_p.perturbed(p))
+                self._added += len(ids_p)
+            ids.append(ids_p)
+            params.append(p)
+            geoms.append(full_p.perturbed(p))
+            scores.append(sc)
+        scores = np.concatenate(scores)
         self._ncc.extend(scores.tolist())
-        self.n_estimated += len(view_ids)
-        return StreamStep(view_ids, params, full["nominal"].perturbed(params), scores, self.mean_ncc)
+        self.n_estimated += sum(len(x) for x in ids)
+        return StreamStep(np.concatenate(ids), np.concatenate(params), ConeGeometry.concatenate(geoms), scores,
+                          self.mean_ncc)
