@@ -7,7 +7,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 export PYTHONPATH := $(CURDIR)$(if $(PYTHONPATH),:$(PYTHONPATH))
 
-.PHONY: venv demo test bench bench-calibration bench-calibration-speed bench-interior bench-realdata bench-sweep bench-dask clean
+.PHONY: venv demo test bench bench-calibration bench-calibration-speed bench-interior bench-realdata bench-sweep bench-dask bench-streaming clean
 
 venv: $(STAMP)
 
@@ -44,6 +44,9 @@ bench-sweep: $(STAMP)
 
 bench-dask: $(STAMP)
 	$(PY) bench/bench_dask.py --out docs/results
+
+bench-streaming: $(STAMP)
+	$(PY) bench/bench_streaming.py --out docs/results
 
 clean:
 	rm -rf out build install log .pytest_cache
