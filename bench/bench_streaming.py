@@ -8,6 +8,8 @@ turns, ``--repeats`` times each:
   stream     stream=true: each frame estimated as it arrives, in one worker process at nice
              +``--nice`` (robot_ct_ros.jobs.streaming), live geometry on /ct/geometry_live
   stream0    the same with the worker at the node's own priority (nice +0; ``--no-nice0`` leaves it out)
+  streamall  stream at nice +``--nice`` with the worker on numba's default threads, every core
+             (``--no-all-threads`` leaves it out)
   every_n    every_n_views=N: the earlier online mode, the whole calibration re-run on the frames so
              far on a thread of the node's process (``--every``; 0 leaves it out)
 
@@ -16,7 +18,7 @@ live figures (views whose live geometry arrived before the scan ended, latency f
 pairing to its live geometry, the running projection NCC) and the whole-scan run's time. Each
 figure is the median over the repeats. Writes streaming.md and streaming.json to ``--out``.
 
-    .venv/bin/python bench/bench_streaming.py --out docs/results      # about 3 min on 2 cores
+    .venv/bin/python bench/bench_streaming.py --out docs/results      # about 4 min on 2 cores
 """
 
 from __future__ import annotations
@@ -49,7 +51,8 @@ def one_run(kind: str, args, out: Path) -> dict:
 
     recon = {"method": args.method, "iterations": 1, "evaluate_truth": False}
     if kind.startswith("stream"):
-        recon.update(stream=True, stream_warmup_views=args.warmup, stream_nice=args.nice if kind == "stream" else 0)
+        recon.update(stream=True, stream_warmup_views=args.warmup, stream_nice=0 if kind == "stream0" else args.nice,
+                     stream_threads=0 if kind == "streamall" else args.threads)
     elif kind == "every_n":
         recon.update(every_n_views=args.every)
     r = run_scan_graph(out, protocol(args.views, args.exposure), grabber=GRABBER, quiet=True, say=lambda s: None,
@@ -78,13 +81,18 @@ def main() -> int:
     ap.add_argument("--method", default="ncc-lle-exact")
     ap.add_argument("--warmup", type=int, default=8, help="stream_warmup_views")
     ap.add_argument("--nice", type=int, default=10, help="stream_nice: the worker's niceness increment")
+    ap.add_argument("--threads", type=int, default=1, help="stream_threads: the worker's numba threads (0: numba's "
+                    "default)")
     ap.add_argument("--no-nice0", action="store_true", help="leave out the stream run at nice +0")
+    ap.add_argument("--no-all-threads", action="store_true", help="leave out the stream run on every core")
     ap.add_argument("--every", type=int, default=8, help="every_n_views of the earlier online mode (0: not run)")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--out", type=Path, default=None, help="write streaming.md and streaming.json here")
     args = ap.parse_args()
 
-    kinds = ["off", "stream"] + ([] if args.no_nice0 else ["stream0"]) + (["every_n"] if args.every > 0 else [])
+    kinds = (["off", "stream"] + ([] if args.no_nice0 else ["stream0"])
+             + ([] if args.no_all_threads or args.threads == 0 else ["streamall"])
+             + (["every_n"] if args.every > 0 else []))
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for rep in range(args.repeats):
@@ -117,8 +125,10 @@ def main() -> int:
              "| mode | scan (s) | scan speed vs off | live views before the scan ended (by the end of the run) | live latency median / max (s) "
              "| running projection NCC | whole-scan run after the scan (s) |",
              "| --- | --- | --- | --- | --- | --- | --- |"]
-    names = {"off": "off", "stream": f"stream (1 worker, nice +{args.nice}, warm-up {args.warmup} views)",
-             "stream0": f"stream (1 worker, nice +0, warm-up {args.warmup} views)",
+    threads = f"{args.threads} numba thread(s)" if args.threads else "numba's default threads"
+    names = {"off": "off", "stream": f"stream (1 worker, nice +{args.nice}, {threads}, warm-up {args.warmup} views)",
+             "stream0": f"stream (1 worker, nice +0, {threads}, warm-up {args.warmup} views)",
+             "streamall": f"stream (1 worker, nice +{args.nice}, numba's default threads, warm-up {args.warmup} views)",
              "every_n": f"every_n_views={args.every} (earlier mode)"}
     for kind in kinds:
         s = summary[kind]

@@ -129,7 +129,8 @@ def _stream_task(scan: int, latched, frames: list, options: dict) -> dict:
     st["next_id"] += data.n_views
     step = est.add_views(li, mask, data.geom, ids)
     roi = est.roi_grid.binned(est.binning) if est.binning > 1 else est.roi_grid
-    slices = {k: np.ascontiguousarray(v, np.float32) for k, v in mid_slices(resample(est.volume, est.grid, roi)).items()}
+    preview = resample(est.volume, est.grid, roi)
+    slices = {k: np.ascontiguousarray(v, np.float32) for k, v in mid_slices(preview).items()}
     return {"scan": scan, "stamps": [int(s) for s in data.stamps_ns], "geom": step.geom, "ncc": step.ncc,
             "mean_ncc": step.mean_ncc, "views": est.n_estimated, "slices": slices,
             "worker_s": time.perf_counter() - t0}
@@ -142,14 +143,15 @@ class StreamingCorrector:
 
     ``settings``: the CalibrationSettings (method, schedule, prior, seed, padding); ``warmup_views``
     frames make the first volume; ``nice``: the worker's niceness increment (0: the caller's
-    priority); ``threads``: its numba threads (0: numba's default); ``voxel_mm`` / ``shape_xyz``:
+    priority); ``threads``: its numba threads (0: numba's default, every core; one thread slowed the
+    simulated scan less, docs/calibration.md §13a); ``voxel_mm`` / ``shape_xyz``:
     the ROI grid's overrides (as the whole-scan job's).
     """
 
     settings: object
     warmup_views: int = 8
     nice: int = 10
-    threads: int = 0
+    threads: int = 1
     voxel_mm: object = None
     shape_xyz: object = None
     context: str = "spawn"

@@ -49,7 +49,7 @@ class GraphResult:
     slices: dict = field(default_factory=dict)      # axial|sagittal|coronal -> 2D array received on recon/slice_*
     progress: list = field(default_factory=list)    # recon/progress messages (dicts)
     timings_s: dict = field(default_factory=dict)
-    live: dict = field(default_factory=dict)        # stamp_ns -> (seconds after the scan started, scan still running), /ct/geometry_live
+    live: dict = field(default_factory=dict)        # stamp_ns -> (s after the scan started, scan running), /ct/geometry_live
 
 
 def _domain_id() -> int:

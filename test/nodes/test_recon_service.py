@@ -189,8 +189,9 @@ def test_markdown_report_says_how_far_an_ensembles_members_spread():
 def test_streaming_publishes_live_geometry_during_the_scan_and_the_final_run_equals_the_replay(tmp_path):
     """stream=true on the whole graph: each frame's live estimate (a worker process; at the node's own
     priority here, so that other jobs on a shared test machine cannot starve it, the lower priority is
-    test/jobs/test_streaming.py's) reaches /ct/geometry_live while the scan still runs; after the scan the whole-scan run corrects the
-    recording as before, to the bit what an offline run of the recorded bag gives."""
+    test/jobs/test_streaming.py's) reaches /ct/geometry_live while the scan still runs; after the scan
+    the whole-scan run corrects the recording as before, to the bit what an offline run of the
+    recorded bag gives."""
     from robot_ct_ros.ct.calibration import CalibrationSettings
     from robot_ct_ros.jobs.calibrate import calibrate_bag
     from robot_ct_ros.testing.graph import run_scan_graph
@@ -203,7 +204,8 @@ def test_streaming_publishes_live_geometry_during_the_scan_and_the_final_run_equ
                "sim_roi_size_m": [0.0, 0.0, 0.0]}
     out = tmp_path / "run"
     r = run_scan_graph(out, protocol, grabber=grabber, quiet=True, say=lambda s: None, scan_timeout_s=120.0,
-                       recon={"method": "ncc-lle-exact", "iterations": 1, "stream": True, "stream_warmup_views": 4, "stream_nice": 0,
+                       recon={"method": "ncc-lle-exact", "iterations": 1, "stream": True, "stream_warmup_views": 4,
+                              "stream_nice": 0,
                               "evaluate_truth": False}, recon_timeout_s=300.0)
     scan = read_scan(r.bag)
     assert r.frames == n and scan.n_views == n

@@ -33,7 +33,8 @@ def test_the_running_volume_is_the_fdk_of_the_views_so_far_and_warmup_waits():
     assert steps == [None, None] and not est.started
     first = est.add_views(li[2:5], mask[2:5], nominal.subset(np.arange(2, 5)), [2, 3, 4])
     # the warm-up views at once, and the views that came with the last of them against the first volume
-    assert list(first.view_ids) == [0, 1, 2, 3, 4] and np.isnan(first.ncc[:3]).all() and np.isfinite(first.ncc[3:]).all()
+    assert list(first.view_ids) == [0, 1, 2, 3, 4]
+    assert np.isnan(first.ncc[:3]).all() and np.isfinite(first.ncc[3:]).all()
     assert first.geom.allclose(nominal.subset(np.arange(5)))
     for i in range(5, nominal.n_views):
         step = est.add_views(li[i:i + 1], mask[i:i + 1], nominal.subset(np.array([i])), [i])
