@@ -233,7 +233,10 @@ class StreamingCorrector:
             latched = None
             if self._latched_sent != self.scan:
                 latched, self._latched_sent = self._latched, self.scan
-            self._future = self._pool.submit(_stream_task, self.scan, latched, frames, self.options)
+            try:
+                self._future = self._pool.submit(_stream_task, self.scan, latched, frames, self.options)
+            except RuntimeError as exc:  # the worker died (BrokenProcessPool) or the pool is shut down
+                self.error = self.error or f"{type(exc).__name__}: {exc}"
         return out
 
     def summary(self) -> dict:

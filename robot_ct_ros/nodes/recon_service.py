@@ -150,7 +150,7 @@ class ReconServiceNode(Node):
         for m in fmt.geometry_pose_arrays(update.geom, update.stamps_ns):
             self.live_pub.publish(fmt.serialize(m, fmt.POSE_ARRAY))
             self.live_published += 1
-        if not self.running:  # a run's own slices are not overwritten while it works
+        if not self.running and not self.planner.full_started:  # nor are a run's slices, during or after it
             now = self.get_clock().now().nanoseconds
             for k, sl in update.slices.items():
                 self.slice_pubs[k].publish(fmt.serialize(fmt.image_from_array(sl, now, fmt.FRAME_WORLD), fmt.IMAGE))
