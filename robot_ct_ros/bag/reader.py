@@ -475,9 +475,11 @@ def read_scan(path, *, keep_raw: bool = False) -> ScanData:
     return scan_from_raw(read_raw_messages(path), path, keep_raw=keep_raw)
 
 
-def scan_from_raw(raw: RawBag, path, *, keep_raw: bool = False, min_views: int = MIN_VIEWS) -> ScanData:
+def scan_from_raw(raw: RawBag, path, *, keep_raw: bool = False, min_views: int | None = None) -> ScanData:
     """The scan held by messages already read (:func:`read_scan`'s body; ``min_views``: the fewest
-    paired frames accepted, e.g. 1 for a few frames of a scan streamed as they arrive)."""
+    paired frames accepted, default :data:`MIN_VIEWS`, e.g. 1 for a few frames of a scan streamed as
+    they arrive)."""
+    min_views = MIN_VIEWS if min_views is None else int(min_views)
     warnings = list(raw.warnings)
     infos = _decode(raw, fmt.TOPIC_SCAN_INFO, fmt.STRING, warnings)
     if not infos:
