@@ -7,7 +7,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 export PYTHONPATH := $(CURDIR)$(if $(PYTHONPATH),:$(PYTHONPATH))
 
-.PHONY: venv demo test bench bench-calibration bench-calibration-speed bench-interior bench-interior-diagnosis bench-realdata bench-sweep bench-dask bench-fullsize clean
+.PHONY: venv demo test bench bench-calibration bench-calibration-speed bench-interior bench-interior-diagnosis bench-realdata bench-sweep bench-dask bench-fullsize bench-streaming clean
 
 venv: $(STAMP)
 
@@ -50,6 +50,9 @@ bench-dask: $(STAMP)
 
 bench-fullsize: $(STAMP)
 	$(PY) bench/bench_fullsize.py --rtk-binning 2 --out docs/results --volume-out out/bench_fullsize
+
+bench-streaming: $(STAMP)
+	$(PY) bench/bench_streaming.py --out docs/results
 
 clean:
 	rm -rf out build install log .pytest_cache

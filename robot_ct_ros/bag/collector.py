@@ -28,6 +28,7 @@ class ScanCollector:
         self.latched: dict[str, tuple[str, bytes]] = {}
         self.per_frame: dict[str, dict[int, bytes]] = {t: {} for t in PER_FRAME}
         self.scan_id = ""
+        self.new_pairs: list[int] = []  # stamps paired since the last take_new_pairs, in pairing order
 
     def add_latched(self, topic: str, data: bytes) -> bool:
         """Keep a latched message (scan_info, flat field, dead pixels); True when it is a
@@ -54,13 +55,25 @@ class ScanCollector:
             stamp = fmt.stamp_to_ns(fmt.deserialize(data, fmt.TOPIC_TYPES[topic]).header.stamp)
         except Exception:  # noqa: BLE001 - a damaged message is not collected
             return False
-        self.per_frame[topic].setdefault(stamp, data)
+        if stamp in self.per_frame[topic]:
+            return True
+        self.per_frame[topic][stamp] = data
+        other = {fmt.TOPIC_PROJECTION: fmt.TOPIC_GEOMETRY, fmt.TOPIC_GEOMETRY: fmt.TOPIC_PROJECTION}.get(topic)
+        if other is not None and stamp in self.per_frame[other]:
+            self.new_pairs.append(stamp)
         return True
+
+    def take_new_pairs(self) -> list:
+        """(stamp, projection bytes, geometry bytes) of the frames paired since the last call."""
+        stamps, self.new_pairs = self.new_pairs, []
+        frames, geoms = self.per_frame[fmt.TOPIC_PROJECTION], self.per_frame[fmt.TOPIC_GEOMETRY]
+        return [(s, frames[s], geoms[s]) for s in stamps]
 
     def reset(self) -> None:
         """Forget the frames (a new scan starts); latched messages are replaced as they come."""
         for d in self.per_frame.values():
             d.clear()
+        self.new_pairs = []
 
     @property
     def n_frames(self) -> int:

@@ -32,6 +32,7 @@ TOPIC_GEOMETRY = "/ct/geometry"
 TOPIC_FLAT_FIELD = "/ct/flat_field"
 TOPIC_DEAD_PIXELS = "/ct/dead_pixels"
 TOPIC_GEOMETRY_CORRECTED = "/ct/geometry_corrected"
+TOPIC_GEOMETRY_LIVE = "/ct/geometry_live"  # recon_service stream=true: each view's live estimate (not in bags)
 TOPIC_GEOMETRY_TRUE = "/ct/geometry_true"  # simulation only: the geometry the data was simulated with
 TOPIC_SOURCE_POSE = "/source_arm/tool_pose"
 TOPIC_DETECTOR_POSE = "/detector_arm/tool_pose"

@@ -472,7 +472,14 @@ def read_scan(path, *, keep_raw: bool = False) -> ScanData:
     Raises :class:`ScanBagError` with the reason when the bag cannot give a scan: nothing
     readable, no /ct/scan_info, no frame paired with a geometry, no flat field for counts.
     """
-    raw = read_raw_messages(path)
+    return scan_from_raw(read_raw_messages(path), path, keep_raw=keep_raw)
+
+
+def scan_from_raw(raw: RawBag, path, *, keep_raw: bool = False, min_views: int | None = None) -> ScanData:
+    """The scan held by messages already read (:func:`read_scan`'s body; ``min_views``: the fewest
+    paired frames accepted, default :data:`MIN_VIEWS`, e.g. 1 for a few frames of a scan streamed as
+    they arrive)."""
+    min_views = MIN_VIEWS if min_views is None else int(min_views)
     warnings = list(raw.warnings)
     infos = _decode(raw, fmt.TOPIC_SCAN_INFO, fmt.STRING, warnings)
     if not infos:
@@ -541,7 +548,7 @@ def read_scan(path, *, keep_raw: bool = False) -> ScanData:
         warnings.append(f"{lone_frames} frames have no geometry with the same stamp and are not used")
     if lone_geoms:
         warnings.append(f"{lone_geoms} geometries have no frame with the same stamp and are not used")
-    if len(paired) < MIN_VIEWS:
+    if len(paired) < min_views:
         found = f"{len(paired)} paired view{'s' if len(paired) != 1 else ''}"
         if frames and geoms and not paired:
             f0, f1, g0, g1 = min(frames), max(frames), min(geoms), max(geoms)
@@ -553,7 +560,7 @@ def read_scan(path, *, keep_raw: bool = False) -> ScanData:
             causes.append("no usable frame on /ct/projection")
         elif not geoms:
             causes.append("no usable geometry on /ct/geometry")
-        raise ScanBagError(f"{path}: not a usable scan: {found}, a scan needs at least {MIN_VIEWS} "
+        raise ScanBagError(f"{path}: not a usable scan: {found}, a scan needs at least {min_views} "
                            f"({len(frames)} usable frames, {len(geoms)} usable geometries)"
                            + (f"; {'; '.join(causes)}" if causes else ""))
     n_views = info.get("n_views")

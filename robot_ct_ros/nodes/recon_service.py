@@ -8,6 +8,9 @@ as ``robot-ct calibrate`` corrects a recorded bag. Publishes recon/progress, /ct
 (one PoseArray per frame, the frame's stamp), recon/slice_{axial,sagittal,coronal},
 recon/report and /diagnostics. every_n_views > 0 also corrects the frames so far every N frames
 during the scan, into ``<output_dir>/partial_NNNN`` (not published on /ct/geometry_corrected).
+stream=true estimates each frame as it arrives against a running volume in a worker process at a
+lower OS priority (robot_ct_ros.jobs.streaming) and publishes it on /ct/geometry_live (same
+encoding as /ct/geometry_corrected), with the running volume's slices; the whole-scan run follows.
 Parameters: the calibration settings (robot_ct_ros.ct.calibration.CalibrationSettings, SI units)
 and the service's own (robot_ct_ros.jobs.online.ServiceSettings). Reference: docs/nodes.md.
 """
@@ -19,7 +22,6 @@ import threading
 import time
 from pathlib import Path
 
-import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseArray
 from rclpy.node import Node
@@ -32,6 +34,7 @@ from robot_ct_ros.bag import format as fmt
 from robot_ct_ros.bag.collector import PER_FRAME, ScanCollector
 from robot_ct_ros.ct.calibration import CalibrationSettings
 from robot_ct_ros.jobs.online import RunPlanner, ServiceSettings
+from robot_ct_ros.jobs.streaming import StreamingCorrector, mid_slices
 from robot_ct_ros.nodes.common import declare_settings, publish_diagnostic, run_settings_node
 from robot_ct_ros.nodes.recorder import message_class
 
@@ -40,12 +43,6 @@ STREAM = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST, reliability=Reli
 STATUS = QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 SLICES = ("axial", "sagittal", "coronal")
 PUBLISH_BATCH = 10  # corrected geometries per 50 ms tick: subscribers keep up, their depth-100 history never overflows
-
-
-def mid_slices(volume: np.ndarray) -> dict:
-    """The middle slices of a volume ``[z, y, x]``: axial (y, x), coronal (z, x), sagittal (z, y)."""
-    nz, ny, nx = volume.shape
-    return {"axial": volume[nz // 2], "coronal": volume[:, ny // 2, :], "sagittal": volume[:, :, nx // 2]}
 
 
 class ReconServiceNode(Node):
@@ -66,6 +63,7 @@ class ReconServiceNode(Node):
         self.progress_pub = self.create_publisher(String, "recon/progress", 50)
         self.report_pub = self.create_publisher(String, "recon/report", LATCHED)
         self.corrected_pub = self.create_publisher(PoseArray, fmt.node_topic(fmt.TOPIC_GEOMETRY_CORRECTED), STREAM)
+        self.live_pub = self.create_publisher(PoseArray, fmt.node_topic(fmt.TOPIC_GEOMETRY_LIVE), STREAM)
         self.slice_pubs = {k: self.create_publisher(Image, f"recon/slice_{k}", LATCHED) for k in SLICES}
         self.diag_pub = self.create_publisher(DiagnosticArray, fmt.node_topic(fmt.TOPIC_DIAGNOSTICS), 10)
         self.create_service(Trigger, "recon/run", self._on_run)
@@ -82,6 +80,10 @@ class ReconServiceNode(Node):
         self._to_publish: list[bytes] = []
         self.planner = RunPlanner(self.service.auto_run, self.service.every_n_views)
         self._t_run = 0.0
+        self.live_published = 0
+        self.stream = None if not self.service.stream else StreamingCorrector(
+            self.settings, warmup_views=self.service.stream_warmup_views, nice=self.service.stream_nice,
+            threads=self.service.stream_threads, voxel_mm=self.service.voxel_mm, shape_xyz=self.service.shape_xyz)
         self.create_timer(0.05, self._tick)
         self.create_timer(1.0, self._publish_diagnostics)
         self.get_logger().info(f"recon_service: method {self.settings.method}, {self.settings.iterations} "
@@ -104,10 +106,16 @@ class ReconServiceNode(Node):
         if self.scan.add_latched(topic, data):
             self.get_logger().info("collection reset: a new scan_info: new scan")
             self.planner.new_scan()
+            if self.stream is not None:
+                self.stream.new_scan()
 
     def _on_frame(self, topic: str, data: bytes) -> None:
         if not self.scan.add_frame_message(topic, data):
             self.get_logger().warning(f"undecodable message on {topic} ignored", once=True)
+        pairs = self.scan.take_new_pairs()
+        if self.stream is not None:
+            for stamp, image, geometry in pairs:
+                self.stream.add_frame(stamp, image, geometry, self.scan.latched)
 
     def _on_status(self, msg: String) -> None:
         try:
@@ -121,6 +129,9 @@ class ReconServiceNode(Node):
             for data in batch:
                 self.corrected_pub.publish(data)
                 self.corrected_published += 1
+        if self.stream is not None:
+            for update in self.stream.poll():
+                self._publish_live(update)
         if self.running:
             return
         run = self.planner.next_run(self.n_paired, self.scan.scan_id)
@@ -133,6 +144,16 @@ class ReconServiceNode(Node):
                 self.get_logger().error(f"automatic correction not started: {why}")
         elif run == "partial":
             self.start_run(partial=True)
+
+    def _publish_live(self, update) -> None:
+        """A batch of live estimates: its geometries on /ct/geometry_live, the running volume's slices."""
+        for m in fmt.geometry_pose_arrays(update.geom, update.stamps_ns):
+            self.live_pub.publish(fmt.serialize(m, fmt.POSE_ARRAY))
+            self.live_published += 1
+        if not self.running and not self.planner.full_started:  # nor are a run's slices, during or after it
+            now = self.get_clock().now().nanoseconds
+            for k, sl in update.slices.items():
+                self.slice_pubs[k].publish(fmt.serialize(fmt.image_from_array(sl, now, fmt.FRAME_WORLD), fmt.IMAGE))
 
     # -- runs ---------------------------------------------------------------------------------------
     @property
@@ -188,6 +209,8 @@ class ReconServiceNode(Node):
                                        shape_xyz=self.service.shape_xyz,
                                        evaluate_truth=self.service.evaluate_truth, markdown=True, say=say)
             report = correction.report | {"partial": partial, "scan_id": self.scan.scan_id}
+            if self.stream is not None:
+                report["live"] = self.stream.summary()
             result = (run, report, correction, None)
         except Exception as exc:  # noqa: BLE001 - reported; the node keeps serving
             result = (run, None, None, f"{type(exc).__name__}: {exc}")
@@ -238,6 +261,10 @@ class ReconServiceNode(Node):
                   ("frames", self.scan.n_frames), ("paired", self.n_paired), ("runs", self.runs),
                   ("output_dir", self.output_dir), ("last_error", self.error),
                   ("report", (self.report or {}).get("paths", {}).get("report_json", ""))]
+        if self.stream is not None:
+            live = self.stream.summary()
+            values += [("live_views", live["views"]), ("live_mean_projection_ncc", live["mean_projection_ncc"]),
+                       ("live_latency_s_median", live["latency_s_median"]), ("live_error", live["error"])]
         level = DiagnosticStatus.ERROR if self.state == "failed" else DiagnosticStatus.OK
         publish_diagnostic(self, self.diag_pub, level, "reconstruction", "recon_service", self.error or self.message,
                            values)
@@ -245,6 +272,8 @@ class ReconServiceNode(Node):
     def destroy_node(self):
         if self._worker is not None and self._worker.is_alive():
             self.get_logger().warning("shutting down during a run; its results are lost")
+        if self.stream is not None:
+            self.stream.close()
         return super().destroy_node()
 
 

@@ -49,6 +49,7 @@ class GraphResult:
     slices: dict = field(default_factory=dict)      # axial|sagittal|coronal -> 2D array received on recon/slice_*
     progress: list = field(default_factory=list)    # recon/progress messages (dicts)
     timings_s: dict = field(default_factory=dict)
+    live: dict = field(default_factory=dict)        # stamp_ns -> (s after the scan started, scan running), /ct/geometry_live
 
 
 def _domain_id() -> int:
@@ -187,7 +188,12 @@ def run_scan_graph(out_dir, protocol="quick", *, grabber: dict | None = None, ar
         recon_node = add(ReconServiceNode(context=context, parameter_overrides=_params(recon_params)))
 
         probe = add(rclpy.create_node("graph_probe", context=context))
-        corrected, slices, progress = {}, {}, []
+        corrected, slices, progress, live = {}, {}, [], {}
+        scan_t0 = {"t": None}
+
+        def on_live(msg):
+            t = None if scan_t0["t"] is None else time.monotonic() - scan_t0["t"]
+            live.setdefault(fmt.stamp_to_ns(msg.header.stamp), (t, orch.state not in ("done", "aborted")))
 
         def on_corrected(msg):
             corrected[fmt.stamp_to_ns(msg.header.stamp)] = fmt.view_from_pose_array(msg)
@@ -198,7 +204,8 @@ def run_scan_graph(out_dir, protocol="quick", *, grabber: dict | None = None, ar
             say(f"recon: {d['message']}")
 
         subs = [probe.create_subscription(PoseArray, fmt.TOPIC_GEOMETRY_CORRECTED, on_corrected, STREAM),
-                probe.create_subscription(String, "recon/progress", on_progress, 50)]
+                probe.create_subscription(String, "recon/progress", on_progress, 50),
+                probe.create_subscription(PoseArray, fmt.TOPIC_GEOMETRY_LIVE, on_live, STREAM)]
         for k in SLICES:
             subs.append(probe.create_subscription(Image, f"recon/slice_{k}",
                                                   lambda m, k=k: slices.__setitem__(k, fmt.array_from_image(m)),
@@ -228,7 +235,7 @@ def run_scan_graph(out_dir, protocol="quick", *, grabber: dict | None = None, ar
         say(f"scan {orch.scan_id} started ({timings['startup_s']:.1f} s after launch)")
 
         # 2. the scan
-        t0 = time.monotonic()
+        t0 = scan_t0["t"] = time.monotonic()
         spin_until(lambda: orch.state in ("done", "aborted"), scan_timeout_s, f"the scan to end (state {orch.state})",
                    report=lambda: say(f"scan: view {orch.view + 1}/{n}, {orch.frames} frames, {orch.state}, "
                                       f"{time.monotonic() - t0:.0f} s"))
@@ -284,7 +291,7 @@ def run_scan_graph(out_dir, protocol="quick", *, grabber: dict | None = None, ar
                            corrected_bag=path("corrected_bag"), volume_npy=path("volume_npy"),
                            volume_tif=path("volume_tif"), report_json=path("report_json"),
                            report_md=path("report_md"), report=report, frames=frames, corrected=dict(corrected),
-                           slices=dict(slices), progress=list(progress), timings_s=timings)
+                           slices=dict(slices), progress=list(progress), timings_s=timings, live=dict(live))
     finally:
         for node in reversed(nodes):
             try:

@@ -184,3 +184,42 @@ def test_markdown_report_says_how_far_an_ensembles_members_spread():
     assert "ensemble" not in markdown_report(base)
     text = markdown_report(base | {"ensemble": 3, "ensemble_spread_px": 0.0351})
     assert "the mean of 3 runs" in text and "0.035 px" in text
+
+
+def test_streaming_publishes_live_geometry_during_the_scan_and_the_final_run_equals_the_replay(tmp_path):
+    """stream=true on the whole graph: each frame's live estimate (a worker process; at the node's own
+    priority here, so that other jobs on a shared test machine cannot starve it, the lower priority is
+    test/jobs/test_streaming.py's) reaches /ct/geometry_live while the scan still runs; after the scan
+    the whole-scan run corrects the recording as before, to the bit what an offline run of the
+    recorded bag gives."""
+    from robot_ct_ros.ct.calibration import CalibrationSettings
+    from robot_ct_ros.jobs.calibrate import calibrate_bag
+    from robot_ct_ros.testing.graph import run_scan_graph
+
+    n = 16
+    protocol = {"name": "live", "n_views": n, "roi_center_m": [0.4, 0.0, 0.3], "fov_diameter_m": 0.005,
+                "detector": {"n_rows": 32, "n_cols": 64, "binning": 2, "raw_pixel_m": 0.00011},
+                "exposure_s": 0.5, "settle_s": 0.01, "move_timeout_s": 10.0, "exposure_timeout_s": 2.0}
+    grabber = {"sim_phantom": "mouse", "sim_voxel_size_m": 0.0005, "sim_region_size_m": [0.004, 0.004, 0.1],
+               "sim_roi_size_m": [0.0, 0.0, 0.0]}
+    out = tmp_path / "run"
+    r = run_scan_graph(out, protocol, grabber=grabber, quiet=True, say=lambda s: None, scan_timeout_s=120.0,
+                       recon={"method": "ncc-lle-exact", "iterations": 1, "stream": True, "stream_warmup_views": 4,
+                              "stream_nice": 0,
+                              "evaluate_truth": False}, recon_timeout_s=300.0)
+    scan = read_scan(r.bag)
+    assert r.frames == n and scan.n_views == n
+    stamps = {int(s) for s in scan.stamps_ns}
+    assert r.live and set(r.live) <= stamps
+    assert any(during for _, during in r.live.values()), r.live  # live geometry before the scan ended
+    live = r.report["live"]
+    assert live["views"] >= 4 and not live["error"] and live["worker_nice"] == 0
+
+    # the final run: the whole scan, equal to an offline correction of the recorded bag
+    assert not r.report["partial"] and sorted(r.corrected) == sorted(stamps)
+    offline = calibrate_bag(r.bag, tmp_path / "offline", CalibrationSettings(method="ncc-lle-exact", iterations=1),
+                            say=lambda s: None)
+    online = read_scan(r.corrected_bag).geom_corrected
+    replayed = fmt.as_transmitted(offline.geom)
+    for a in ("source_mm", "detector_mm", "u", "v"):
+        np.testing.assert_array_equal(getattr(online, a), getattr(replayed, a))

@@ -1,0 +1,255 @@
+"""Streaming online correction: the recon_service's live per-view estimation, in a worker process.
+
+:class:`StreamingCorrector` takes the scan's frames as they are paired (the CDR bytes of the
+projection and its geometry, plus the latched scan_info / flat field / dead pixels) and hands
+them in batches to one worker process (``concurrent.futures.ProcessPoolExecutor``, ``spawn``
+context, started at a lower OS priority with ``os.nice`` and its own numba thread count). The
+worker decodes them (:func:`robot_ct_ros.bag.reader.scan_from_raw`), holds the scan's
+:class:`~robot_ct_ros.ct.calibration.streaming.StreamingEstimator` and returns each batch's
+corrected geometry, the running projection NCC and the middle slices of the running volume.
+The caller polls (:meth:`StreamingCorrector.poll`, non-blocking): it never waits on numba, and
+a batch is whatever arrived while the previous one was estimated, so the worker never falls
+behind by more than one batch. Nothing here changes the whole-scan correction
+(robot_ct_ros.jobs.calibrate), which runs on the recorded scan afterwards as before.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import wait as _wait_futures
+from dataclasses import dataclass, field
+from multiprocessing import get_context
+
+import numpy as np
+
+__all__ = ["StreamingCorrector", "LiveUpdate", "mid_slices"]
+
+
+def mid_slices(volume: np.ndarray) -> dict:
+    """The middle slices of a volume ``[z, y, x]``: axial (y, x), coronal (z, x), sagittal (z, y)."""
+    nz, ny, nx = volume.shape
+    return {"axial": volume[nz // 2], "coronal": volume[:, ny // 2, :], "sagittal": volume[:, :, nx // 2]}
+
+
+@dataclass(frozen=True)
+class LiveUpdate:
+    """One batch estimated by the worker: the frames' stamps, their corrected geometry (a
+    ConeGeometry of those views), the projection NCC of each against the running volume (nan for
+    the warm-up views), the running mean, the middle slices of the running volume (ROI, coarse
+    level) and how long after its arrival here each frame's geometry came back (s)."""
+
+    scan: int
+    stamps_ns: np.ndarray
+    geom: object
+    ncc: np.ndarray
+    mean_ncc: float
+    views: int
+    slices: dict
+    latency_s: np.ndarray
+    worker_s: float
+
+
+# ------------------------------------------------------------------------------ worker process
+_STATE: dict = {}
+
+
+def _init_worker(nice: int, threads: int) -> None:
+    """Worker initializer: lower priority, numba threads (before numba is imported here)."""
+    if nice > 0:
+        try:
+            os.nice(int(nice))
+        except OSError:
+            pass
+    if threads > 0:
+        os.environ["NUMBA_NUM_THREADS"] = str(int(threads))
+    for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(k, "1")
+
+
+def _warm(settings) -> int:
+    """Import the science modules and run a tiny stream (6 views of 8 x 12 pixels) through them: numba's
+    kernels are compiled or loaded from its cache while the scan starts, not with its first frames."""
+    import robot_ct_ros.bag.reader  # noqa: F401
+    from robot_ct_ros.ct.calibration.streaming import StreamingEstimator
+    from robot_ct_ros.ct.geometry import VolumeGrid
+    from robot_ct_ros.ct.projector import forward_project
+    from robot_ct_ros.ct.trajectory import robotic_roi_scan
+
+    geom = robotic_roi_scan(n_views=6, n_rows=8, n_cols=12, fov_diameter_mm=0.6)
+    grid = VolumeGrid.centered((6, 6, 6), 0.1)
+    vol = np.zeros(grid.shape_zyx, np.float32)
+    vol[2:4, 2:4, 1:5] = 1.0
+    li = forward_project(vol, grid, geom).astype(np.float32)
+    est = StreamingEstimator(settings, grid, geom.n_views, warmup_views=4)
+    for i in range(geom.n_views):
+        est.add_views(li[i:i + 1], np.ones((1,) + geom.det_shape, bool), geom.subset(np.array([i])), [i])
+    return os.getpid()
+
+
+def _decode(latched: dict, frames: list):
+    from pathlib import Path
+
+    from robot_ct_ros.bag import format as fmt
+    from robot_ct_ros.bag.reader import RawBag, RawMessage, scan_from_raw
+
+    msgs = [RawMessage(topic, msgtype, 0, data) for topic, (msgtype, data) in latched.items()]
+    for stamp, image, geometry in frames:
+        msgs.append(RawMessage(fmt.TOPIC_PROJECTION, fmt.IMAGE, int(stamp), image))
+        msgs.append(RawMessage(fmt.TOPIC_GEOMETRY, fmt.POSE_ARRAY, int(stamp), geometry))
+    return scan_from_raw(RawBag(Path("live"), msgs, [], False, "live"), "live", min_views=1)
+
+
+def _stream_task(scan: int, latched, frames: list, options: dict) -> dict:
+    """Estimate a batch of frames of scan ``scan`` (the worker keeps one scan's state)."""
+    from robot_ct_ros.ct.calibration.streaming import StreamingEstimator
+    from robot_ct_ros.ct.reconstruction import resample
+    from robot_ct_ros.jobs.calibrate import scan_grid
+
+    t0 = time.perf_counter()
+    st = _STATE
+    if st.get("scan") != scan:
+        st.clear()
+        st.update(scan=scan, latched=latched, buffer=[], estimator=None, next_id=0)
+    st["buffer"].extend(frames)
+    est = st["estimator"]
+    if est is None and len(st["buffer"]) < options["warmup_views"]:
+        return {"scan": scan, "stamps": [], "worker_s": time.perf_counter() - t0}
+    data = _decode(st["latched"], st["buffer"])
+    st["buffer"] = []
+    li, mask = data.to_line_integrals()
+    if est is None:
+        grid = scan_grid(data, options.get("voxel_mm"), options.get("shape_xyz"))
+        n = data.info.get("n_views")
+        est = st["estimator"] = StreamingEstimator(options["settings"], grid, n if isinstance(n, int) and n > 0
+                                                   else options.get("n_views_default", 360),
+                                                   warmup_views=options["warmup_views"])
+    ids = np.arange(st["next_id"], st["next_id"] + data.n_views)
+    st["next_id"] += data.n_views
+    step = est.add_views(li, mask, data.geom, ids)
+    roi = est.roi_grid.binned(est.binning) if est.binning > 1 else est.roi_grid
+    preview = resample(est.volume, est.grid, roi)
+    slices = {k: np.ascontiguousarray(v, np.float32) for k, v in mid_slices(preview).items()}
+    return {"scan": scan, "stamps": [int(s) for s in data.stamps_ns], "geom": step.geom, "ncc": step.ncc,
+            "mean_ncc": step.mean_ncc, "views": est.n_estimated, "slices": slices,
+            "worker_s": time.perf_counter() - t0}
+
+
+# ------------------------------------------------------------------------------ the caller's side
+@dataclass
+class StreamingCorrector:
+    """Live per-view correction in one worker process (see the module docstring).
+
+    ``settings``: the CalibrationSettings (method, schedule, prior, seed, padding); ``warmup_views``
+    frames make the first volume; ``nice``: the worker's niceness increment (0: the caller's
+    priority); ``threads``: its numba threads (0: numba's default, every core; one thread slowed the
+    simulated scan less, docs/calibration.md §13a); ``voxel_mm`` / ``shape_xyz``:
+    the ROI grid's overrides (as the whole-scan job's).
+    """
+
+    settings: object
+    warmup_views: int = 8
+    nice: int = 10
+    threads: int = 1
+    voxel_mm: object = None
+    shape_xyz: object = None
+    context: str = "spawn"
+    scan: int = 1
+    error: str = ""
+    latencies: list = field(default_factory=list)
+    ncc: list = field(default_factory=list)
+    views: int = 0
+    mean_ncc: float = float("nan")
+
+    def __post_init__(self):
+        self._pool = ProcessPoolExecutor(1, mp_context=get_context(self.context), initializer=_init_worker,
+                                         initargs=(int(self.nice), int(self.threads)))
+        self._future = self._pool.submit(_warm, self.settings)  # spawns the worker now, while the scan starts
+        self._warming = True
+        self._queue: list = []
+        self._arrived: dict = {}
+        self._latched_sent = 0
+        self._latched = None
+        self.worker_pid = None
+
+    @property
+    def options(self) -> dict:
+        return {"settings": self.settings, "warmup_views": int(self.warmup_views), "voxel_mm": self.voxel_mm,
+                "shape_xyz": self.shape_xyz}
+
+    def new_scan(self) -> None:
+        """A new scan started: forget the frames queued and the figures."""
+        self.scan += 1
+        self._queue.clear()
+        self._arrived.clear()
+        self.latencies, self.ncc, self.views, self.mean_ncc, self.error = [], [], 0, float("nan"), ""
+
+    def add_frame(self, stamp_ns: int, image: bytes, geometry: bytes, latched: dict) -> None:
+        """A frame paired with its geometry (CDR bytes), with the scan's latched messages as held now
+        (topic -> (type, bytes)): queued for the next batch."""
+        self._queue.append((int(stamp_ns), bytes(image), bytes(geometry)))
+        self._arrived[int(stamp_ns)] = time.monotonic()
+        self._latched = dict(latched)
+
+    @property
+    def busy(self) -> bool:
+        """A batch is being estimated, or frames wait for one."""
+        return self._future is not None or bool(self._queue)
+
+    def wait(self, timeout_s: float) -> bool:
+        """Wait at most ``timeout_s`` for the batch in flight (poll afterwards); True when none is left
+        in flight. For tests and batch drivers: a node polls from its timer instead."""
+        if self._future is not None:
+            _wait_futures([self._future], timeout=timeout_s)
+        return self._future is None or self._future.done()
+
+    def poll(self) -> list:
+        """Collect the finished batch (a list of at most one :class:`LiveUpdate`) and hand the frames
+        queued since to the worker. Never blocks."""
+        out = []
+        if self._future is not None and self._future.done():
+            fut, self._future = self._future, None
+            try:
+                res = fut.result()
+            except Exception as exc:  # noqa: BLE001 - reported; the scan goes on
+                if not self._warming:
+                    self.error = f"{type(exc).__name__}: {exc}"
+                res = None
+            if self._warming:  # a failed warm-up only means the first batch compiles
+                self._warming, self.worker_pid, res = False, res, None
+            if res is not None and res["scan"] == self.scan and res["stamps"]:
+                now = time.monotonic()
+                stamps = np.asarray(res["stamps"], np.int64)
+                lat = np.array([now - self._arrived.pop(int(s), now) for s in stamps])
+                self.latencies.extend(lat.tolist())
+                self.ncc.extend(np.asarray(res["ncc"], float).tolist())
+                self.views, self.mean_ncc = int(res["views"]), float(res["mean_ncc"])
+                out.append(LiveUpdate(res["scan"], stamps, res["geom"], np.asarray(res["ncc"], float),
+                                      float(res["mean_ncc"]), int(res["views"]), res["slices"], lat,
+                                      float(res["worker_s"])))
+        if self._future is None and self._queue:
+            frames, self._queue = self._queue, []
+            latched = None
+            if self._latched_sent != self.scan:
+                latched, self._latched_sent = self._latched, self.scan
+            try:
+                self._future = self._pool.submit(_stream_task, self.scan, latched, frames, self.options)
+            except RuntimeError as exc:  # the worker died (BrokenProcessPool) or the pool is shut down
+                self.error = self.error or f"{type(exc).__name__}: {exc}"
+        return out
+
+    def summary(self) -> dict:
+        """The live figures of the scan so far (report.json's ``live``)."""
+        lat = np.asarray(self.latencies, float)
+        return {"views": self.views, "mean_projection_ncc": None if not np.isfinite(self.mean_ncc) else self.mean_ncc,
+                "latency_s_median": float(np.median(lat)) if lat.size else None,
+                "latency_s_max": float(lat.max()) if lat.size else None, "worker_nice": int(self.nice),
+                "warmup_views": int(self.warmup_views), "error": self.error,
+                "note": "per-view estimates against the running volume (coarse level); the final correction is "
+                        "the whole-scan run"}
+
+    def close(self) -> None:
+        """Stop the worker: queued frames are dropped, the batch in progress ends first."""
+        self._queue.clear()
+        self._pool.shutdown(wait=True, cancel_futures=True)
