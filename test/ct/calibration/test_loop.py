@@ -470,3 +470,14 @@ def test_calibrate_without_the_final_volume_returns_the_same_geometry():
     assert with_volume.volume.shape == grid.shape_zyx and without.volume is None
     np.testing.assert_array_equal(without.params, with_volume.params)
     assert calibrate(measured, nominal, grid, method="none", final_volume=False).volume is None
+
+
+def test_calibrate_leaves_the_callers_data_as_they_were():
+    """usable_data hands clean data through uncopied: no step of the loop may write into them."""
+    nominal, true, grid, measured = _small_scan(n_views=12, n_det=32)
+    measured = np.ascontiguousarray(measured, dtype=np.float32)
+    before = measured.copy()
+    for kw in (dict(method="ncc-lle-exact", projections="truncated"), dict(method="gdc", projections="complete"),
+               dict(method="ncc-lle-exact", exterior="on", exterior_voxel_mm=2.0)):
+        calibrate(measured, nominal, grid, iterations=1, schedule="fast", **kw)
+        np.testing.assert_array_equal(measured, before)
