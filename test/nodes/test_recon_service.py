@@ -117,6 +117,16 @@ def test_run_service_on_a_bag_path_and_refusals(ros, tmp_path):
     assert probe.reports[-1]["method_used"] == "none" and probe.reports[-1].get("truth") is None
 
 
+def _graph_scan(name: str, n_views: int, exposure_s: float) -> tuple[dict, dict]:
+    """The scan protocol and the pcd_grabber's simulated mouse of the whole-graph tests: a 32 x 64 detector."""
+    protocol = {"name": name, "n_views": n_views, "roi_center_m": [0.4, 0.0, 0.3], "fov_diameter_m": 0.005,
+                "detector": {"n_rows": 32, "n_cols": 64, "binning": 2, "raw_pixel_m": 0.00011},
+                "exposure_s": exposure_s, "settle_s": 0.01, "move_timeout_s": 10.0, "exposure_timeout_s": 2.0}
+    grabber = {"sim_phantom": "mouse", "sim_voxel_size_m": 0.0005, "sim_region_size_m": [0.004, 0.004, 0.1],
+               "sim_roi_size_m": [0.0, 0.0, 0.0]}
+    return protocol, grabber
+
+
 def test_every_n_views_corrects_during_the_scan(tmp_path):
     """The whole graph (graph.run_scan_graph) on a 16-view scan with every_n_views 8: partial corrections
     of the first 8 (and 16) frames run while the scan goes on, the scan still completes with every frame
@@ -124,11 +134,7 @@ def test_every_n_views_corrects_during_the_scan(tmp_path):
     from robot_ct_ros.testing.graph import run_scan_graph
 
     n, every = 16, 8
-    protocol = {"name": "online", "n_views": n, "roi_center_m": [0.4, 0.0, 0.3], "fov_diameter_m": 0.005,
-                "detector": {"n_rows": 32, "n_cols": 64, "binning": 2, "raw_pixel_m": 0.00011},
-                "exposure_s": 0.05, "settle_s": 0.01, "move_timeout_s": 10.0, "exposure_timeout_s": 2.0}
-    grabber = {"sim_phantom": "mouse", "sim_voxel_size_m": 0.0005, "sim_region_size_m": [0.004, 0.004, 0.1],
-               "sim_roi_size_m": [0.0, 0.0, 0.0]}
+    protocol, grabber = _graph_scan("online", n, exposure_s=0.05)
     out = tmp_path / "run"
     r = run_scan_graph(out, protocol, grabber=grabber, quiet=True, say=lambda s: None, scan_timeout_s=120.0,
                        recon={"method": "ncc-lle-exact", "iterations": 1, "every_n_views": every,
@@ -197,11 +203,7 @@ def test_streaming_publishes_live_geometry_during_the_scan_and_the_final_run_equ
     from robot_ct_ros.testing.graph import run_scan_graph
 
     n = 16
-    protocol = {"name": "live", "n_views": n, "roi_center_m": [0.4, 0.0, 0.3], "fov_diameter_m": 0.005,
-                "detector": {"n_rows": 32, "n_cols": 64, "binning": 2, "raw_pixel_m": 0.00011},
-                "exposure_s": 0.5, "settle_s": 0.01, "move_timeout_s": 10.0, "exposure_timeout_s": 2.0}
-    grabber = {"sim_phantom": "mouse", "sim_voxel_size_m": 0.0005, "sim_region_size_m": [0.004, 0.004, 0.1],
-               "sim_roi_size_m": [0.0, 0.0, 0.0]}
+    protocol, grabber = _graph_scan("live", n, exposure_s=0.5)
     out = tmp_path / "run"
     r = run_scan_graph(out, protocol, grabber=grabber, quiet=True, say=lambda s: None, scan_timeout_s=120.0,
                        recon={"method": "ncc-lle-exact", "iterations": 1, "stream": True, "stream_warmup_views": 4,
