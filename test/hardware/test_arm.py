@@ -11,15 +11,11 @@ from robot_ct_ros.hardware.arms import make_arm
 from robot_ct_ros.hardware.simulated_arm import HOME_Q, SimulatedArm, SimulatedArmSettings, forward_kinematics
 from robot_ct_ros.hardware.ur_arm import URArm
 from robot_ct_ros.parameters import from_ros_values, ros_defaults
+from robot_ct_ros.testing import wait_until
 
 
-def _wait(predicate, timeout_s=5.0):
-    end = time.monotonic() + timeout_s
-    while not predicate():
-        if time.monotonic() > end:
-            return False
-        time.sleep(0.005)
-    return True
+def _wait(predicate):
+    return wait_until(predicate, timeout_s=5.0)
 
 
 def test_settings_defaults_and_refusals():

@@ -1,19 +1,14 @@
 """BackgroundConnection without ROS: results handed over once, failures reported, abandoned attempts cleaned up."""
 
 import threading
-import time
 
 from robot_ct_ros.hardware.arm import ArmConnectionError
 from robot_ct_ros.hardware.connection import BackgroundConnection, quiet_disconnect
+from robot_ct_ros.testing import wait_until
 
 
-def _wait(predicate, timeout_s=5.0):
-    end = time.monotonic() + timeout_s
-    while not predicate():
-        if time.monotonic() > end:
-            return False
-        time.sleep(0.005)
-    return True
+def _wait(predicate):
+    return wait_until(predicate, timeout_s=5.0)
 
 
 class FakeArm:

@@ -45,6 +45,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from robot_ct_ros.hardware.simulated_arm import HOME_Q, forward_kinematics, inverse_kinematics
+from robot_ct_ros.testing import wait_until  # noqa: F401  (also this module's: test_ur_arm calls emu.wait_until)
 
 DEFAULT_PORTS = {"dashboard": 29999, "primary": 30001, "secondary": 30002, "realtime": 30003, "rtde": 30004}
 
@@ -262,12 +263,7 @@ class URControllerEmulator:
         self.stop()
 
     def wait_for(self, predicate, timeout_s: float = 10.0) -> bool:
-        end = time.monotonic() + timeout_s
-        while time.monotonic() < end:
-            if predicate():
-                return True
-            time.sleep(0.01)
-        return bool(predicate())
+        return wait_until(predicate, timeout_s)
 
     # -- sockets -----------------------------------------------------------------------------
     def _accept_loop(self, ls: socket.socket, handler) -> None:
@@ -679,15 +675,6 @@ class URControllerEmulator:
                 next_send += period
                 if next_send < now:
                     next_send = now + period
-
-
-def wait_until(predicate, timeout_s: float = 10.0) -> bool:
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        if predicate():
-            return True
-        time.sleep(0.01)
-    return bool(predicate())
 
 
 def main(argv=None) -> int:
