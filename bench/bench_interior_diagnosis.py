@@ -45,18 +45,15 @@ from robot_ct_ros.ct.calibration.masks import bin_masked  # noqa: E402
 from robot_ct_ros.ct.calibration.model import VolumeParts  # noqa: E402
 from robot_ct_ros.ct.calibration.volume import estimation_grid, projection_consistency  # noqa: E402
 from robot_ct_ros.ct.metrics import reprojection_error, roi_points  # noqa: E402
+from robot_ct_ros.jobs.figures import markdown_table  # noqa: E402
 
 HALF_WIDTH_MM = 30.0
 """The exterior grid's reach from the ROI centre, as in bench_interior's exterior variant (the 41 mm body)."""
 
 
 def table(rows: list) -> str:
-    """The rows (dicts with the same keys) as a Markdown table."""
-    keys = list(rows[0])
-    out = ["| " + " | ".join(keys) + " |", "| " + " | ".join("---" for _ in keys) + " |"]
-    out += ["| " + " | ".join(f"{r[k]:.5g}" if isinstance(r[k], float) else str(r[k]) for k in keys) + " |"
-            for r in rows]
-    return "\n".join(out) + "\n"
+    """The rows (dicts with the same keys) as a Markdown table (figures.markdown_table, a column per key)."""
+    return markdown_table(rows, [(k, k, "{:.5g}" if isinstance(v, float) else "{}") for k, v in rows[0].items()])
 
 
 class Study:
