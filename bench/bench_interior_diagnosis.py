@@ -15,7 +15,11 @@ can do from what the reconstruction feeds it:
 2. ROI and exterior parts swapped between the true- and nominal-geometry volumes;
 3. held-out volumes (views estimated against a volume their own data did not build, in k folds);
 4. the exterior grid's voxel and SIRT passes;
-5. the whole loop (calibration.calibrate, exterior on) over more outer iterations.
+5. the whole loop (calibration.calibrate, exterior on) over more outer iterations;
+6. candidates against the volume's pull: a total-variation exterior, the pixels the exterior's
+   edges dominate left out, the update extrapolated.
+
+``--tables 6`` computes only table 6 and keeps the others from the json already in ``--out``.
 
 Writes ``interior_diagnosis.md`` and ``.json`` into ``--out``.
 
@@ -74,7 +78,8 @@ class Study:
     def error_px(self, params) -> float:
         return reprojection_error(self.sc.nominal.perturbed(params), self.sc.true, self.points)["mean_px"]
 
-    def volume(self, level: str, params, views=None, *, voxel_mm=None, iterations=None) -> VolumeParts:
+    def volume(self, level: str, params, views=None, *, voxel_mm=None, iterations=None,
+               after_pass=None) -> VolumeParts:
         """The exterior model reconstructed from the level's data (``views`` of them) with the geometry ``params``."""
         s = self.settings
         li, nom, grid, mask = ((self.li_c, self.nom_c, self.grid_c, self.mask_c) if level == "coarse"
@@ -84,13 +89,16 @@ class Study:
             li, geom, mask = li[views], geom.subset(views), mask[views]
         return reconstruct_with_exterior(li, geom, grid, mask, voxel_mm=voxel_mm or s.exterior_voxel_mm,
                                          half_width_mm=HALF_WIDTH_MM, iterations=iterations or s.exterior_iterations,
-                                         subsets=s.exterior_subsets)
+                                         subsets=s.exterior_subsets, after_pass=after_pass)
 
-    def estimate(self, level: str, params, volume, views=None):
-        """One estimation pass of ``views`` (default all) from ``params`` against ``volume``."""
+    def estimate(self, level: str, params, volume, views=None, *, mask=None):
+        """One estimation pass of ``views`` (default all) from ``params`` against ``volume``; ``mask``
+        (the level's shape) replaces the level's valid-pixel mask."""
         views = np.arange(self.n) if views is None else views
-        li, nom, grid, mask, cfg = ((self.li_c, self.nom_c, self.grid_c, self.mask_c, self.coarse) if level == "coarse"
-                                    else (self.sc.li, self.sc.nominal, self.grid_f, self.sc.mask, self.fine))
+        li, nom, grid, mask_l, cfg = ((self.li_c, self.nom_c, self.grid_c, self.mask_c, self.coarse)
+                                      if level == "coarse"
+                                      else (self.sc.li, self.sc.nominal, self.grid_f, self.sc.mask, self.fine))
+        mask = mask_l if mask is None else mask
         out = np.array(params, float)
         out[views], _ = estimate_views(li[views], nom.subset(views), out[views], volume, grid, cfg, mask[views],
                                        view_ids=views)
@@ -161,6 +169,75 @@ def table_exterior_settings(st: Study, say) -> list:
     return rows
 
 
+def tv_step(weight: float, steps: int = 20):
+    """An ``after_pass`` (calibration.exterior.joint_sirt) that lowers the exterior part's isotropic
+    total variation by ``steps`` normalised gradient steps, each ``weight`` times as long as the pass
+    changed that part (the ASD-POCS rule), keeping it non-negative and within its support."""
+
+    def grad(x):
+        g = [np.diff(x, axis=a, append=np.take(x, [-1], axis=a)) for a in range(3)]
+        norm = np.sqrt(sum(c * c for c in g) + np.float32(1e-12))
+        g = [c / norm for c in g]
+        div = sum(c - np.roll(c, 1, axis=a) for a, c in enumerate(g))
+        for a, c in enumerate(g):  # the first slice has no backward neighbour
+            idx = [slice(None)] * 3
+            idx[a] = 0
+            div[tuple(idx)] += np.roll(c, 1, axis=a)[tuple(idx)]
+        return -div
+
+    def after_pass(xs, before):
+        x = xs[1]
+        support = x > 0
+        length = float(np.linalg.norm(x - before[1]))
+        for _ in range(steps):
+            g = grad(x) * (support | (before[1] > 0))
+            n = float(np.linalg.norm(g))
+            if n == 0.0:
+                break
+            x -= np.float32(weight * length / n) * g
+            np.maximum(x, 0.0, out=x)
+
+    return after_pass
+
+
+def table_candidates(st: Study, say) -> list:
+    """6: ways to keep the data term from following the volume's geometry, against the volumes from the
+    true and from the nominal geometry (coarse level): a total-variation exterior, pixels the exterior's
+    edges dominate left out, and the update extrapolated (the estimate moves a fraction of the way)."""
+    zero = np.zeros((st.n, 9))
+    geoms = {"true": st.true_p, "nominal": zero}
+    plain = {k: st.volume("coarse", p) for k, p in geoms.items()}
+    rows = []
+
+    def row(name, errors):
+        rows.append({"candidate": name} | {f"volume from the {k} geometry (px)": (None if e is None else round(e, 3))
+                                           for k, e in errors.items()})
+        say(f"  6. {rows[-1]}")
+
+    row("as the loop does (baseline)", {k: st.error_px(st.estimate("coarse", zero, v)) for k, v in plain.items()})
+    for w in (0.1, 0.2, 0.5):
+        row(f"exterior with total variation lowered after each SIRT pass (weight {w:g}, 20 steps)",
+            {k: st.error_px(st.estimate("coarse", zero, st.volume("coarse", p, after_pass=tv_step(w))))
+             for k, p in geoms.items()})
+    from robot_ct_ros.ct.projector import forward_project
+
+    base = np.ones(st.li_c.shape, bool) if st.mask_c is None else np.asarray(st.mask_c, bool)
+    for q in (0.2, 0.4):
+        errs = {}
+        for k, v in plain.items():
+            (ev, eg) = v.parts[1]
+            pe = forward_project(ev, eg, st.nom_c.perturbed(geoms[k]))
+            edge = np.hypot(*np.gradient(pe, axis=(1, 2)))
+            keep = base & (edge < np.quantile(edge, 1 - q, axis=(1, 2), keepdims=True))
+            errs[k] = st.error_px(st.estimate("coarse", zero, v, mask=keep))
+        row(f"the {q:.0%} of pixels with the exterior's strongest edges left out", errs)
+    p = st.estimate("coarse", zero, plain["nominal"])
+    for beta in (1.5, 2.0, 3.0):
+        row(f"the update from the nominal geometry extrapolated {beta:g} times", {"true": None,
+                                                                                  "nominal": st.error_px(beta * p)})
+    return rows
+
+
 def table_loop(st: Study, iterations: int, say) -> list:
     """5: calibration.calibrate with the exterior model, the error after each outer iteration."""
     rows = []
@@ -178,6 +255,23 @@ def table_loop(st: Study, iterations: int, say) -> list:
     return rows
 
 
+TABLES = {
+    "1": ("The estimator against volumes reconstructed with a chosen geometry",
+          lambda st, args, say: table_reconstruction_geometry(st, say)),
+    "2": ("Which part of the nominal-geometry volume misleads it", lambda st, args, say: table_parts(st, say)),
+    "3": ("Held-out volumes", lambda st, args, say: table_held_out(st, say)),
+    "4": ("The exterior grid's voxel and SIRT passes", lambda st, args, say: table_exterior_settings(st, say)),
+    "5": ("The loop over more outer iterations", lambda st, args, say: table_loop(st, args.loop_iterations, say)),
+    "6": ("Candidates against the volume's pull (coarse)", lambda st, args, say: table_candidates(st, say)),
+}
+"""Number -> (title, builder(study, args, say) -> rows)."""
+
+
+def scan_args(args) -> dict:
+    """The arguments that fix the scan and the study (tables from runs that share them can be merged)."""
+    return {k: getattr(args, k) for k in ("sigma", "views", "det", "nxy", "seed")}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sigma", type=float, default=0.1, help="robot errors, mm and deg")
@@ -186,6 +280,8 @@ def main(argv=None) -> int:
     ap.add_argument("--nxy", type=int, default=96)
     ap.add_argument("--loop-iterations", type=int, default=4)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--tables", default=",".join(TABLES), help="tables to compute; the others are kept from the "
+                    "interior_diagnosis.json already in --out (same scan arguments)")
     ap.add_argument("--out", default="out/bench_interior_diagnosis")
     args = ap.parse_args(argv)
     rows_, cols_ = (int(x) for x in args.det.lower().split("x"))
@@ -198,15 +294,27 @@ def main(argv=None) -> int:
     sc = make_scan(args.sigma, views=args.views, det=(rows_, cols_), axis="y", seed=args.seed, nxy=args.nxy, say=say)
     settings = calibration.CalibrationSettings().with_prior(args.sigma, args.sigma)
     st = Study(sc, settings)
-    tables = {
-        "1": ("The estimator against volumes reconstructed with a chosen geometry", table_reconstruction_geometry(st, say)),
-        "2": ("Which part of the nominal-geometry volume misleads it", table_parts(st, say)),
-        "3": ("Held-out volumes", table_held_out(st, say)),
-        "4": ("The exterior grid's voxel and SIRT passes", table_exterior_settings(st, say)),
-        "5": ("The loop over more outer iterations", table_loop(st, args.loop_iterations, say)),
-    }
-    wall = time.perf_counter() - t_all
+    wanted = [k.strip() for k in args.tables.split(",") if k.strip()]
+    unknown = set(wanted) - set(TABLES)
+    if unknown:
+        ap.error(f"unknown tables {sorted(unknown)}; choose from {', '.join(TABLES)}")
+    kept, kept_wall = {}, 0.0
+    previous = os.path.join(args.out, "interior_diagnosis.json")
+    if set(wanted) != set(TABLES):
+        if not os.path.exists(previous):
+            ap.error(f"--tables {args.tables} keeps the other tables from {previous}, which does not exist")
+        with open(previous) as f:
+            old = json.load(f)
+        if "argv_scan" not in old:  # written before the field existed: its arguments say the same
+            old["argv_scan"] = scan_args(ap.parse_args(old.get("argv", [])))
+        if old.get("argv_scan") != scan_args(args):
+            ap.error(f"{previous} was made with other scan arguments ({old.get('argv_scan')}); run every table")
+        kept, kept_wall = old["tables"], float(old.get("wall_s", 0.0))
+    computed = {k: TABLES[k][1](st, args, say) for k in TABLES if k in wanted}
+    tables = {k: (TABLES[k][0], computed[k] if k in computed else kept[k]) for k in TABLES if k in computed or k in kept}
+    wall = time.perf_counter() - t_all + (kept_wall if kept else 0.0)
     report = {"bench": "bench/bench_interior_diagnosis.py", "argv": sys.argv[1:] if argv is None else list(argv),
+              "argv_scan": scan_args(args), "tables_computed_now": sorted(computed),
               "machine": f"{platform.machine()}, {os.cpu_count()} cores", "settings": settings.to_dict(),
               "nominal_error_px": st.error_px(np.zeros((st.n, 9))), "tables": {k: r for k, (_, r) in tables.items()},
               "wall_s": wall}
@@ -222,6 +330,10 @@ def main(argv=None) -> int:
              f"reprojected with the same geometry against the data (how well it explains them).", ""]
     for k, (title, rows) in tables.items():
         lines += [f"## {k}. {title}", "", table(rows), ""]
+    if kept:
+        done = sorted(computed)
+        lines += [f"{'Tables' if len(done) > 1 else 'Table'} {', '.join(done)} {'were' if len(done) > 1 else 'was'} "
+                  f"computed in a later run (--tables) than the others, on the same scan.", ""]
     lines += [f"Total {wall / 60:.1f} min on this machine ({report['machine']}), shared with other jobs.", ""]
     with open(os.path.join(args.out, "interior_diagnosis.json"), "w") as f:
         json.dump(report, f, indent=2, default=str)

@@ -64,7 +64,7 @@ def exterior_support(ext: VolumeGrid, roi: VolumeGrid, overlap_voxels: float = 1
 
 
 def joint_sirt(line_integrals, geom: ConeGeometry, parts, iterations: int, valid_mask=None, *, subsets: int = 1,
-               nonneg: bool = True, relaxation: float = 1.0) -> list:
+               nonneg: bool = True, relaxation: float = 1.0, after_pass=None) -> list:
     """SIRT on several grids at once: the data are fitted by the sum of the parts' projections.
 
     Parameters
@@ -75,6 +75,10 @@ def joint_sirt(line_integrals, geom: ConeGeometry, parts, iterations: int, valid
         Passes over all views.
     subsets : int
         Ordered subsets of interleaved views, each updated in turn (1: plain SIRT).
+    after_pass : callable, optional
+        ``after_pass(volumes, before)`` after each pass, with the parts' volumes (changed in
+        place) and copies of them from before the pass: a regularisation step between passes
+        (bench/bench_interior_diagnosis.py tries a total-variation one on the exterior).
 
     Returns
     -------
@@ -108,6 +112,7 @@ def joint_sirt(line_integrals, geom: ConeGeometry, parts, iterations: int, valid
             per_part.append(np.where(col > eps * col.max(), 1.0 / np.maximum(col, eps), 0.0).astype(np.float32) * s)
         inv_cols.append(per_part)
     for _ in range(int(iterations)):
+        before = [x.copy() for x in xs] if after_pass is not None else None
         for (g_s, b_s, R_s, _), C_s in zip(sub, inv_cols):
             pred = None
             for x, g in zip(xs, grids):
@@ -118,16 +123,18 @@ def joint_sirt(line_integrals, geom: ConeGeometry, parts, iterations: int, valid
                 x += np.float32(relaxation) * C * back_project(res, g_s, g)
                 if nonneg:
                     np.maximum(x, 0.0, out=x)
+        if after_pass is not None:
+            after_pass(xs, before)
     return xs
 
 
 def reconstruct_with_exterior(line_integrals, geom: ConeGeometry, grid: VolumeGrid, mask, *, voxel_mm: float,
-                              half_width_mm: float, iterations: int, subsets: int) -> VolumeParts:
+                              half_width_mm: float, iterations: int, subsets: int, after_pass=None) -> VolumeParts:
     """The estimation volume of a strongly truncated scan: ``grid`` and an exterior grid around it
     (:func:`exterior_grid`, :func:`exterior_support`) reconstructed together from zero
     (:func:`joint_sirt`). Starting from zero matters: an FDK start brings the truncation's bias
-    into the ROI, and it leaves slowly."""
+    into the ROI, and it leaves slowly. ``after_pass``: see :func:`joint_sirt` (parts: ROI, exterior)."""
     ext = exterior_grid(grid, geom, voxel_mm, half_width_mm)
     roi_vol, ext_vol = joint_sirt(line_integrals, geom, [(None, grid, None), (None, ext, exterior_support(ext, grid))],
-                                  iterations, mask, subsets=subsets)
+                                  iterations, mask, subsets=subsets, after_pass=after_pass)
     return VolumeParts(((roi_vol, grid), (ext_vol, ext)))

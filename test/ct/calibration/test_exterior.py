@@ -48,3 +48,21 @@ def test_the_roi_and_its_exterior_reproduce_a_truncated_scan_that_the_roi_alone_
     assert joint[1] > 0.98 and joint[1] > alone[1] + 0.5, (joint, alone)
     np.testing.assert_allclose(project(VolumeParts(((x_roi, roi), (x_ext, ext))), roi, geom),
                                forward_project(x_roi, roi, geom) + forward_project(x_ext, ext, geom), rtol=1e-5)
+
+
+def test_after_pass_runs_between_passes_on_the_parts_in_place():
+    """The hook sees every pass: the parts as they are (changed in place) and copies from before it."""
+    geom = circular_scan(12, 60.0, 150.0, 6, 10, 0.8, 0.8)
+    roi = VolumeGrid.centered((6, 10, 10), 0.4)
+    data = forward_project(np.full(roi.shape_zyx, 0.02, np.float32), roi, geom)
+    seen = []
+
+    def hook(xs, before):
+        seen.append((len(xs), float(np.abs(xs[0] - before[0]).max())))
+        xs[0][...] = 0.0  # in place: the next pass starts from zero again
+
+    x_hooked, = joint_sirt(data, geom, [(None, roi, None)], 3, subsets=2, after_pass=hook)
+    x_plain, = joint_sirt(data, geom, [(None, roi, None)], 1, subsets=2)
+    assert len(seen) == 3 and all(n == 1 and moved > 0 for n, moved in seen)
+    np.testing.assert_array_equal(x_hooked, 0.0)
+    assert x_plain.max() > 0
