@@ -78,7 +78,9 @@ class CalibrationSettings:
 
     ``method`` is a name of the method registry (:mod:`robot_ct_ros.ct.calibration.registry`),
     ``"none"`` for no correction. The prior is the robots' per-view coordination error, the same
-    standard deviation on every translation and on every rotation; 0 for either turns it off. Fields left at
+    standard deviation on every translation and on every rotation; 0 for either turns it off.
+    ``prior_source_mm`` / ``prior_detector_mm`` state one arm's translation error where the two
+    arms differ (the source's three translations, the detector's three). Fields left at
     None (``coarse_binning``, ``fine_binning``, ``fine_volume``, ``coarse_passes``) take the
     schedule's value.
 
@@ -102,6 +104,14 @@ class CalibrationSettings:
     prior_rotation_deg: float = setting(DEFAULT_PRIOR_DEG, "the robots' per-view rotation error, prior of the MAP "
                                         "estimate (0: no prior)", unit="deg", minimum=0.0,
                                         ros_name="prior_sigma_rotation_rad", ros_scale=math.pi / 180, ros_unit="rad")
+    prior_source_mm: float | None = setting(None, "the source arm's own per-view translation error, where the arms "
+                                            "differ (off: the prior's translation error)", unit="mm", minimum=0.0,
+                                            ros_name="prior_sigma_source_m", ros_scale=1e-3, ros_unit="m",
+                                            ros_none=0.0, kind=float)
+    prior_detector_mm: float | None = setting(None, "the detector arm's own per-view translation error, where the "
+                                              "arms differ (off: the prior's translation error)", unit="mm", minimum=0.0,
+                                              ros_name="prior_sigma_detector_m", ros_scale=1e-3, ros_unit="m",
+                                              ros_none=0.0, kind=float)
     drift_order: int | None = setting(None, "fit every parameter with a polynomial of this degree in time (a slowly "
                                       "drifting geometry); off: independent per-view errors", minimum=0,
                                       ros_none=-1, kind=int)
@@ -156,14 +166,24 @@ class CalibrationSettings:
 
     def __post_init__(self):
         validate(self)
+        for name in ("prior_source_mm", "prior_detector_mm"):
+            value = getattr(self, name)
+            if value is not None and not (value > 0 and math.isfinite(value)):
+                raise ValueError(f"{name} must be positive (or off: the same as prior_translation_mm); got {value!r}")
         if self.scheduler not in ("", "local") and "://" not in self.scheduler:
             raise ValueError(f"scheduler must be empty (in-process), local or a Dask scheduler address such as "
                              f"tcp://host:8786; got {self.scheduler!r}")
 
     @property
     def prior_sigma(self):
-        """The prior's 9 standard deviations (mm x6, rad x3), or None without a prior."""
-        return prior_sigma_from(self.prior_translation_mm, self.prior_rotation_deg)
+        """The prior's 9 standard deviations (mm x6: source, detector; rad x3), or None without a
+        prior (``prior_translation_mm`` or ``prior_rotation_deg`` 0)."""
+        sigma = prior_sigma_from(self.prior_translation_mm, self.prior_rotation_deg)
+        if sigma is None:
+            return None
+        src = self.prior_translation_mm if self.prior_source_mm is None else float(self.prior_source_mm)
+        det = self.prior_translation_mm if self.prior_detector_mm is None else float(self.prior_detector_mm)
+        return (src,) * 3 + (det,) * 3 + sigma[6:]
 
     def plan(self) -> dict:
         """The schedule's values with this object's overrides: coarse_binning, fine_binning,
@@ -178,8 +198,12 @@ class CalibrationSettings:
         """A copy with ``changes`` (validated)."""
         return replace(self, **changes)
 
-    def with_prior(self, translation_mm: float, rotation_deg: float) -> "CalibrationSettings":
-        return replace(self, prior_translation_mm=float(translation_mm), prior_rotation_deg=float(rotation_deg))
+    def with_prior(self, translation_mm: float, rotation_deg: float, *, source_mm: float | None = None,
+                   detector_mm: float | None = None) -> "CalibrationSettings":
+        """A copy with the prior: every translation ``translation_mm`` unless an arm's own is given."""
+        return replace(self, prior_translation_mm=float(translation_mm), prior_rotation_deg=float(rotation_deg),
+                       prior_source_mm=None if source_mm is None else float(source_mm),
+                       prior_detector_mm=None if detector_mm is None else float(detector_mm))
 
     def without_prior(self) -> "CalibrationSettings":
         return self.with_prior(0.0, 0.0)

@@ -71,3 +71,19 @@ def test_the_lle_configs_follow_the_settings():
     assert fine.source_positions == "fixed" and fine.draws == 1  # the fast schedule's finer level
     assert coarse.prior_sigma == pytest.approx((0.3,) * 6 + (math.radians(0.3),) * 3)
     assert get_method("l2-lle").configs(CalibrationSettings().without_prior())[0].prior_sigma is None
+
+
+def test_each_arm_may_state_its_own_translation_error():
+    """Two robots, two accuracies: the source's three translations and the detector's three take
+    their arm's sigma, through the code, ROS and the command line; off, both take the prior's."""
+    s = CalibrationSettings().with_prior(0.5, 0.01, detector_mm=0.2)
+    assert s.prior_sigma == pytest.approx((0.5,) * 3 + (0.2,) * 3 + (math.radians(0.01),) * 3)
+    assert get_method("ncc-lle-exact").configs(s)[0].prior_sigma == pytest.approx(s.prior_sigma)
+    assert CalibrationSettings(prior_source_mm=0.1).prior_sigma[:6] == pytest.approx((0.1,) * 3 + (0.3,) * 3)
+    assert CalibrationSettings(prior_source_mm=0.1).without_prior().prior_sigma is None  # 0 still turns it off
+    ros = from_ros_values(CalibrationSettings, {"prior_sigma_source_m": 0.0004, "prior_sigma_detector_m": 0.0})
+    assert ros.prior_source_mm == pytest.approx(0.4) and ros.prior_detector_mm is None
+    assert ros_defaults(CalibrationSettings)["prior_sigma_detector_m"] == 0.0  # ROS has no None
+    for bad in (0.0, -1.0, float("inf")):
+        with pytest.raises(ValueError, match="prior_detector_mm"):
+            CalibrationSettings(prior_detector_mm=bad)
