@@ -19,7 +19,8 @@ can do from what the reconstruction feeds it:
 6. candidates against the volume's pull: a total-variation exterior, the pixels the exterior's
    edges dominate left out, the update extrapolated;
 7. held-out volumes as in 3, but reconstructed with the true geometry: what the other views'
-   data, placed exactly, tell about a view.
+   data, placed exactly, tell about a view;
+8. the same scan with 360 and 720 views.
 
 ``--tables 6`` computes only table 6 and keeps the others from the json already in ``--out``.
 
@@ -242,6 +243,26 @@ def table_candidates(st: Study, say) -> list:
     return rows
 
 
+def table_views(st: Study, args, say, more=(360, 720)) -> list:
+    """8: the same scan with more views (same photons per view), the estimator against volumes from the
+    true and from the nominal geometry (coarse level)."""
+    rows = []
+    det = tuple(int(x) for x in args.det.lower().split("x"))
+    for n in (st.n,) + tuple(more):
+        t0 = time.perf_counter()
+        s = st if n == st.n else Study(make_scan(args.sigma, views=n, det=det, axis="y", seed=args.seed, nxy=args.nxy,
+                                                 say=lambda m: None), st.settings)
+        zero = np.zeros((s.n, 9))
+        row = {"views": n, "nominal error (px)": round(s.error_px(zero), 3)}
+        for name, p in (("true", s.true_p), ("nominal", zero)):
+            row[f"estimate against the {name}-geometry volume (px)"] = round(
+                s.error_px(s.estimate("coarse", zero, s.volume("coarse", p))), 3)
+        row["wall time (s)"] = round(time.perf_counter() - t0, 1)
+        rows.append(row)
+        say(f"  8. {rows[-1]}")
+    return rows
+
+
 def table_loop(st: Study, iterations: int, say) -> list:
     """5: calibration.calibrate with the exterior model, the error after each outer iteration."""
     rows = []
@@ -269,6 +290,7 @@ TABLES = {
     "6": ("Candidates against the volume's pull (coarse)", lambda st, args, say: table_candidates(st, say)),
     "7": ("Held-out volumes reconstructed with the true geometry",
           lambda st, args, say: table_held_out(st, say, folds=(4, 12), geometry="true")),
+    "8": ("More views (same photons per view)", table_views),
 }
 """Number -> (title, builder(study, args, say) -> rows)."""
 
