@@ -11,17 +11,23 @@ SOURCE.txt there says where they come from and how to cite them).
    reconstruction grid (512 x 512 pixels of effectivePixelSizePost, one voxel thick). Reported:
    the Pearson correlation with the dataset's FBP for the FDK filter windows, with and without
    truncation handling, the image orientation that matches, and the intensity scale.
+1b. Opposed rays. The documented geometry's centre of rotation checked from the data alone
+   (robot_ct_ros.ct.opposed_rays, all 720 views): the detector shift at which every line's two
+   measurements agree best.
 2. Calibration. The documented geometry is taken as the true one; the data stay the measured
    sinogram (every ``--view-step``-th view). Per-view errors are injected into the geometry the
    calibration starts from (the "nominal"): the detector shift d_u with sigma one detector pixel
    and the source shift s_u with the sigma that moves the projection of the rotation centre by one
    pixel (independent, Gaussian, seeded); a second case adds a slow d_u drift (half a sine over the
    scan, ``--drift-px`` amplitude). Every method of the registry runs through calibration.calibrate
-   with the default settings and the prior ``--prior-mm`` / ``--prior-deg`` (default: the injected
-   source-shift sigma and 0.01 deg), on the bag's default grid. Reported per method: the
+   with the default settings and the prior ``--prior-mm`` (source), ``--prior-detector-mm`` and
+   ``--prior-deg`` (default: the injected sigmas and 0.01 deg), on the bag's default grid. Reported per method: the
    gauge-aligned reprojection error (mean, p95, px) against the documented geometry, SSIM and edge
    sharpness against the reconstruction with the documented geometry, model NCC, iterations, wall
-   time and the guard's notes.
+   time and the guard's notes. Case ``documented`` injects nothing (each method started at the
+   documented geometry); row ``oracle floor`` is the error left when each view's shift of the
+   centre's projection is known exactly and the rotation about the centre that one row hardly
+   sees is set by the prior (:func:`oracle_floor`).
 3. Figures: per phantom and case the slice with the documented geometry, with the perturbed
    nominal, with ncc-lle-exact's correction and the dataset's FBP; parameter error per view.
 
@@ -49,14 +55,23 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 from robot_ct_ros.bag import read_scan  # noqa: E402
 from robot_ct_ros.ct import calibration  # noqa: E402
 from robot_ct_ros.ct.metrics import edge_sharpness, reprojection_error, roi_points  # noqa: E402
+from robot_ct_ros.ct.opposed_rays import opposed_ray_offset  # noqa: E402
 from robot_ct_ros.ct.reconstruction import WINDOWS, fdk  # noqa: E402
 from robot_ct_ros.jobs.figures import COLUMNS, markdown_table, plot_param_error, summarize  # noqa: E402
 from robot_ct_ros.jobs.htc2022 import import_htc2022  # noqa: E402
 
 DATA = Path("/work/shared/realdata/htc2022")
-METHODS = ("none", "l2-lle", "ncc-lle", "ncc-lle-exact", "gdc", "gdc-log", "documented geometry")
+ONE_PRIOR = "ncc-lle-exact (one translation prior)"
+"""ncc-lle-exact with the source's sigma on the detector's translations too: what stating each arm's
+accuracy (prior_detector_mm) changes."""
+METHODS = ("none", "l2-lle", "ncc-lle", "ncc-lle-exact", ONE_PRIOR, "gdc", "gdc-log", "documented geometry")
 TRUTH = "documented geometry"
-CASES = {"independent": "independent per-view errors", "drift": "independent per-view errors plus a slow d_u drift"}
+CASES = {"independent": "independent per-view errors", "drift": "independent per-view errors plus a slow d_u drift",
+         "documented": "no errors injected: every method started at the documented geometry"}
+ORACLE = "oracle floor"
+"""The error left when the centre's projection shift of every view is known exactly and the rest, the
+s_u / d_u split (a rotation about the centre, which one row hardly sees), is taken at its MAP under the
+prior (:func:`oracle_floor`)."""
 ORIENTATIONS = {"as is": lambda a: a, "rows flipped": lambda a: a[::-1], "columns flipped": lambda a: a[:, ::-1],
                 "transposed": lambda a: a.T}
 """Ways to lay our slice (volume[0], row j = increasing y) over the dataset's image."""
@@ -85,7 +100,27 @@ def injected_errors(geom, case: str, *, seed: int, px: float, drift_px: float, s
     if case == "drift":
         t = (np.arange(n) + 0.5) / n
         p[:, 3] += drift_px * geom.col_pitch_mm * np.sin(np.pi * t)
+    if case == "documented":
+        p[:] = 0.0
     return p
+
+
+def oracle_floor(true, injected: np.ndarray, points, source_mm: float, detector_mm: float) -> dict:
+    """Reprojection error (metrics.reprojection_error) of the best a per-view estimate can do when the
+    data fix only the shift of the rotation centre's projection, c = d_u + k s_u (k = (SDD - SOD) / SOD),
+    exactly: the remaining direction (s_u, d_u) ~ (1, -k), a rotation of the view about the centre,
+    is taken at its MAP under the prior (``source_mm`` on s_u, ``detector_mm`` on d_u), as an
+    estimator with that prior would."""
+    dso = float(np.median(true.sod_mm()))
+    k = (float(np.median(true.sdd_mm)) - dso) / dso
+    c = injected[:, 3] + k * injected[:, 0]
+    vs, vd = source_mm ** 2, detector_mm ** 2  # min s^2 / vs + d^2 / vd subject to d + k s = c
+    s_hat = c * k * vs / (vd + k * k * vs)
+    d_hat = c * vd / (vd + k * k * vs)
+    left = np.array(injected, float)
+    left[:, 0] -= s_hat
+    left[:, 3] -= d_hat
+    return reprojection_error(true.perturbed(left), true, points)
 
 
 def geometry_check(scan, fbp_ref: np.ndarray, say) -> dict:
@@ -149,7 +184,9 @@ def main(argv=None) -> int:
                     "displacement of the centre's projection, detector pixels")
     ap.add_argument("--drift-px", type=float, default=3.0, help="amplitude of the drift case's d_u drift, pixels")
     ap.add_argument("--prior-mm", type=float, default=None,
-                    help="prior translation sigma (default: the injected source-shift sigma)")
+                    help="prior sigma of the source's translations (default: the injected source-shift sigma)")
+    ap.add_argument("--prior-detector-mm", type=float, default=None,
+                    help="prior sigma of the detector's translations (default: the injected d_u sigma)")
     ap.add_argument("--prior-deg", type=float, default=0.01, help="prior rotation sigma (no rotation is injected)")
     ap.add_argument("--iterations", type=int, default=None, help="default: the settings' default")
     ap.add_argument("--seed", type=int, default=0)
@@ -191,14 +228,23 @@ def main(argv=None) -> int:
             chk = geometry_check(scan, ref, say)
             best_img, default_img = chk.pop("best_image"), chk.pop("default_image")
             check_rows.append((ph, chk))
+            say(f"phantom {ph}: opposed rays")
+            li_720, _ = scan.to_line_integrals()
+            orc = opposed_ray_offset(li_720, scan.geom, reach_px=1.0, steps=21, smooth_px=1.0)
+            chk["opposed_rays"] = {"best_shift_px": orc.best_shift_px, "best_shift_mm": orc.best_shift_mm,
+                                   "shifts_mm": orc.shifts_mm, "mismatch": orc.mismatch}
+            del li_720
             g0 = scan.geom
             dso = float(np.median(g0.sod_mm()))
             odd = float(np.median(g0.sdd_mm)) - dso
             sigma_src = args.error_px * g0.col_pitch_mm * dso / odd  # moves the centre's projection by error_px
             prior_mm = sigma_src if args.prior_mm is None else args.prior_mm
+            prior_det_mm = (args.error_px * g0.col_pitch_mm if args.prior_detector_mm is None
+                            else args.prior_detector_mm)
             if first is None:
                 first = {"n_views": scan.n_views, "n_cols": g0.n_cols, "pitch": g0.col_pitch_mm, "dso": dso,
-                         "dsd": dso + odd, "grid": grid, "sigma_src": sigma_src, "prior_mm": prior_mm}
+                         "dsd": dso + odd, "grid": grid, "sigma_src": sigma_src, "prior_mm": prior_mm,
+                         "prior_det_mm": prior_det_mm}
             views = np.arange(0, scan.n_views, args.view_step)
             li_all, mask_all = scan.to_line_integrals()
             li = np.ascontiguousarray(li_all[views])
@@ -222,18 +268,24 @@ def main(argv=None) -> int:
                 params_inj = injected_errors(true, case, seed=args.seed + 17 * ci, px=args.error_px,
                                              drift_px=args.drift_px, sigma_src_mm=sigma_src)
                 nominal = true.perturbed(params_inj)
-                run_settings = settings.with_prior(prior_mm, args.prior_deg)
+                run_settings = settings.with_prior(prior_mm, args.prior_deg, detector_mm=prior_det_mm)
                 results = {}
                 for method in methods:
                     say(f"phantom {ph}, {case}: {method}")
                     if method == TRUTH:
                         results[method] = (true, true_vol, (), true_wall)
                         continue
-                    results[method] = calibration.calibrate(li, nominal, grid, run_settings.replace(method=method),
+                    this = (run_settings.replace(method="ncc-lle-exact", prior_detector_mm=None) if method == ONE_PRIOR
+                            else run_settings.replace(method=method))
+                    results[method] = calibration.calibrate(li, nominal, grid, this,
                                                             valid_mask=mask, progress=lambda m: say(f"    {m}"))
                 rows = summarize(results, grid, (true, true_vol, None), pts, reconstruct=reconstruct)
                 for r in rows:
                     r["sharpness_rel"] = None if r["sharpness"] is None else r["sharpness"] / sharp_true
+                if case != "documented":
+                    fl = oracle_floor(true, params_inj, pts, prior_mm, prior_det_mm)
+                    rows.insert(1, {k: None for k in rows[0]} | {"method": ORACLE, "reproj_mean_px": fl["mean_px"],
+                                                                 "reproj_p95_px": fl["p95_px"]})
                 notes = {m: list(getattr(r, "notes", ())) for m, r in results.items() if getattr(r, "notes", ())}
                 for m, r in results.items():  # what the guard kept at nominal: the estimate before it
                     if getattr(r, "params_unguarded", None) is not None:
@@ -262,7 +314,8 @@ def main(argv=None) -> int:
                 table = markdown_table(rows, COLUMNS_REAL)
                 say("\n" + table)
                 sec = [f"### {title}", "",
-                       f"Injected: s_u RMS {ph_report['cases'][case]['injected_rms_mm']['s_u']:.3f} mm, d_u RMS "
+                       "Nothing injected: the calibration starts at the documented geometry." if case == "documented"
+                       else f"Injected: s_u RMS {ph_report['cases'][case]['injected_rms_mm']['s_u']:.3f} mm, d_u RMS "
                        f"{ph_report['cases'][case]['injected_rms_mm']['d_u']:.3f} mm; the perturbed nominal lies "
                        f"{inj['mean_px']:.3f} px (mean), {inj['p95_px']:.3f} px (p95) from the documented geometry "
                        f"(gauge removed).", "", table]
@@ -308,10 +361,17 @@ def main(argv=None) -> int:
              f"{args.error_px:g} px ({args.error_px * f['pitch']:g} mm x SOD / (SDD - SOD)). Case `drift` adds "
              f"{args.drift_px:g} px x sin(pi t) to d_u (t = 0..1 over the scan: a slow drift out and back). Every "
              f"method through calibration.calibrate with the default settings (the full list in realdata.json) "
-             f"except the prior: {f['prior_mm']:.4f} mm on every translation (the injected source-shift sigma, "
-             f"the larger of the two) and {args.prior_deg:g} deg on every rotation (none injected; 0 would turn "
+             f"except the prior, each arm's injected accuracy: {f['prior_mm']:.4f} mm on the source's translations, "
+             f"{f['prior_det_mm']:.4f} mm on the detector's (prior_detector_mm; row `{ONE_PRIOR}` puts "
+             f"{f['prior_mm']:.4f} mm on both) and {args.prior_deg:g} deg on every rotation (none injected; 0 would turn "
              f"the prior off); the guard takes the same values as the robots' stated accuracy. `gdc` and `gdc-log` "
-             f"have no prior. A one-row detector estimates only s_u, s_w, d_u, d_w and r_v.", "",
+             f"have no prior. A one-row detector estimates only s_u, s_w, d_u, d_w and r_v. Case `documented` injects "
+             f"nothing: each method starts at the documented geometry, and its error says how far the data (and "
+             f"the method's own scatter) move it from there. Row `{ORACLE}`: the error left if every view's shift "
+             f"of the rotation centre's projection (d_u + k s_u, k = (SDD - SOD) / SOD) were known exactly and "
+             f"the one direction a row hardly sees, s_u and d_u in the ratio 1 : -k (a rotation of the view about "
+             f"the centre), were set at its MAP under the same prior (bench_realdata.oracle_floor): a floor for "
+             f"per-view estimation with this prior.", "",
              "**Metrics.** *reproj. error*: gauge-aligned reprojection error (robot_ct_ros.ct.metrics."
              "reprojection_error) of 125 points filling the inner 80 % of the grid (roi_points), in detector pixels "
              "(0.2 mm), against the documented geometry, after removing the best global rigid motion; mean and 95th "
@@ -340,6 +400,18 @@ def main(argv=None) -> int:
                      f"slope {b['slope_per_mm']:.4f} against 1 / effectivePixelSizePost = {1.0 / g.voxel_size_mm[0]:.4f} "
                      f"(the dataset's image is in 1/pixel, ours in 1/mm). "
                      f"![check](realdata_{ph}_check.png)")
+    lines += ["", "## 1b. The documented centre of rotation, by opposed rays", "",
+              "Over a full circle every line is measured from both sides (robot_ct_ros.ct.opposed_rays: no "
+              "projector, no reconstruction). The table gives the detector shift along u, the same for every view, "
+              "at which the two measurements agree best (all 720 views, 1 px Gaussian smoothing along the row, "
+              "shifts of -1 to 1 px in 0.1 px steps, a parabola through the smallest three): how far the documented "
+              "centre of rotation is from the one the data hold. It is 0 for a perfect documented geometry.", "",
+              "| phantom | best shift (px) | best shift (mm) | RMS mismatch at 0 | RMS mismatch, least |",
+              "| --- | --- | --- | --- | --- |"]
+    for ph, chk in check_rows:
+        o = chk["opposed_rays"]
+        z = o["mismatch"][len(o["mismatch"]) // 2]
+        lines.append(f"| {ph} | {o['best_shift_px']:.3f} | {o['best_shift_mm']:.4f} | {z:.6f} | {min(o['mismatch']):.6f} |")
     lines += ["", "## 2. Calibration from a perturbed nominal geometry", ""]
     for sec in sections:
         lines += sec
