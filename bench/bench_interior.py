@@ -54,8 +54,9 @@ METHODS = ("none", "l2-lle", "ncc-lle", "ncc-lle-exact", "gdc", "gdc-log", *VARI
 PHOTONS_BEHIND_BODY = 4000.0
 
 
-def make_scan(sigma: float, *, views: int, det: tuple, axis: str, seed: int, nxy: int, say):
-    """The interior scan with robot errors of ``sigma`` mm and deg: data, geometries, ROI grid."""
+def make_scan(sigma: float, *, views: int, det: tuple, axis: str, seed: int, nxy: int, say, errors=None):
+    """The interior scan with robot errors of ``sigma`` mm and deg: data, geometries, ROI grid.
+    ``errors`` (views, 9), if given, replaces the independent per-view errors drawn from ``sigma``."""
     system = SeedSystem()
     rows, cols = det
     binning = 2
@@ -64,7 +65,7 @@ def make_scan(sigma: float, *, views: int, det: tuple, axis: str, seed: int, nxy
     R = AXES[axis].as_matrix()
     nominal_z = robotic_roi_scan(system, roi_center_mm=(0.0, 0.0, 0.0), fov_diameter_mm=fov, n_views=views,
                                  binning=binning, n_rows=rows, n_cols=cols)
-    errors = sim.robot_coordination(sigma, sigma, seed=seed).sample(views)
+    errors = sim.robot_coordination(sigma, sigma, seed=seed).sample(views) if errors is None else np.asarray(errors)
     nominal = nominal_z.moved(R)
     true = nominal.perturbed(errors)  # the errors live in the detector frames: the same in any world
     phantom = sim.interior_neck_phantom(seed).moved(R)
