@@ -37,8 +37,23 @@ def run_node(node_factory: Callable[[], "object"], description: str, argv: list[
     finally:
         if node is not None:
             node.destroy_node()
-        rclpy.try_shutdown()
+        shutdown_once(rclpy)
     return 0
+
+
+def shutdown_once(rclpy, context=None) -> None:
+    """``rclpy.try_shutdown`` that tolerates losing the race with rclpy's own SIGINT handler.
+
+    The handler shuts the context down from another thread; when it does so between
+    try_shutdown's check and its shutdown call, rcl says "rcl_shutdown already called" and the
+    node would exit 1 after a clean stop. Any other error still propagates."""
+    from rclpy.impl.implementation_singleton import rclpy_implementation
+
+    try:
+        rclpy.try_shutdown(context=context)
+    except rclpy_implementation.RCLError as e:
+        if "already called" not in str(e):
+            raise
 
 
 class ServiceThread:

@@ -37,3 +37,22 @@ def test_a_bad_parameter_is_one_line_and_exit_2(node, assignment, words):
     assert proc.returncode == 2, proc.stderr[-2000:]
     assert "Traceback" not in proc.stderr and words in proc.stderr, proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+
+
+def test_a_shutdown_that_loses_the_race_with_the_sigint_handler_still_exits_cleanly():
+    """rclpy's SIGINT handler may shut the context down between try_shutdown's check and its call;
+    rcl then says "already called", which is no failure. Any other shutdown error is."""
+    from types import SimpleNamespace
+
+    from rclpy.impl.implementation_singleton import rclpy_implementation
+
+    from robot_ct_ros.nodes.common import shutdown_once
+
+    def failing(message):
+        def try_shutdown(context=None):
+            raise rclpy_implementation.RCLError(message)
+        return SimpleNamespace(try_shutdown=try_shutdown)
+
+    shutdown_once(failing("failed to shutdown: rcl_shutdown already called on the given context"))
+    with pytest.raises(rclpy_implementation.RCLError, match="invalid context"):
+        shutdown_once(failing("failed to shutdown: invalid context"))
