@@ -164,7 +164,7 @@ def _opposed_rays(bag) -> dict | None:
     try:
         if mask is not None and not np.all(mask):
             raise ValueError("it has dead or masked pixels")
-        found = opposed_ray_offset(li, scan.geom)
+        found = opposed_ray_offset(li, scan.geom, reach_px=3.0, steps=31)
     except ValueError as e:
         return {"not_checked": str(e)}
     return {"best_shift_px": found.best_shift_px, "best_shift_mm": found.best_shift_mm}

@@ -142,11 +142,23 @@ class OpposedRays:
 def opposed_ray_offset(line_integrals, geom: ConeGeometry, *, reach_px: float = 1.0, steps: int = 21,
                        smooth_px: float = 1.0) -> OpposedRays:
     """The detector shift (along ``u``, the same for every view) at which opposed rays agree best,
-    searched over ``reach_px`` pixels each way: the stated geometry's centre-of-rotation error as
-    the data see it."""
+    searched over ``reach_px`` pixels each way in ``steps`` steps: the stated geometry's
+    centre-of-rotation error as the data see it.
+
+    Raises
+    ------
+    ValueError
+        The scan cannot be checked (:func:`opposed_ray_mismatch`), or the best agreement lies at
+        the edge of the search: the error is larger than ``reach_px``.
+    """
+    if not (reach_px > 0 and int(steps) >= 3):
+        raise ValueError("the search needs reach_px > 0 and at least 3 steps")
     shifts = np.linspace(-reach_px, reach_px, int(steps)) * geom.col_pitch_mm
     m = np.array([opposed_ray_mismatch(line_integrals, geom, s, smooth_px=smooth_px) for s in shifts])
-    k = int(np.clip(np.argmin(m), 1, len(m) - 2))
+    k = int(np.argmin(m))
+    if k in (0, len(m) - 1):
+        raise ValueError(f"the opposed rays agree best at the edge of the search ({shifts[k] / geom.col_pitch_mm:+g} "
+                         f"px): the centre of rotation is off by more than {reach_px:g} px; search further")
     a, b, _ = np.polyfit(shifts[k - 1:k + 2], m[k - 1:k + 2], 2)
-    best = float(-b / (2 * a)) if a > 0 else float(shifts[int(np.argmin(m))])
+    best = float(-b / (2 * a)) if a > 0 else float(shifts[k])
     return OpposedRays(tuple(float(x) for x in shifts), tuple(float(x) for x in m), best, best / geom.col_pitch_mm)

@@ -65,3 +65,10 @@ def test_scans_it_cannot_check_are_refused():
     shuffled = np.random.default_rng(0).permutation(stated.n_views)
     with pytest.raises(ValueError, match="order"):
         opposed_ray_mismatch(li[shuffled], stated.subset(shuffled))
+
+
+def test_an_offset_beyond_the_search_is_not_reported_as_found():
+    li, stated = _disc_scan(1.6 * PITCH_MM)
+    with pytest.raises(ValueError, match="more than 1 px"):
+        opposed_ray_offset(li, stated, reach_px=1.0)
+    assert opposed_ray_offset(li, stated, reach_px=3.0, steps=31).best_shift_px == pytest.approx(1.6, abs=0.05)
