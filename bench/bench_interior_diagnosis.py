@@ -194,10 +194,10 @@ def tv_step(weight: float, steps: int = 20):
 
     def after_pass(xs, before):
         x = xs[1]
-        support = x > 0
+        support = (x > 0) | (before[1] > 0)
         length = float(np.linalg.norm(x - before[1]))
         for _ in range(steps):
-            g = grad(x) * (support | (before[1] > 0))
+            g = grad(x) * support
             n = float(np.linalg.norm(g))
             if n == 0.0:
                 break

@@ -150,35 +150,11 @@ def _cmd_simulate(args) -> int:
     return 0
 
 
-def _opposed_rays(bag) -> dict | None:
-    """A one-row scan over a full circle: the detector shift at which its opposed rays agree best
-    (robot_ct_ros.ct.opposed_rays), i.e. the stated geometry's centre-of-rotation error as the
-    data see it; {"not_checked": why} where the scan cannot be checked; None for several rows."""
-    from robot_ct_ros.bag import read_scan
-    from robot_ct_ros.ct.opposed_rays import opposed_ray_offset
-
-    scan = read_scan(bag)
-    if scan.geom.n_rows != 1:
-        return None
-    li, mask = scan.to_line_integrals()
-    try:
-        if mask is not None and not np.all(mask):
-            raise ValueError("it has dead or masked pixels")
-        found = opposed_ray_offset(li, scan.geom, reach_px=3.0, steps=31)
-    except ValueError as e:
-        return {"not_checked": str(e)}
-    return {"best_shift_px": found.best_shift_px, "best_shift_mm": found.best_shift_mm}
-
-
 def _cmd_info(args) -> int:
     from robot_ct_ros.bag import summarize
     from robot_ct_ros.jobs.output import json_default
 
     s = summarize(args.bag)
-    if "scan_error" not in s:
-        opposed = _opposed_rays(args.bag)
-        if opposed is not None:
-            s["opposed_rays"] = opposed
     if args.json:
         print(json.dumps(s, indent=2, default=json_default))
         return 0 if "scan_error" not in s else 1

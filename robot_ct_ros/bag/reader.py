@@ -625,14 +625,15 @@ def scan_from_raw(raw: RawBag, path, *, keep_raw: bool = False, min_views: int |
 
 
 def summarize(path) -> dict:
-    """A short description of a bag (topics, counts, scan info, pairing, warnings) for ``robot-ct info``."""
+    """A short description of a bag (topics, counts, scan info, pairing, warnings) for ``robot-ct info``;
+    a one-row scan over a full circle also gets ``opposed_rays`` (:func:`_opposed_rays`)."""
     raw = read_raw_messages(path)
     out = {"path": str(path), "reader": raw.reader, "recovered": raw.recovered,
            "topics": {t: {"type": ty, "messages": n} for t, (ty, n) in sorted(raw.topics().items())}}
     if raw.messages:
         out["duration_s"] = (raw.messages[-1].log_time_ns - raw.messages[0].log_time_ns) * 1e-9
     try:
-        scan = read_scan(path)
+        scan = scan_from_raw(raw, path)  # the messages already read: the bag is read once
     except ScanBagError as exc:
         out["scan_error"] = str(exc)
         out["warnings"] = raw.warnings
@@ -650,4 +651,21 @@ def summarize(path) -> dict:
         "has_geometry_true": scan.geom_true is not None,
         "warnings": scan.warnings,
     })
+    if g.n_rows == 1:
+        out["opposed_rays"] = _opposed_rays(scan)
     return out
+
+
+def _opposed_rays(scan: ScanData) -> dict:
+    """The detector shift at which a one-row scan's opposed rays agree best (robot_ct_ros.ct.opposed_rays:
+    the stated centre of rotation's error as the data see it), or {"not_checked": why}."""
+    from robot_ct_ros.ct.opposed_rays import opposed_ray_offset
+
+    li, mask = scan.to_line_integrals()
+    if mask is not None and not np.all(mask):
+        return {"not_checked": "it has dead or masked pixels"}
+    try:
+        found = opposed_ray_offset(li, scan.geom, reach_px=3.0, steps=31)
+    except ValueError as e:
+        return {"not_checked": str(e)}
+    return {"best_shift_px": found.best_shift_px, "best_shift_mm": found.best_shift_mm}
