@@ -123,9 +123,9 @@ def oracle_floor(true, injected: np.ndarray, points, source_mm: float, detector_
     return reprojection_error(true.perturbed(left), true, points)
 
 
-def geometry_check(scan, fbp_ref: np.ndarray, say) -> dict:
-    """Correlation of our FDK (documented geometry, every view) with the dataset's FBP."""
-    li, mask = scan.to_line_integrals()
+def geometry_check(scan, li, mask, fbp_ref: np.ndarray, say) -> dict:
+    """Correlation of our FDK (documented geometry, every view: the scan's line integrals ``li`` and
+    valid ``mask``) with the dataset's FBP."""
     grid = scan.default_grid()
     rows = []
     best = default_image = None
@@ -224,16 +224,15 @@ def main(argv=None) -> int:
             scan = read_scan(bag)
             grid = scan.default_grid()
             ref = read_dataset_fbp(data, ph)
+            li_all, mask_all = scan.to_line_integrals()
             say(f"phantom {ph}: geometry check against the dataset's FBP")
-            chk = geometry_check(scan, ref, say)
+            chk = geometry_check(scan, li_all, mask_all, ref, say)
             best_img, default_img = chk.pop("best_image"), chk.pop("default_image")
             check_rows.append((ph, chk))
             say(f"phantom {ph}: opposed rays")
-            li_720, _ = scan.to_line_integrals()
-            orc = opposed_ray_offset(li_720, scan.geom, reach_px=1.0, steps=21, smooth_px=1.0)
+            orc = opposed_ray_offset(li_all, scan.geom, reach_px=1.0, steps=21, smooth_px=1.0)
             chk["opposed_rays"] = {"best_shift_px": orc.best_shift_px, "best_shift_mm": orc.best_shift_mm,
                                    "shifts_mm": orc.shifts_mm, "mismatch": orc.mismatch}
-            del li_720
             g0 = scan.geom
             dso = float(np.median(g0.sod_mm()))
             odd = float(np.median(g0.sdd_mm)) - dso
@@ -246,7 +245,6 @@ def main(argv=None) -> int:
                          "dsd": dso + odd, "grid": grid, "sigma_src": sigma_src, "prior_mm": prior_mm,
                          "prior_det_mm": prior_det_mm}
             views = np.arange(0, scan.n_views, args.view_step)
-            li_all, mask_all = scan.to_line_integrals()
             li = np.ascontiguousarray(li_all[views])
             mask = None if mask_all is None else np.ascontiguousarray(
                 mask_all[views] if np.ndim(mask_all) == 3 else mask_all)
