@@ -7,7 +7,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 export PYTHONPATH := $(CURDIR)$(if $(PYTHONPATH),:$(PYTHONPATH))
 
-.PHONY: venv demo test bench bench-calibration bench-calibration-speed bench-interior bench-interior-diagnosis bench-realdata bench-sweep bench-dask bench-fullsize bench-streaming clean
+.PHONY: venv demo test bench bench-calibration bench-calibration-speed bench-interior bench-exterior-reach bench-interior-diagnosis bench-realdata bench-sweep bench-dask bench-fullsize bench-streaming clean
 
 venv: $(STAMP)
 
@@ -35,6 +35,9 @@ bench-calibration-speed: $(STAMP)
 
 bench-interior: $(STAMP)
 	$(PY) bench/bench_interior.py --oracle --out docs/results
+
+bench-exterior-reach: $(STAMP)
+	$(PY) bench/bench_exterior_reach.py --out docs/results
 
 bench-interior-diagnosis: $(STAMP)
 	$(PY) bench/bench_interior_diagnosis.py --out docs/results

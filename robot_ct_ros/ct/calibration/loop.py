@@ -184,9 +184,20 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
     coarse_cfg, fine_cfg = configs if configs is not None else method.configs(settings)
     fdk_kwargs = dict(fdk_kwargs or {})
     exterior = settings.exterior == "on"
+    reach_stated = settings.exterior_half_width_mm > 0
+    exterior_notes = []
+    if exterior and not reach_stated:
+        exterior_notes.append("the exterior model reached up to the sources: the object's reach "
+                              "(exterior_half_width_mm) was not stated, and reaching past the object costs accuracy")
     if settings.exterior == "auto":
         level = truncation_level(li, mask)
-        exterior = level > EXTERIOR_ABOVE
+        # the exterior model needs the object's reach: one reaching far past the object does worse than none
+        # (docs/calibration.md, "The exterior model")
+        exterior = level > EXTERIOR_ABOVE and reach_stated
+        if level > EXTERIOR_ABOVE and not reach_stated:
+            exterior_notes.append(f"strongly truncated (truncation level {level:.3f} > {EXTERIOR_ABOVE:g}), yet the "
+                                  f"object outside the ROI was not modelled: state how far the object reaches from "
+                                  f"the ROI centre (exterior_half_width_mm)")
         say(f"truncation level {level:.3f}: {'the object outside the ROI is modelled' if exterior else 'ROI model'}")
     if exterior:  # every ray is modelled: no ROI support mask
         coarse_cfg, fine_cfg = (replace(c, roi_support_fraction=None) for c in (coarse_cfg, fine_cfg))
@@ -290,6 +301,7 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
                      f"{sorted(skipped)[:20]}{' ...' if len(skipped) > 20 else ''}")
     if exterior:
         notes.append("the object outside the ROI was modelled (exterior model)")
+    notes += exterior_notes
     unguarded = None
     explained = history[-1].projection_ncc if history else float("nan")
     if settings.guard and explained < settings.guard_min_ncc:
@@ -298,7 +310,7 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
         unguarded, params = params, np.zeros_like(params)
         notes.append(f"guard: the estimation model explains the data poorly (projection NCC {explained:.3f} < "
                      f"{settings.guard_min_ncc:g}); the data do not support the correction and the nominal geometry is "
-                     f"kept (for an interior scan of a wide object, try exterior=on)")
+                     f"kept (for an interior scan of a wide object, state how far it reaches from the ROI centre: exterior_half_width_mm)")
     elif settings.guard and accuracy is not None:
         checked = plausibility_guard(nominal, params, points, accuracy, max_ratio=settings.guard_max_ratio,
                                      view_quantile=settings.guard_view_quantile, seed=settings.seed)

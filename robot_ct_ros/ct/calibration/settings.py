@@ -137,12 +137,14 @@ class CalibrationSettings:
     coarse_tol_px: float = setting(0.1, "the coarse passes stop when one moves the views less than this", unit="px",
                                    minimum=0.0)
     undo_inconsistent: bool = setting(False, "undo an iteration that lowers the data consistency, and stop")
-    exterior: str = setting("off", "model the object outside the ROI with a coarse grid reconstructed with it (strongly "
+    exterior: str = setting("auto", "model the object outside the ROI with a coarse grid reconstructed with it (strongly "
                             "truncated interior scans); auto: when the truncation level exceeds "
-                            "calibration.volume.EXTERIOR_ABOVE", choices=EXTERIOR_MODES)
+                            "calibration.volume.EXTERIOR_ABOVE and exterior_half_width_mm states the object's reach",
+                            choices=EXTERIOR_MODES)
     exterior_voxel_mm: float = setting(0.5, "voxel of the exterior grid", unit="mm", minimum=0.01, maximum=10.0)
-    exterior_half_width_mm: float = setting(0.0, "how far the exterior grid reaches from the ROI centre across the scan "
-                                            "axis (0: up to the sources)", unit="mm", minimum=0.0)
+    exterior_half_width_mm: float = setting(0.0, "how far the object reaches from the ROI centre across the scan axis, "
+                                            "the exterior grid's reach (0: not stated; exterior on then reaches up to "
+                                            "the sources, auto keeps the ROI model)", unit="mm", minimum=0.0)
     exterior_iterations: int = setting(15, "ordered-subsets SIRT passes of the ROI and exterior model", minimum=1,
                                        maximum=1000)
     exterior_subsets: int = setting(10, "ordered subsets of that SIRT", minimum=1, maximum=1000)

@@ -481,3 +481,22 @@ def test_calibrate_leaves_the_callers_data_as_they_were():
                dict(method="ncc-lle-exact", exterior="on", exterior_voxel_mm=2.0)):
         calibrate(measured, nominal, grid, iterations=1, schedule="fast", **kw)
         np.testing.assert_array_equal(measured, before)
+
+
+def test_exterior_auto_models_a_strongly_truncated_scan_only_when_the_objects_reach_is_stated():
+    """An exterior reaching far past the object costs more than it gains (docs/results/exterior_reach.md):
+    ``auto`` models the object outside the ROI only on a strongly truncated scan and only with its
+    reach stated, and says so either way; ``on`` without a reach says that it reached the sources."""
+    _, _, _, inside = _small_scan(n_views=8, body_width_mm=9.0, length_mm=30.0)
+    nominal, _, grid, wider = _small_scan(n_views=8, body_width_mm=40.0, length_mm=30.0)
+    kw = dict(method="ncc-lle-exact", iterations=1, schedule="fast", exterior_voxel_mm=2.0, final_volume=False)
+    modelled = "the object outside the ROI was modelled (exterior model)"
+    stated = calibrate(wider, nominal, grid, exterior="auto", exterior_half_width_mm=20.0, **kw).notes
+    assert modelled in stated and not any("not stated" in n or "not modelled" in n for n in stated)
+    unstated = calibrate(wider, nominal, grid, **kw).notes  # auto is the default
+    assert modelled not in unstated
+    assert any("strongly truncated" in n and "exterior_half_width_mm" in n for n in unstated)
+    small = calibrate(inside, nominal, grid, exterior_half_width_mm=20.0, **kw).notes
+    assert modelled not in small and not any("strongly truncated" in n for n in small)
+    to_sources = calibrate(wider, nominal, grid, exterior="on", **kw).notes
+    assert modelled in to_sources and any("up to the sources" in n for n in to_sources)
