@@ -10,7 +10,7 @@ accuracy. Per reach: gauge-aligned reprojection error of ROI points (mean, p95, 
 the guard's verdict, and the estimate before the guard. Writes ``exterior_reach.md`` and
 ``exterior_reach.json`` into ``--out``.
 
-    .venv/bin/python bench/bench_exterior_reach.py --out docs/results      # about 25 min on 2 cores
+    .venv/bin/python bench/bench_exterior_reach.py --out docs/results      # about 35 min on 2 cores
 """
 
 from __future__ import annotations
