@@ -71,11 +71,13 @@ def test_estimation_on_two_worker_processes_equals_the_in_process_pass(cluster, 
     p_in, info_in = InProcess().estimate(estimate, measured, nominal, params0, vol, grid, cfg, mask)
     p_dask, info_dask = cluster.estimate(estimate, measured, nominal, params0, vol, grid, cfg, mask)
     assert len(info_dask["blocks"]) > 1
-    np.testing.assert_allclose(p_dask, p_in, rtol=0, atol=1e-9)
+    # equal to float rounding: a CI run once differed by 1.5e-9 relative in a distance (another process's
+    # float32 sums); another draw or split would differ by 1e-3 and more
+    np.testing.assert_allclose(p_dask, p_in, rtol=0, atol=1e-6)
     assert info_dask["skipped_views"] == info_in["skipped_views"] == [13]
     for key in ("best_distance", "chosen_distance", "independent_fraction", "cost", "accepted"):
         if key in info_in:
-            np.testing.assert_allclose(info_dask[key], info_in[key], rtol=1e-9, err_msg=key)
+            np.testing.assert_allclose(info_dask[key], info_in[key], rtol=1e-6, err_msg=key)
     assert np.abs(p_in).max() > 0  # the views moved
 
 
@@ -90,7 +92,7 @@ def test_fdk_slabs_and_a_volume_of_parts_on_the_cluster(cluster):
     params0 = np.zeros((nominal.n_views, 9))
     p_in, _ = InProcess().estimate(estimate_views_gdc, measured, nominal, params0, parts, grid, cfg, mask[0])
     p_dask, _ = cluster.estimate(estimate_views_gdc, measured, nominal, params0, parts, grid, cfg, mask[0])
-    np.testing.assert_allclose(p_dask, p_in, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(p_dask, p_in, rtol=0, atol=1e-6)
 
 
 def test_the_loop_with_scheduler_local_equals_the_in_process_loop():
@@ -101,7 +103,9 @@ def test_the_loop_with_scheduler_local_equals_the_in_process_loop():
     out = calibrate(measured, nominal, grid, valid_mask=mask, scheduler="local", dask_workers=2, dask_threads=1,
                     progress=said.append, **kw)
     assert any("dask" in s for s in said)
-    np.testing.assert_allclose(out.params, ref.params, rtol=0, atol=1e-9)
+    # the slabs' FDK equals fdk to float32 rounding, which the estimation carries on: a CI run once
+    # differed by 1.3e-7 mm / deg
+    np.testing.assert_allclose(out.params, ref.params, rtol=0, atol=1e-5)
     np.testing.assert_allclose(out.volume, ref.volume, rtol=0, atol=1e-5 * np.abs(ref.volume).max())
 
 
