@@ -72,7 +72,7 @@ def test_estimation_on_two_worker_processes_equals_the_in_process_pass(cluster, 
     p_dask, info_dask = cluster.estimate(estimate, measured, nominal, params0, vol, grid, cfg, mask)
     assert len(info_dask["blocks"]) > 1
     # equal to float rounding: a CI run once differed by 1.5e-9 relative in a distance (another process's
-    # float32 sums); another draw or split would differ by 1e-3 and more
+    # float32 sums); another seed moves these parameters by up to 0.17
     np.testing.assert_allclose(p_dask, p_in, rtol=0, atol=1e-6)
     assert info_dask["skipped_views"] == info_in["skipped_views"] == [13]
     for key in ("best_distance", "chosen_distance", "independent_fraction", "cost", "accepted"):
