@@ -50,7 +50,7 @@ AXES = {"y": Rotation.from_rotvec([-np.pi / 2, 0.0, 0.0]),        # the scan's z
 """World rotations applied to the whole scene (trajectory, phantom, ROI)."""
 REACH_MM = 30.0
 """How far the neck reaches from the ROI centre across the axis (its far side lies 29.5 mm away), as its user states it."""
-CORRECTING = ("l2-lle", "ncc-lle", "ncc-lle-exact", "gdc", "gdc-log")
+CORRECTING = calibration.method_names(include_none=False)
 VARIANTS = {f"{m} + exterior": {"method": m, "exterior_half_width_mm": REACH_MM} for m in CORRECTING}
 """Every method with the object's reach stated and otherwise default settings: ``exterior`` auto then models the
 object outside the ROI (the truncation level is far above EXTERIOR_ABOVE). The plain rows state no reach."""

@@ -31,7 +31,7 @@ from robot_ct_ros.ct import calibration  # noqa: E402
 from robot_ct_ros.ct.calibration.volume import truncation_level  # noqa: E402
 from robot_ct_ros.ct.metrics import reprojection_error, roi_points  # noqa: E402
 
-CORRECTING = ("l2-lle", "ncc-lle", "ncc-lle-exact", "gdc", "gdc-log")
+CORRECTING = calibration.method_names(include_none=False)
 REACH_STATED = {f"{m} (reach stated)": m for m in CORRECTING}
 """Each method with the mouse's reach stated (exterior_half_width_mm, the mouse's far side) and ``exterior`` at its
 default, auto: the object outside the ROI is modelled above the truncation level EXTERIOR_ABOVE."""
