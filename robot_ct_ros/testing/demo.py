@@ -70,16 +70,37 @@ def demo_setup(s: dict) -> tuple[dict, dict]:
     return protocol, grabber
 
 
+def _config_hand_eye() -> dict:
+    """The hand-eye mounts the demo's nodes get (config/hand_eye.yaml, SI form)."""
+    import yaml
+
+    from robot_ct_ros.testing.graph import CONFIG_DIR
+
+    with open(CONFIG_DIR / "hand_eye.yaml") as f:
+        return yaml.safe_load(f)["/**"]["ros__parameters"]["hand_eye"]
+
+
 def recon_parameters(s: dict) -> dict:
     """The recon_service parameters of the demo settings ``s``: method, iterations, and as the
-    prior of the calibration the simulated arms' per-move error (per axis: ``sigma_mm``,
-    ``sigma_deg``), which is what each view's parameters are off by; for a truncated scan the
-    exterior model, reaching the phantom's far side. The calibration's own
-    default (0.3 mm, 0.3 deg) is for robots whose accuracy nobody measured: on the demo's scan
-    it gave 0.095 px against 0.064 px with the arms' 0.1 mm / 0.05 deg (2026-12-02)."""
+    prior of the calibration the simulated arms' per-move error (per axis at the TCP:
+    ``sigma_mm``, ``sigma_deg``) carried to the focal spot and the detector centre through the
+    hand-eye mounts (ct.hand_eye.device_position_sigma_mm: a rotation error swings each device
+    about its flange), each arm's largest per-axis error, which is the one across the beam; for a
+    truncated scan the exterior model, reaching the phantom's far side. Stated as the TCP's own
+    0.1 mm, the prior understates the source's error across the beam by 31 %, close to the
+    guard's tolerance (docs/calibration.md §4, "Use"). The calibration's own default (0.3 mm,
+    0.3 deg) is for robots whose accuracy nobody measured."""
+    from robot_ct_ros.ct.hand_eye import HandEye, device_position_sigma_mm
+
+    hand_eye = HandEye.from_dict(_config_hand_eye())
+    rot_rad = math.radians(s["sigma_deg"])
     params = {"method": s["method"], "iterations": s["iterations"],
               "prior_sigma_translation_m": s["sigma_mm"] * 1e-3,
-              "prior_sigma_rotation_rad": math.radians(s["sigma_deg"])}
+              "prior_sigma_source_m": float(device_position_sigma_mm(hand_eye.source, s["sigma_mm"], rot_rad).max())
+              * 1e-3,
+              "prior_sigma_detector_m": float(device_position_sigma_mm(hand_eye.detector, s["sigma_mm"], rot_rad).max())
+              * 1e-3,
+              "prior_sigma_rotation_rad": rot_rad}
     if s["truncated"]:
         # the whole phantom lies around the ROI: model it (docs/calibration.md, "The exterior model"),
         # out to its far side across the scan axis (z), as a user who knows the object would

@@ -9,7 +9,9 @@ points with how far errors of that accuracy move them:
 
 * R = (mean displacement of the ROI points' projections by the correction) / (the same mean for
   random errors of the stated accuracy). R well above 1 means the loop moved the views much
-  further than the robots can err: the whole scan keeps its nominal geometry.
+  further than the robots can err: the whole scan keeps its nominal geometry. Where the data
+  term is known to be biased (a strongly truncated scan whose exterior was not modelled) the
+  caller passes a stricter ``scan_max_ratio``.
 * Otherwise a view moved further than ``max_ratio`` times the ``view_quantile`` of the random
   displacements keeps its nominal geometry alone: the same tolerance for an understated accuracy
   as the scan's (without it, robots that err 1.4 times more than stated lose their largest,
@@ -40,6 +42,7 @@ class GuardResult:
     scan_reverted: bool
 
     def note(self, max_ratio: float) -> str:
+        """The verdict in words; ``max_ratio``: the scan-level limit that was applied."""
         if self.scan_reverted:
             return (f"guard: the correction moved the views {self.ratio:.2f} times as far as the robots' stated accuracy "
                     f"explains (limit {max_ratio:g}); the data do not support it and the nominal geometry is kept")
@@ -54,7 +57,8 @@ def _displacement_px(nominal: ConeGeometry, params: np.ndarray, points: np.ndarr
 
 
 def plausibility_guard(nominal: ConeGeometry, params: np.ndarray, points_mm, stated_sigma, *, max_ratio: float = 1.5,
-                       view_quantile: float = 0.999, draws: int = 20, seed: int = 0) -> GuardResult:
+                       view_quantile: float = 0.999, draws: int = 20, seed: int = 0,
+                       scan_max_ratio: float | None = None) -> GuardResult:
     """The correction ``params`` (n, 9) relative to ``nominal``, checked against the robots' accuracy.
 
     Parameters
@@ -64,7 +68,10 @@ def plausibility_guard(nominal: ConeGeometry, params: np.ndarray, points_mm, sta
     stated_sigma : sequence of 9 floats
         The robots' per-view error, mm x6 and rad x3 (the prior's standard deviations).
     max_ratio : float
-        Above this R the scan keeps its nominal geometry.
+        Above this R the scan keeps its nominal geometry (unless ``scan_max_ratio`` is given); the
+        single views' tolerance.
+    scan_max_ratio : float, optional
+        The scan-level limit on R instead of ``max_ratio``.
     view_quantile : float
         A view displaced beyond ``max_ratio`` times this quantile of the random displacements keeps
         its nominal geometry.
@@ -82,7 +89,7 @@ def plausibility_guard(nominal: ConeGeometry, params: np.ndarray, points_mm, sta
                             for _ in range(int(draws))])
     moved = _displacement_px(nominal, params, points, reference)
     ratio = float(moved.mean() / max(drawn.mean(), 1e-300))
-    if ratio > max_ratio:
+    if ratio > (max_ratio if scan_max_ratio is None else scan_max_ratio):
         return GuardResult(np.zeros_like(params), ratio, tuple(range(nominal.n_views)), True)
     beyond = np.flatnonzero(moved > max_ratio * np.quantile(drawn, view_quantile))
     out = params.copy()

@@ -189,12 +189,20 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
     if exterior and not reach_stated:
         exterior_notes.append("the exterior model reached up to the sources: the object's reach "
                               "(exterior_half_width_mm) was not stated, and reaching past the object costs accuracy")
+    unmodelled = False  # strongly truncated, the object outside the ROI not modelled: the guard is stricter
+    if settings.exterior == "off":
+        level = truncation_level(li, mask)
+        unmodelled = level > EXTERIOR_ABOVE
+        if unmodelled:
+            exterior_notes.append(f"strongly truncated (truncation level {level:.3f} > {EXTERIOR_ABOVE:g}), and the "
+                                  f"object outside the ROI was not modelled (exterior off)")
     if settings.exterior == "auto":
         level = truncation_level(li, mask)
         # the exterior model needs the object's reach: one reaching far past the object does worse than none
         # (docs/calibration.md, "The exterior model")
         exterior = level > EXTERIOR_ABOVE and reach_stated
         if level > EXTERIOR_ABOVE and not reach_stated:
+            unmodelled = True
             exterior_notes.append(f"strongly truncated (truncation level {level:.3f} > {EXTERIOR_ABOVE:g}), yet the "
                                   f"object outside the ROI was not modelled: state how far the object reaches from "
                                   f"the ROI centre (exterior_half_width_mm)")
@@ -312,11 +320,16 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
                      f"{settings.guard_min_ncc:g}); the data do not support the correction and the nominal geometry is "
                      f"kept (for an interior scan of a wide object, state how far it reaches from the ROI centre: exterior_half_width_mm)")
     elif settings.guard and accuracy is not None:
+        # where the ROI model's data term is biased (strong truncation, no exterior) the correction may not move the
+        # views further than the robots' errors do: its helpful corrections there are partial (docs/calibration.md §11)
+        scan_limit = min(settings.guard_max_ratio, settings.guard_max_ratio_unmodelled) if unmodelled \
+            else settings.guard_max_ratio
         checked = plausibility_guard(nominal, params, points, accuracy, max_ratio=settings.guard_max_ratio,
-                                     view_quantile=settings.guard_view_quantile, seed=settings.seed)
+                                     view_quantile=settings.guard_view_quantile, seed=settings.seed,
+                                     scan_max_ratio=scan_limit)
         unguarded = params if checked.reverted_views else None
         params = checked.params
-        notes.append(checked.note(settings.guard_max_ratio))
+        notes.append(checked.note(scan_limit))
     elif settings.guard:
         notes.append("guard: no robot accuracy stated (prior 0), so only the model's explanation of the data is checked")
     for note in notes:

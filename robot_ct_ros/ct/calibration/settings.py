@@ -152,6 +152,10 @@ class CalibrationSettings:
                           "robots' stated accuracy (the prior) explains")
     guard_max_ratio: float = setting(1.5, "the scan keeps its nominal geometry when the correction moves the views this "
                                      "many times as far as the stated accuracy does", minimum=1.0)
+    guard_max_ratio_unmodelled: float = setting(1.0, "the same limit for a strongly truncated scan whose object "
+                                                "outside the ROI was not modelled: there the ROI model's data term is "
+                                                "biased, and a correction larger than the robots' own errors is not "
+                                                "credited", minimum=0.1)
     guard_min_ncc: float = setting(0.5, "the scan keeps its nominal geometry when the estimation model explains the "
                                    "data this poorly: the final projection NCC of its reprojection against the data",
                                    minimum=0.0, maximum=1.0)

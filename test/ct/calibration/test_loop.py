@@ -500,3 +500,33 @@ def test_exterior_auto_models_a_strongly_truncated_scan_only_when_the_objects_re
     assert modelled not in small and not any("strongly truncated" in n for n in small)
     to_sources = calibrate(wider, nominal, grid, exterior="on", **kw).notes
     assert modelled in to_sources and any("up to the sources" in n for n in to_sources)
+
+
+def test_the_guard_is_stricter_on_a_strongly_truncated_scan_whose_exterior_was_not_modelled():
+    """There the ROI model's data term is biased: the scan-level limit on R is guard_max_ratio_unmodelled
+    (1), whether exterior is auto without a stated reach or off; a modelled or untruncated scan keeps
+    guard_max_ratio (1.5). The limit decides: just below the correction's own R, the scan keeps its
+    nominal geometry."""
+    import re
+
+    _, _, _, inside = _small_scan(n_views=8, body_width_mm=9.0, length_mm=30.0)
+    nominal, _, grid, wider = _small_scan(n_views=8, body_width_mm=40.0, length_mm=30.0)
+    # guard_min_ncc 0: the ROI model's poor fit of the wide body must not decide first
+    kw = dict(method="ncc-lle-exact", iterations=1, schedule="fast", exterior_voxel_mm=2.0, final_volume=False,
+              guard_min_ncc=0.0)
+
+    def limit(notes):
+        found = [re.search(r"times the robots' stated accuracy \(limit ([\d.]+)\)", n) for n in notes]
+        return [(float(m.group(1)), float(re.search(r"([\d.]+) times", m.string).group(1))) for m in found if m][0]
+
+    unmodelled = calibrate(wider, nominal, grid, **kw)
+    assert limit(unmodelled.notes)[0] == 1.0
+    off = calibrate(wider, nominal, grid, exterior="off", **kw)
+    assert limit(off.notes)[0] == 1.0 and any("exterior off" in n for n in off.notes), off.notes
+    assert limit(calibrate(wider, nominal, grid, exterior_half_width_mm=20.0, **kw).notes)[0] == 1.5
+    assert limit(calibrate(inside, nominal, grid, **kw).notes)[0] == 1.5
+    ratio = limit(unmodelled.notes)[1]
+    assert ratio > 0.05 and np.abs(unmodelled.params).max() > 0
+    refused = calibrate(wider, nominal, grid, guard_max_ratio_unmodelled=0.9 * ratio, **kw)
+    np.testing.assert_array_equal(refused.params, 0.0)
+    assert any("nominal geometry is kept" in n for n in refused.notes), refused.notes
