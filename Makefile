@@ -7,7 +7,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 export PYTHONPATH := $(CURDIR)$(if $(PYTHONPATH),:$(PYTHONPATH))
 
-.PHONY: venv demo test bench bench-calibration bench-calibration-speed bench-interior bench-exterior-reach bench-interior-diagnosis bench-realdata bench-sweep bench-dask bench-fullsize bench-streaming clean
+.PHONY: venv demo test bench bench-calibration bench-calibration-speed bench-interior bench-exterior-reach bench-interior-diagnosis bench-realdata bench-sweep bench-guard bench-dask bench-fullsize bench-streaming clean
 
 venv: $(STAMP)
 
@@ -47,6 +47,9 @@ bench-realdata: $(STAMP)
 
 bench-sweep: $(STAMP)
 	$(PY) bench/bench_truncation_sweep.py --out docs/results
+
+bench-guard: $(STAMP)  # reads the other benches' json: run it after them
+	$(PY) bench/bench_guard.py --results docs/results --out docs/results
 
 bench-dask: $(STAMP)
 	$(PY) bench/bench_dask.py --out docs/results

@@ -30,6 +30,7 @@ from bench_calibration import EXTERIOR_METHOD, make_scenario, run_method  # noqa
 from robot_ct_ros.ct import calibration  # noqa: E402
 from robot_ct_ros.ct.calibration.volume import truncation_level  # noqa: E402
 from robot_ct_ros.ct.metrics import reprojection_error, roi_points  # noqa: E402
+from robot_ct_ros.jobs.figures import method_notes  # noqa: E402
 
 CORRECTING = calibration.method_names(include_none=False)
 REACH_STATED = {f"{m} (reach stated)": m for m in CORRECTING}
@@ -86,7 +87,8 @@ def main(argv=None) -> int:
             row["wall_s"][m] = res.wall_s if hasattr(res, "wall_s") else res[3]
             history = getattr(res, "history", ())
             row["model_ncc"][m] = float(history[-1].projection_ncc) if history else None
-            row["notes"][m] = list(getattr(res, "notes", ()))
+            # the notes, and where the guard kept the nominal geometry, the error of the estimate before it
+            row["notes"][m] = method_notes({m: res}, sc.nominal, sc.true, pts).get(m, [])
             say(f"  scale {scale:g}: {m} {row['errors_px'][m]:.3f} px ({row['wall_s'][m]:.1f} s)")
     scales = sorted(table)
     methods = [m for m in METHODS if any(m in table[s]["errors_px"] for s in scales)]

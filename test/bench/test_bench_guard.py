@@ -1,0 +1,66 @@
+"""bench/bench_guard.py: each verdict the benches wrote is classified from the errors and the guard's notes."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+
+BENCH = Path(__file__).resolve().parents[2] / "bench" / "bench_guard.py"
+
+
+def _bench():
+    spec = importlib.util.spec_from_file_location("bench_guard", BENCH)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    return bench
+
+
+def _row(method, error, ncc=0.9):
+    return {"method": method, "reproj_mean_px": error, "model_ncc": ncc}
+
+
+def test_every_outcome_is_told_from_the_errors_and_the_notes(tmp_path):
+    bench = _bench()
+    applied = "guard: the correction is {:.2f} times the robots' stated accuracy (limit {:g})"
+    refused = ("guard: the correction moved the views {:.2f} times as far as the robots' stated accuracy explains "
+               "(limit {:g}); the data do not support it and the nominal geometry is kept")
+    truncated = "strongly truncated (truncation level 0.640 > 0.3), yet the object outside the ROI was not modelled"
+    results = {"scenarios": [{"key": "x", "rows": [_row("none", 3.0), _row("good", 0.5), _row("bad", 3.5),
+                                                   _row("refused-bad", 3.0), _row("refused-good", 3.0),
+                                                   _row("poor-model", 3.0, 0.3), _row("true geometry", 0.0)],
+                              "notes": {"good": [applied.format(0.9, 1.5)], "bad": [truncated, applied.format(0.95, 1)],
+                                        "refused-bad": [truncated, refused.format(1.09, 1),
+                                                        "before the guard 3.338 px mean, 6.0 px p95"],
+                                        "refused-good": [refused.format(1.6, 1.5), "before the guard 1.2 px mean, 2 px p95"],
+                                        "poor-model": [truncated, "guard: the estimation model explains the data poorly "
+                                                       "(projection NCC 0.300 < 0.5); the nominal geometry is kept",
+                                                       "before the guard 5.0 px mean, 9 px p95"]}}]}
+    (tmp_path / "results.json").write_text(json.dumps(results))
+    records, read = bench.collect(str(tmp_path))
+    assert read == ["results.json"]
+    by = {r["method"]: r for r in records}
+    assert set(by) == {"good", "bad", "refused-bad", "refused-good", "poor-model"}  # no 'none', no truth
+    assert by["good"]["outcome"] == "kept a helpful correction" and by["good"]["ratio"] == 0.9
+    assert by["good"]["regime"] == "ROI model, not strongly truncated" and by["good"]["limit"] == 1.5
+    assert by["bad"]["outcome"] == "applied a harmful correction" and by["bad"]["limit"] == 1.0
+    assert by["refused-bad"]["outcome"] == "refused a harmful correction"
+    assert by["refused-bad"]["ratio"] == 1.09 and by["refused-bad"]["before_px"] == 3.338
+    assert by["refused-bad"]["regime"] == "strongly truncated, not modelled"
+    assert by["refused-good"]["outcome"] == "refused a helpful correction"
+    assert by["poor-model"]["verdict"] == "scan kept nominal (model NCC)"
+    assert by["poor-model"]["outcome"] == "refused a harmful correction"
+    summary = {s["regime"]: s for s in bench.summary(records)}
+    assert summary["strongly truncated, not modelled"]["refused a harmful correction"] == 2
+    assert summary["strongly truncated, not modelled"]["R of harmful corrections"] == "0.95-1.09"
+    out = tmp_path / "out"
+    assert bench.main(["--results", str(tmp_path), "--out", str(out)]) == 0
+    text = (out / "guard.md").read_text()
+    assert "Misses and losses: 2 of 5" in text and "refused-good" in text
+
+
+def test_no_bench_results_is_an_error(tmp_path):
+    with pytest.raises(SystemExit):
+        _bench().main(["--results", str(tmp_path), "--out", str(tmp_path / "out")])
