@@ -34,10 +34,11 @@ def test_every_outcome_is_told_from_the_errors_and_the_notes(tmp_path):
                               "notes": {"good": [applied.format(0.9, 1.5)], "bad": [truncated, applied.format(0.95, 1)],
                                         "refused-bad": [truncated, refused.format(1.09, 1),
                                                         "before the guard 3.338 px mean, 6.0 px p95"],
-                                        "refused-good": [refused.format(1.6, 1.5), "before the guard 1.2 px mean, 2 px p95"],
-                                        "poor-model": [truncated, "guard: the estimation model explains the data poorly "
-                                                       "(projection NCC 0.300 < 0.5); the nominal geometry is kept",
-                                                       "before the guard 5.0 px mean, 9 px p95"]}}]}
+                                        "refused-good": [refused.format(1.6, 1.5),
+                                                         "before the guard 1.2 px mean, 2 px p95"],
+                                        "poor-model": [truncated, "guard: the estimation model explains the data "
+                                                       "poorly (projection NCC 0.300 < 0.5); the nominal geometry is "
+                                                       "kept", "before the guard 5.0 px mean, 9 px p95"]}}]}
     (tmp_path / "results.json").write_text(json.dumps(results))
     records, read = bench.collect(str(tmp_path))
     assert read == ["results.json"]
