@@ -77,6 +77,8 @@ CASES = {"independent": "independent per-view errors", "drift": "independent per
          "twin-documented": "synthetic twin, no errors injected: every method started at the documented geometry"}
 TWIN_OF = {"twin": "independent", "twin-documented": "documented"}
 """The twin cases: the measured case whose injected errors (kind and seed) they repeat on the twin's data."""
+FIGURE_ALT = {"slices": "slices", "param_error": "parameter error"}
+"""The alt text of each figure kind in realdata.md."""
 ORACLE = "oracle floor"
 """The error left when the centre's projection shift of every view is known exactly and the rest, the
 s_u / d_u split (a rotation about the centre, which one row hardly sees), is taken at its MAP under the
@@ -378,7 +380,7 @@ def main(argv=None) -> int:
                        f"{inj['mean_px']:.3f} px (mean), {inj['p95_px']:.3f} px (p95) from the documented geometry "
                        f"(gauge removed).", "", table]
                 sec += [f"- {m}: {'; '.join(n)}" for m, n in notes.items()]
-                sec += ["", " ".join(f"![{ {'param_error': 'parameter error'}.get(k, k)}]({v})" for k, v in figs.items()), ""]
+                sec += ["", " ".join(f"![{FIGURE_ALT[k]}]({v})" for k, v in figs.items()), ""]
                 sections.append(sec)
             # the geometry check's figure: our best match next to the dataset's image
             plot_slices_real(out / f"realdata_{ph}_check.png",

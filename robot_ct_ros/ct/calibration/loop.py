@@ -174,9 +174,10 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
         volume = fdk(li, nominal, grid, valid_mask=mask, **(fdk_kwargs or {})) if final_volume else None
         return CalibrationResult(method.name, np.zeros((nominal.n_views, 9)), nominal, volume, (),
                                  time.perf_counter() - t_start, settings=settings)
+    # how much object the detector's edges see: decides the volumes (projections auto) and the exterior model
+    level = truncation_level(li, mask) if settings.projections == "auto" or settings.exterior != "on" else None
     truncated = settings.projections == "truncated"
     if settings.projections == "auto":
-        level = truncation_level(li, mask)
         truncated = level > TRUNCATED_ABOVE
         say(f"truncation level {level:.4f}: {'truncated, FDK + SIRT' if truncated else 'not truncated, FDK'} volumes")
     sirt_iterations = settings.sirt_iterations if truncated else 0  # else every volume is an FDK
@@ -190,23 +191,19 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
         exterior_notes.append("the exterior model reached up to the sources: the object's reach "
                               "(exterior_half_width_mm) was not stated, and reaching past the object costs accuracy")
     unmodelled = False  # strongly truncated, the object outside the ROI not modelled: the guard is stricter
-    if settings.exterior == "off":
-        level = truncation_level(li, mask)
-        unmodelled = level > EXTERIOR_ABOVE
+    if settings.exterior != "on":
+        # auto models the object outside the ROI on a strongly truncated scan, and only with its reach stated: one
+        # reaching far past the object does worse than none (docs/calibration.md, "The exterior model")
+        strong = level > EXTERIOR_ABOVE
+        exterior = settings.exterior == "auto" and strong and reach_stated
+        unmodelled = strong and not exterior
         if unmodelled:
-            exterior_notes.append(f"strongly truncated (truncation level {level:.3f} > {EXTERIOR_ABOVE:g}), and the "
-                                  f"object outside the ROI was not modelled (exterior off)")
-    if settings.exterior == "auto":
-        level = truncation_level(li, mask)
-        # the exterior model needs the object's reach: one reaching far past the object does worse than none
-        # (docs/calibration.md, "The exterior model")
-        exterior = level > EXTERIOR_ABOVE and reach_stated
-        if level > EXTERIOR_ABOVE and not reach_stated:
-            unmodelled = True
-            exterior_notes.append(f"strongly truncated (truncation level {level:.3f} > {EXTERIOR_ABOVE:g}), yet the "
-                                  f"object outside the ROI was not modelled: state how far the object reaches from "
-                                  f"the ROI centre (exterior_half_width_mm)")
-        say(f"truncation level {level:.3f}: {'the object outside the ROI is modelled' if exterior else 'ROI model'}")
+            exterior_notes.append(f"strongly truncated (truncation level {level:.3f} > {EXTERIOR_ABOVE:g}), " + (
+                "and the object outside the ROI was not modelled (exterior off)" if settings.exterior == "off" else
+                "yet the object outside the ROI was not modelled: state how far the object reaches from the ROI "
+                "centre (exterior_half_width_mm)"))
+        if settings.exterior == "auto":
+            say(f"truncation level {level:.3f}: {'the object outside the ROI is modelled' if exterior else 'ROI model'}")
     if exterior:  # every ray is modelled: no ROI support mask
         coarse_cfg, fine_cfg = (replace(c, roi_support_fraction=None) for c in (coarse_cfg, fine_cfg))
 
