@@ -59,7 +59,8 @@ class Method:
 def _lle(weighting: str) -> Callable:
     def configs(settings):
         plan = settings.plan()
-        coarse, fine = default_lle_configs(weighting, seed=settings.seed, prior_sigma=settings.prior_sigma)
+        coarse, fine = default_lle_configs(weighting, seed=settings.seed, prior_sigma=settings.prior_sigma,
+                                           n_neighbours=settings.lle_neighbours, reg=settings.lle_ridge)
         return coarse, replace(fine, source_positions=plan["fine_source"], n_samples=plan["fine_samples"],
                                draws=plan["fine_draws"])
     return configs

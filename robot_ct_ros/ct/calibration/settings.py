@@ -119,6 +119,12 @@ class CalibrationSettings:
                         minimum=0)
     ensemble: int = setting(1, "average this many runs with different sampling seeds (LLE methods)", minimum=1,
                             maximum=100)
+    lle_neighbours: int | None = setting(None, "LLE methods: how many samples each view's projection is embedded "
+                                         "in (off: the method's own, 24 for l2-lle and ncc-lle-exact, 16 for "
+                                         "ncc-lle)", minimum=2, maximum=1000, ros_none=0, kind=int)
+    lle_ridge: float | None = setting(None, "l2-lle and ncc-lle-exact: ridge added to the embedding's Gram matrix, "
+                                      "times its trace / K (off: the method's own, 1e-5; the ncc-lle closed form "
+                                      "has none)", minimum=1e-12, maximum=1.0, ros_none=0.0, kind=float)
     padding: float = setting(DEFAULT_PADDING, "widening of the ROI grid across the scan axis for the estimation "
                              "volume", minimum=1.0, maximum=20.0)
     projections: str = setting("truncated", "truncated (interior scan: FDK + SIRT estimation volumes) or complete "

@@ -73,6 +73,24 @@ def test_the_lle_configs_follow_the_settings():
     assert get_method("l2-lle").configs(CalibrationSettings().without_prior())[0].prior_sigma is None
 
 
+def test_the_embeddings_neighbours_and_ridge_follow_the_settings():
+    """Off, each LLE method keeps its own K and ridge; set, every LLE method's two levels take them,
+    through the code and ROS (0 there is off); a ridge that is not positive is refused."""
+    for name, (k, reg) in {"ncc-lle-exact": (24, 1e-5), "l2-lle": (24, 1e-5), "ncc-lle": (16, 1e-3)}.items():
+        for cfg in get_method(name).configs(CalibrationSettings()):
+            assert (cfg.n_neighbours, cfg.reg) == (k, pytest.approx(reg)), name
+        for cfg in get_method(name).configs(CalibrationSettings(lle_neighbours=12, lle_ridge=1e-3)):
+            assert (cfg.n_neighbours, cfg.reg) == (12, pytest.approx(1e-3)), name
+    ros = from_ros_values(CalibrationSettings, {"lle_neighbours": 0, "lle_ridge": 0.0})
+    assert ros.lle_neighbours is None and ros.lle_ridge is None
+    assert from_ros_values(CalibrationSettings, {"lle_ridge": 1e-4}).lle_ridge == pytest.approx(1e-4)
+    for bad in (0.0, -1e-3, float("nan")):
+        with pytest.raises(ValueError, match="lle_ridge"):
+            CalibrationSettings(lle_ridge=bad)
+    with pytest.raises(ValueError, match="lle_neighbours must be >= 2"):
+        CalibrationSettings(lle_neighbours=1)
+
+
 def test_each_arm_may_state_its_own_translation_error():
     """Two robots, two accuracies: the source's three translations and the detector's three take
     their arm's sigma, through the code, ROS and the command line; off, both take the prior's."""

@@ -283,10 +283,16 @@ homography scoring and weights (docs/calibration.md, "Sample sets")."""
 
 
 def default_lle_configs(weighting: str, seed: int = 0, background=DEFAULT_BACKGROUND,
-                        prior_sigma=None) -> tuple[LLEConfig, LLEConfig]:
-    """Coarse (binned, wide box) and fine (full size, narrow box) LLE settings."""
+                        prior_sigma=None, n_neighbours: int | None = None,
+                        reg: float | None = None) -> tuple[LLEConfig, LLEConfig]:
+    """Coarse (binned, wide box) and fine (full size, narrow box) LLE settings. ``n_neighbours``
+    and ``reg`` replace the weighting's own (:data:`EMBEDDING_SETTINGS`) where given."""
     prior = None if prior_sigma is None else tuple(float(x) for x in prior_sigma)
-    embedding = EMBEDDING_SETTINGS.get(weighting, {})
+    embedding = dict(EMBEDDING_SETTINGS.get(weighting, {}))
+    if n_neighbours is not None:
+        embedding["n_neighbours"] = int(n_neighbours)
+    if reg is not None:
+        embedding["reg"] = float(reg)
     coarse = LLEConfig(weighting=weighting, levels=3, seed=seed, background=tuple(background), shift_search_px=4,
                        prior_sigma=prior, n_samples=COARSE_SAMPLES, draws=DRAWS, **embedding)
     fine = LLEConfig(weighting=weighting, levels=2, seed=seed + 1, background=tuple(background),
