@@ -37,12 +37,10 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 from bench_calibration import SCENARIOS, make_scenario  # noqa: E402
-from bench_realdata import DATA, injected_errors, synthetic_twin  # noqa: E402
-from robot_ct_ros.bag import read_scan  # noqa: E402
+from bench_realdata import DATA, injected_errors, load_phantom, synthetic_twin, view_mask  # noqa: E402
 from robot_ct_ros.ct import calibration  # noqa: E402
 from robot_ct_ros.ct.metrics import reprojection_error, roi_points  # noqa: E402
 from robot_ct_ros.jobs.figures import markdown_table  # noqa: E402
-from robot_ct_ros.jobs.htc2022 import import_htc2022  # noqa: E402
 
 VARIANTS = {
     "ncc-lle-exact, K 24, ridge 1e-5 (default)": {},
@@ -99,16 +97,10 @@ def htc_cases(phantoms: list, data: Path, twin: bool, say) -> list:
     cases = []
     with tempfile.TemporaryDirectory() as tmp:
         for ph in phantoms:
-            bag = import_htc2022(data / f"htc2022_{ph}_full.mat", Path(tmp) / f"htc2022_{ph}", say=lambda m: None)
-            scan = read_scan(bag)
-            grid = scan.default_grid()
-            li_all, mask_all = scan.to_line_integrals()
+            scan, grid, li_all, mask_all, sigma_src = load_phantom(data, ph, tmp)  # sigma_src: 1 px at the centre
             g0 = scan.geom
-            dso = float(np.median(g0.sod_mm()))
-            sigma_src = g0.col_pitch_mm * dso / (float(np.median(g0.sdd_mm)) - dso)  # 1 px at the centre
             views = np.arange(0, scan.n_views, 2)
-            mask = None if mask_all is None else np.ascontiguousarray(
-                mask_all[views] if np.ndim(mask_all) == 3 else mask_all)
+            mask = view_mask(mask_all, views)
             true = g0.subset(views)
             nominal = true.perturbed(injected_errors(true, "independent", seed=0, px=1.0, drift_px=0.0,
                                                      sigma_src_mm=sigma_src))

@@ -154,6 +154,26 @@ def synthetic_twin(li, mask, geom, grid, *, seed: int, upsample: int = 2):
     return twin, sigma, pearson(twin, li)
 
 
+def load_phantom(data: Path, phantom: str, tmp: Path):
+    """A phantom's ``htc2022_<phantom>_full.mat`` imported as a scan bag under ``tmp`` and read back:
+    (scan, its default grid, line integrals, valid mask, the source shift in mm that moves the
+    rotation centre's projection by one detector pixel)."""
+    bag = import_htc2022(Path(data) / f"htc2022_{phantom}_full.mat", Path(tmp) / f"htc2022_{phantom}",
+                         say=lambda m: None)
+    scan = read_scan(bag)
+    li_all, mask_all = scan.to_line_integrals()
+    dso = float(np.median(scan.geom.sod_mm()))
+    pixel_src_mm = scan.geom.col_pitch_mm * dso / (float(np.median(scan.geom.sdd_mm)) - dso)
+    return scan, scan.default_grid(), li_all, mask_all, pixel_src_mm
+
+
+def view_mask(mask, views):
+    """The valid mask of ``views`` (a per-view mask is cut, a shared one kept; None stays None)."""
+    if mask is None:
+        return None
+    return np.ascontiguousarray(mask[views] if np.ndim(mask) == 3 else mask)
+
+
 def oracle_floor(true, injected: np.ndarray, points, source_mm: float, detector_mm: float) -> dict:
     """Reprojection error (metrics.reprojection_error) of the best a per-view estimate can do when the
     data fix only the shift of the rotation centre's projection, c = d_u + k s_u (k = (SDD - SOD) / SOD),
