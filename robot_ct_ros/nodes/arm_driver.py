@@ -48,7 +48,8 @@ from robot_ct_ros.hardware.arms import make_arm
 from robot_ct_ros.hardware.connection import BackgroundConnection
 from robot_ct_ros.hardware.simulated_arm import JOINT_NAMES, SimulatedArmSettings
 from robot_ct_ros.nodes.common import (LifecycleSettings, WorkerFaults, declare_settings, error_transition,
-                                      publish_diagnostic, run_settings_node, to_unconfigured, transition_result)
+                                      publish_diagnostic, publish_while_up, run_settings_node, to_unconfigured,
+                                      transition_result)
 from robot_ct_ros.nodes.hand_eye_params import pose_msg_to_ur, ur_to_pose_msg  # noqa: F401 - re-exported
 from robot_ct_ros.parameters import setting, validate
 
@@ -181,7 +182,7 @@ class ArmDriverNode(LifecycleNode):
             self.destroy_timer(self._publish_timer)
             self._publish_timer = None
         if self.runner.stop() and publish:
-            self.in_position_pub.publish(Bool(data=False))
+            publish_while_up(self, self.in_position_pub, Bool(data=False))
 
     # -- connection, off the executor -------------------------------------------------------
     def _on_connect_done(self) -> None:
@@ -217,8 +218,7 @@ class ArmDriverNode(LifecycleNode):
         self.last_error = f"fault: {reason}"
         self.get_logger().error(f"{self.role} arm {self.last_error}; lifecycle error transition (configure to "
                                 "restart)")
-        if self.context.ok():
-            self.in_position_pub.publish(Bool(data=False))
+        publish_while_up(self, self.in_position_pub, Bool(data=False))
         error_transition(self)
         self._publish_diagnostics()
 

@@ -56,6 +56,27 @@ def shutdown_once(rclpy, context=None) -> None:
             raise
 
 
+def publish_while_up(node, publisher, msg) -> bool:
+    """Publish ``msg`` unless ``node``'s context is shut down; returns whether it was published.
+
+    On the way out (destroy_node, a fault) the context may be gone: rclpy's SIGINT handler shuts it
+    down from another thread, also between a ``context.ok()`` check and the publish, and rcl then
+    says "publisher's context is invalid". There is no one left to tell, and a node stopped by
+    SIGINT must still exit 0 (what it does, e.g. switching the beam off, is done before). Any
+    publishing error while the context is up still propagates."""
+    from rclpy.impl.implementation_singleton import rclpy_implementation
+
+    if not node.context.ok():
+        return False
+    try:
+        publisher.publish(msg)
+    except rclpy_implementation.RCLError:
+        if node.context.ok():
+            raise
+        return False
+    return True
+
+
 class ServiceThread:
     """A service whose callback may block (wait for hardware) without blocking its owner's executor.
 

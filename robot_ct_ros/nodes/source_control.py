@@ -30,7 +30,8 @@ from std_srvs.srv import SetBool, Trigger
 
 from robot_ct_ros.bag import format as fmt
 from robot_ct_ros.hardware.xray_source import InterlockedSource, SimulatedXraySource, SourceError, SourceSettings
-from robot_ct_ros.nodes.common import LifecycleSettings, declare_settings, publish_diagnostic, run_settings_node
+from robot_ct_ros.nodes.common import (LifecycleSettings, declare_settings, publish_diagnostic, publish_while_up,
+                                      run_settings_node)
 
 __all__ = ["SourceControlNode", "LATCHED", "main"]
 
@@ -115,8 +116,7 @@ class SourceControlNode(LifecycleNode):
         if self.interlock is not None:
             self.interlock.request_beam(False, self._now_s())
             self.interlock.last_reason = f"source_control {why}"
-        if self.context.ok():  # not after SIGINT: nothing can be published then
-            self._publish_beam(force=True)
+        self._publish_beam(force=True)  # not after SIGINT: publish_while_up then publishes nothing
 
     def _release(self, why: str) -> None:
         self._beam_off(why)
@@ -135,7 +135,8 @@ class SourceControlNode(LifecycleNode):
     def _publish_beam(self, force: bool = False) -> None:
         on = self.beam_on
         if force or on != self._last_published:
-            self.beam_pub.publish(Bool(data=on))
+            if not publish_while_up(self, self.beam_pub, Bool(data=on)):
+                return
             if self._last_published is not None and on != self._last_published:
                 reason = self.interlock.last_reason if self.interlock is not None else self.lifecycle_state
                 self.get_logger().info(f"beam {'ON' if on else 'OFF'} ({reason})")

@@ -56,3 +56,37 @@ def test_a_shutdown_that_loses_the_race_with_the_sigint_handler_still_exits_clea
     shutdown_once(failing("failed to shutdown: rcl_shutdown already called on the given context"))
     with pytest.raises(rclpy_implementation.RCLError, match="invalid context"):
         shutdown_once(failing("failed to shutdown: invalid context"))
+
+
+def test_a_publish_that_loses_the_race_with_the_sigint_handler_is_skipped():
+    """On the way out a node publishes (the beam off, the arm not in position) only while its context is
+    up; when rclpy's SIGINT handler shuts the context down between the check and the publish, rcl
+    says "publisher's context is invalid" and the message is dropped, not raised (the node then
+    exits 0). A publishing error while the context is up still propagates."""
+    from types import SimpleNamespace
+
+    from rclpy.impl.implementation_singleton import rclpy_implementation
+
+    from robot_ct_ros.nodes.common import publish_while_up
+
+    state = {"up": True, "sent": []}
+    node = SimpleNamespace(context=SimpleNamespace(ok=lambda: state["up"]))
+
+    def publisher(shut_down_first: bool):
+        def publish(msg):
+            if shut_down_first:
+                state["up"] = False  # the handler's thread wins the race
+            if not state["up"]:
+                raise rclpy_implementation.RCLError("Failed to publish: publisher's context is invalid")
+            state["sent"].append(msg)
+        return SimpleNamespace(publish=publish)
+
+    assert publish_while_up(node, publisher(False), "a") and state["sent"] == ["a"]
+    assert not publish_while_up(node, publisher(True), "b") and state["sent"] == ["a"]
+    assert not publish_while_up(node, publisher(False), "c")  # already down: not even tried
+    state["up"] = True
+
+    def broken(msg):
+        raise rclpy_implementation.RCLError("Failed to publish: some other error")
+    with pytest.raises(rclpy_implementation.RCLError, match="other error"):
+        publish_while_up(node, SimpleNamespace(publish=broken), "d")
