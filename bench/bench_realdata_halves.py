@@ -124,14 +124,15 @@ def main(argv=None) -> int:
                 row = {"data": f"{ph}, {source}", "err_even_px": halves["even"][1], "err_odd_px": halves["odd"][1],
                        **compare_halves(halves["even"][0], halves["odd"][0]), "wall_s": time.perf_counter() - t0}
                 rows.append(row)
-                detail[row["data"]] = {"harmonics_even_px": harmonic_amplitudes(halves["even"][0]),
+                detail[row["data"]] = {"settings": settings.to_dict(),
+                                       "harmonics_even_px": harmonic_amplitudes(halves["even"][0]),
                                        "harmonics_odd_px": harmonic_amplitudes(halves["odd"][0]),
                                        "c_even_px": halves["even"][0].tolist(), "c_odd_px": halves["odd"][0].tolist()}
                 say(f"  {row}")
     total = time.perf_counter() - t_all
     report = {"bench": "bench/bench_realdata_halves.py", "argv": sys.argv[1:] if argv is None else list(argv),
               "machine": f"{platform.machine()}, {os.cpu_count()} cores",
-              "settings": calibration.CalibrationSettings().to_dict(), "rows": rows, "detail": detail,
+              "rows": rows, "detail": detail,
               "total_s": total}
     (out / "realdata_halves.json").write_text(json.dumps(report, indent=1))
     harm = [{"data": k, **{f"h{h}": v["harmonics_even_px"][h - 1] for h in range(1, HARMONICS + 1)}}
