@@ -154,12 +154,11 @@ def synthetic_twin(li, mask, geom, grid, *, seed: int, upsample: int = 2):
     return twin, sigma, pearson(twin, li)
 
 
-def load_phantom(data: Path, phantom: str, tmp: Path):
-    """A phantom's ``htc2022_<phantom>_full.mat`` imported as a scan bag under ``tmp`` and read back:
-    (scan, its default grid, line integrals, valid mask, the source shift in mm that moves the
-    rotation centre's projection by one detector pixel)."""
-    bag = import_htc2022(Path(data) / f"htc2022_{phantom}_full.mat", Path(tmp) / f"htc2022_{phantom}",
-                         say=lambda m: None)
+def load_phantom(data: Path, phantom: str, tmp: Path, say=lambda m: None):
+    """A phantom's ``htc2022_<phantom>_full.mat`` imported as a scan bag under ``tmp`` (``say``: the
+    import's progress) and read back: (scan, its default grid, line integrals, valid mask, the source
+    shift in mm that moves the rotation centre's projection by one detector pixel)."""
+    bag = import_htc2022(Path(data) / f"htc2022_{phantom}_full.mat", Path(tmp) / f"htc2022_{phantom}", say=say)
     scan = read_scan(bag)
     li_all, mask_all = scan.to_line_integrals()
     dso = float(np.median(scan.geom.sod_mm()))
@@ -289,11 +288,8 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         for ph in phantoms:
             say(f"phantom {ph}: import")
-            bag = import_htc2022(data / f"htc2022_{ph}_full.mat", Path(tmp) / f"htc2022_{ph}", say=say)
-            scan = read_scan(bag)
-            grid = scan.default_grid()
+            scan, grid, li_all, mask_all, pixel_src_mm = load_phantom(data, ph, tmp, say)
             ref = read_dataset_fbp(data, ph)
-            li_all, mask_all = scan.to_line_integrals()
             say(f"phantom {ph}: geometry check against the dataset's FBP")
             chk = geometry_check(scan, li_all, mask_all, ref, say)
             best_img, default_img = chk.pop("best_image"), chk.pop("default_image")
@@ -305,7 +301,7 @@ def main(argv=None) -> int:
             g0 = scan.geom
             dso = float(np.median(g0.sod_mm()))
             odd = float(np.median(g0.sdd_mm)) - dso
-            sigma_src = args.error_px * g0.col_pitch_mm * dso / odd  # moves the centre's projection by error_px
+            sigma_src = args.error_px * pixel_src_mm  # moves the centre's projection by error_px
             prior_mm = sigma_src if args.prior_mm is None else args.prior_mm
             prior_det_mm = (args.error_px * g0.col_pitch_mm if args.prior_detector_mm is None
                             else args.prior_detector_mm)
@@ -315,8 +311,7 @@ def main(argv=None) -> int:
                          "prior_det_mm": prior_det_mm}
             views = np.arange(0, scan.n_views, args.view_step)
             li = np.ascontiguousarray(li_all[views])
-            mask = None if mask_all is None else np.ascontiguousarray(
-                mask_all[views] if np.ndim(mask_all) == 3 else mask_all)
+            mask = view_mask(mask_all, views)
             true = g0.subset(views)
             pts = roi_points(grid)
 

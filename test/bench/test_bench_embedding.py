@@ -1,19 +1,12 @@
-"""bench/bench_embedding.py: its variants are valid settings that reach the embedding, its default row is the default."""
+"""bench/bench_embedding.py: its variants are valid settings that reach the embedding; its default row is unchanged."""
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 from robot_ct_ros.ct.calibration import CalibrationSettings, get_method
 
-BENCH = Path(__file__).resolve().parents[2] / "bench" / "bench_embedding.py"
 
-
-def test_each_variant_reaches_the_embedding_and_the_default_row_changes_nothing():
-    spec = importlib.util.spec_from_file_location("bench_embedding", BENCH)
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+def test_each_variant_reaches_the_embedding_and_the_default_row_changes_nothing(load_bench):
+    bench = load_bench("bench_embedding")
     default = get_method("ncc-lle-exact").configs(CalibrationSettings())
     seen = set()
     for label, change in bench.VARIANTS.items():

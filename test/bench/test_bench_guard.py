@@ -2,28 +2,17 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
-
-BENCH = Path(__file__).resolve().parents[2] / "bench" / "bench_guard.py"
-
-
-def _bench():
-    spec = importlib.util.spec_from_file_location("bench_guard", BENCH)
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
-    return bench
 
 
 def _row(method, error, ncc=0.9):
     return {"method": method, "reproj_mean_px": error, "model_ncc": ncc}
 
 
-def test_every_outcome_is_told_from_the_errors_and_the_notes(tmp_path):
-    bench = _bench()
+def test_every_outcome_is_told_from_the_errors_and_the_notes(tmp_path, load_bench):
+    bench = load_bench("bench_guard")
     applied = "guard: the correction is {:.2f} times the robots' stated accuracy (limit {:g})"
     refused = ("guard: the correction moved the views {:.2f} times as far as the robots' stated accuracy explains "
                "(limit {:g}); the data do not support it and the nominal geometry is kept")
@@ -62,6 +51,6 @@ def test_every_outcome_is_told_from_the_errors_and_the_notes(tmp_path):
     assert "Misses and losses: 2 of 5" in text and "refused-good" in text
 
 
-def test_no_bench_results_is_an_error(tmp_path):
+def test_no_bench_results_is_an_error(tmp_path, load_bench):
     with pytest.raises(SystemExit):
-        _bench().main(["--results", str(tmp_path), "--out", str(tmp_path / "out")])
+        load_bench("bench_guard").main(["--results", str(tmp_path), "--out", str(tmp_path / "out")])

@@ -4,7 +4,6 @@ ncc-lle-exact undoes most of the injected geometry error, on the measured data a
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
@@ -12,21 +11,13 @@ import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-BENCH = ROOT / "bench" / "bench_realdata.py"
 # the project's shared folder sits beside the repository (../shared); /work/shared on the project's machines
 REAL = next((p for p in (ROOT.parent / "shared" / "realdata" / "htc2022", Path("/work/shared/realdata/htc2022"))
              if p.is_dir()), Path("/work/shared/realdata/htc2022"))
 
 
-def _bench():
-    spec = importlib.util.spec_from_file_location("bench_realdata", BENCH)
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
-    return bench
-
-
-def test_noise_sigma_finds_white_noise_under_edges_and_skips_masked_pixels():
-    bench = _bench()
+def test_noise_sigma_finds_white_noise_under_edges_and_skips_masked_pixels(load_bench):
+    bench = load_bench("bench_realdata")
     rng = np.random.default_rng(3)
     u = np.linspace(-1.0, 1.0, 400)
     clean = np.where(np.abs(u) < 0.7, 2.0 * np.sqrt(np.clip(0.49 - u ** 2, 0, None)), 0.0)  # a disc with sharp edges
@@ -44,8 +35,8 @@ def test_noise_sigma_finds_white_noise_under_edges_and_skips_masked_pixels():
 @pytest.mark.slow
 @pytest.mark.skipif(not (REAL / "htc2022_01a_full.mat").exists() or not (REAL / "htc2022_01a_recon_fbp.mat").exists(),
                     reason="shared HTC2022 data not present")
-def test_bench_realdata_matches_the_dataset_and_corrects_injected_errors(tmp_path):
-    bench = _bench()
+def test_bench_realdata_matches_the_dataset_and_corrects_injected_errors(tmp_path, load_bench):
+    bench = load_bench("bench_realdata")
     assert bench.main(["--data", str(REAL), "--phantoms", "01a", "--cases", "independent,twin", "--view-step", "24",
                        "--methods", "none,ncc-lle-exact,documented geometry", "--out", str(tmp_path)]) == 0
     report = json.loads((tmp_path / "realdata.json").read_text())

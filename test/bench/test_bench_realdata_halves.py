@@ -2,29 +2,17 @@
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
 
 from robot_ct_ros.ct.trajectory import circular_scan
 
-BENCH = Path(__file__).resolve().parents[2] / "bench" / "bench_realdata_halves.py"
 
-
-def _bench():
-    spec = importlib.util.spec_from_file_location("bench_realdata_halves", BENCH)
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
-    return bench
-
-
-def test_the_centre_shift_is_where_the_rotation_centre_projects():
+def test_the_centre_shift_is_where_the_rotation_centre_projects(load_bench):
     """c = d_u + k s_u in pixels is the move of the rotation centre's projection (less its mean), up to
     the sign of the detector's u axis: checked by projecting the centre through the perturbed geometry.
     A wrong k (or its sign) would decorrelate them, since s_u and d_u move it by similar amounts."""
-    bench = _bench()
+    bench = load_bench("bench_realdata_halves")
     geom = circular_scan(36, 400.0, 550.0, 1, 200, 0.2, 0.2)
     rng = np.random.default_rng(2)
     params = np.zeros((36, 9))
@@ -38,8 +26,8 @@ def test_the_centre_shift_is_where_the_rotation_centre_projects():
     assert np.sqrt(np.mean(c ** 2)) == pytest.approx(np.sqrt(np.mean(shift ** 2)), rel=0.01)
 
 
-def test_the_halves_agree_on_a_shared_pull_and_not_on_noise():
-    bench = _bench()
+def test_the_halves_agree_on_a_shared_pull_and_not_on_noise(load_bench):
+    bench = load_bench("bench_realdata_halves")
     theta = np.linspace(0, 2 * np.pi, 360, endpoint=False)
     pull = 0.1 * np.cos(3 * theta) + 0.05 * np.sin(5 * theta)
     rng = np.random.default_rng(0)
@@ -50,8 +38,8 @@ def test_the_halves_agree_on_a_shared_pull_and_not_on_noise():
     assert abs(noise["corr"]) < 0.2 and abs(noise["lag1"]) < 0.2
 
 
-def test_harmonic_amplitudes_recover_a_known_mix():
-    bench = _bench()
+def test_harmonic_amplitudes_recover_a_known_mix(load_bench):
+    bench = load_bench("bench_realdata_halves")
     theta = np.linspace(0, 2 * np.pi, 360, endpoint=False)
     amps = bench.harmonic_amplitudes(0.07 * np.cos(4 * theta + 0.3) + 0.02 * np.sin(8 * theta))
     assert len(amps) == bench.HARMONICS
