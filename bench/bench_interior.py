@@ -89,7 +89,7 @@ def make_scan(sigma: float, *, views: int, det: tuple, axis: str, seed: int, nxy
         f"({body / fov:.1f}x the FOV), axis {axis}, grid {grid.shape_zyx[::-1]} of {vs * 1000:.1f} um; "
         f"RTK line integrals and counts in {time.perf_counter() - t0:.1f} s")
     sc = SimpleNamespace(sigma=sigma, nominal=nominal, true=true, grid=grid, li=li, mask=np.broadcast_to(mask, li.shape),
-                         fov_mm=fov, body_mm=body)
+                         fov_mm=fov, body_mm=body, phantom=phantom, axis=R[:, 2].copy(), seed=seed)
     sc.reconstruct = lambda geom: fdk(sc.li, geom, sc.grid, valid_mask=sc.mask)
     return sc
 
