@@ -331,7 +331,7 @@ def scout_exterior(st: Study, voxel_mm: float, *, magnification: float = 1.25, v
     detector, offset so that the field of view (about 104 mm across) holds the neck, raw pixels binned
     to about 0.7 ``voxel_mm`` at the rotation centre, ``views`` over the orbit with robot errors of the
     interior scan's size (drawn separately), photon noise at ``photons_behind_body`` per 110 um pixel
-    behind the body (more per larger pixel), RTK's exact line integrals. FDK with the scout's nominal
+    behind the scout's thickest ray (more per larger pixel), RTK's exact line integrals. FDK with the scout's nominal
     geometry onto the exterior grid (``voxel_mm``, reaching HALF_WIDTH_MM), outside the ROI, non-negative.
     Returns (volume, grid, scout pixel mm)."""
     sc, system = st.sc, SeedSystem()
