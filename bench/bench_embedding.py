@@ -102,7 +102,7 @@ def htc_cases(phantoms: list, data: Path, twin: bool, say) -> list:
             views = np.arange(0, scan.n_views, 2)
             mask = view_mask(mask_all, views)
             true = g0.subset(views)
-            nominal = true.perturbed(injected_errors(true, "independent", seed=0, px=1.0, drift_px=0.0,
+            nominal = true.perturbed(injected_errors(true, "independent", base_seed=0, px=1.0, drift_px=0.0,
                                                      sigma_src_mm=sigma_src))
             pts = roi_points(grid)
             base = calibration.CalibrationSettings().with_prior(sigma_src, 0.01, detector_mm=g0.col_pitch_mm)
