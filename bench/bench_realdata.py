@@ -61,7 +61,7 @@ from robot_ct_ros.bag import read_scan  # noqa: E402
 from robot_ct_ros.ct import calibration  # noqa: E402
 from robot_ct_ros.ct.metrics import edge_sharpness, reprojection_error, roi_points  # noqa: E402
 from robot_ct_ros.ct.opposed_rays import opposed_ray_offset  # noqa: E402
-from robot_ct_ros.ct.reconstruction import WINDOWS, fdk  # noqa: E402
+from robot_ct_ros.ct.reconstruction import WINDOWS, fdk, field_of_view_mask  # noqa: E402
 from robot_ct_ros.jobs.figures import COLUMNS, markdown_table, plot_param_error, summarize  # noqa: E402
 from robot_ct_ros.jobs.htc2022 import import_htc2022  # noqa: E402
 
@@ -134,8 +134,9 @@ def noise_sigma(line_integrals, mask=None) -> float:
 def synthetic_twin(li, mask, geom, grid, *, seed: int, upsample: int = 2):
     """Data the documented geometry explains exactly, as close to the measured ones as we can make them.
 
-    The object: our FDK of the measured data (documented geometry, every view) on ``grid``,
-    resampled ``upsample`` times finer across the slice (cubic spline, negatives cut) and three
+    The object: our FDK of the measured data (documented geometry, every view) on ``grid``, zero
+    outside the field of view (:func:`~robot_ct_ros.ct.reconstruction.field_of_view_mask`: the square
+    grid's corners, where FDK's incomplete data leave streaks that are no object), resampled ``upsample`` times finer across the slice (cubic spline, negatives cut) and three
     slices thick so that the fan plane lies inside it. Its line integrals through ``geom``
     come from RTK's Joseph projector (not ours), plus white Gaussian noise at the measured data's
     level (:func:`noise_sigma`). Returns the twin's line integrals, the noise sigma and their
@@ -145,7 +146,7 @@ def synthetic_twin(li, mask, geom, grid, *, seed: int, upsample: int = 2):
     from robot_ct_ros.ct.geometry import VolumeGrid
     from robot_ct_ros.ct.rtk_bridge import rtk_forward_project
 
-    vol = fdk(li, geom, grid, valid_mask=mask)
+    vol = np.where(field_of_view_mask(geom, grid), fdk(li, geom, grid, valid_mask=mask), np.float32(0.0))
     fine = np.clip(ndimage.zoom(np.asarray(vol[0], np.float64), upsample, order=3), 0.0, None).astype(np.float32)
     vx, vy, vz = grid.voxel_size_mm
     fine_grid = VolumeGrid.centered((3, *fine.shape), (vx / upsample, vy / upsample, vz), grid.center_mm, grid.direction)
@@ -441,7 +442,9 @@ def main(argv=None) -> int:
              f"{f['prior_det_mm']:.4f} mm on the detector's (prior_detector_mm; row `{ONE_PRIOR}` puts "
              f"{f['prior_mm']:.4f} mm on both) and {args.prior_deg:g} deg on every rotation (none injected; 0 would turn "
              f"the prior off); the guard takes the same values as the robots' stated accuracy. `gdc` and `gdc-log` "
-             f"have no prior. A one-row detector estimates only s_u, s_w, d_u, d_w and r_v. Case `documented` injects "
+             f"have no prior. The disc lies inside the field of view (the detector's edges see air), so every "
+             f"estimation volume's FDK is kept to it (fov_support auto: zero in the square grid's corners, whose "
+             f"incomplete data leave streaks). A one-row detector estimates only s_u, s_w, d_u, d_w and r_v. Case `documented` injects "
              f"nothing: each method starts at the documented geometry, and its error says how far the data (and "
              f"the method's own scatter) move it from there. Row `{ORACLE}`: the error left if every view's shift "
              f"of the rotation centre's projection (d_u + k s_u, k = (SDD - SOD) / SOD) were known exactly and "
@@ -451,7 +454,9 @@ def main(argv=None) -> int:
     lines += [] if not any(c in TWIN_OF for c in cases) else [
              "**Synthetic twin.** Cases `twin` and `twin-documented` repeat `independent` and `documented` (the same "
              "injected errors) on data that the documented geometry explains exactly: our FDK of the measured data "
-             "(every view, documented geometry) resampled twice as fine across the slice (cubic spline, three slices "
+             "(every view, documented geometry), zero outside the field of view (the grid's corners, which not every "
+             "direction's rays reach: reconstruction.field_of_view_mask), resampled twice as fine across the slice "
+             "(cubic spline, three slices "
              "thick), projected through the documented geometry by RTK's Joseph projector (not ours), plus white "
              "Gaussian noise at the measured data's level (median absolute second difference along the row; "
              "bench_realdata.synthetic_twin). What a method loses on the measured data against the twin is what "

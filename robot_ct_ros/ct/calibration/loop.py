@@ -28,6 +28,7 @@ from robot_ct_ros.ct.calibration.volume import (EXTERIOR_ABOVE, TRUNCATED_ABOVE,
                                                 truncation_level)
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid, observable_params
 from robot_ct_ros.ct.metrics import remove_gauge, roi_points
+from robot_ct_ros.ct.reconstruction import field_of_view_mask
 
 __all__ = ["calibrate", "settings_with"]
 
@@ -207,7 +208,7 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
     if exterior:  # every ray is modelled: no ROI support mask
         coarse_cfg, fine_cfg = (replace(c, roi_support_fraction=None) for c in (coarse_cfg, fine_cfg))
 
-    def rebuild(li_l, geom_l, grid_l, mask_l, sirt_n, inner, correction=None, measure_fdk=True):
+    def rebuild(li_l, geom_l, grid_l, mask_l, sirt_n, inner, support, correction=None, measure_fdk=True):
         """The volume a level registers against: the ROI with the exterior, or FDK (+ SIRT) of the ROI."""
         if exterior:
             parts = reconstruct_with_exterior(li_l, geom_l, grid_l, mask_l, voxel_mm=settings.exterior_voxel_mm,
@@ -216,18 +217,24 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
                                               subsets=settings.exterior_subsets)
             return EstimationVolume(parts, float("nan"), None)
         return reconstruct_for_estimation(li_l, geom_l, grid_l, mask_l, sirt_n, fdk_kwargs, inner, correction=correction,
-                                          measure_fdk=measure_fdk, fdk=fdk)
+                                          measure_fdk=measure_fdk, fdk=fdk, support=support)
 
     points = roi_points(grid) if gauge_points_mm is None else np.asarray(gauge_points_mm, float)
     grid_e = estimation_grid(grid, settings.padding)
     has_coarse = coarse_binning > fine_binning
     li_f, mask_f, nom_f, grid_f = _level(li, mask, nominal, grid_e, fine_binning)
     inner_f = grid.binned(fine_binning).shape_zyx[1:]
+    # FDK's field of view on each level, from the nominal geometry (the corrections move it by far less than a voxel):
+    # auto where the detector's edges see air, so the object lies inside it (docs/calibration.md §5b)
+    fov = not exterior and (settings.fov_support == "on" or (settings.fov_support == "auto" and level is not None
+                                                            and level <= TRUNCATED_ABOVE))
+    fov_f = field_of_view_mask(nom_f, grid_f) if fov else None
     if has_coarse:
         li_c, mask_c, nom_c, grid_c = _level(li, mask, nominal, grid_e, coarse_binning)
         inner_c = grid.binned(coarse_binning).shape_zyx[1:]
+        fov_c = field_of_view_mask(nom_c, grid_c) if fov else None
     else:  # one level: it also runs the data consistency check (undo_inconsistent)
-        li_c, mask_c, nom_c, grid_c, inner_c = li_f, mask_f, nom_f, grid_f, inner_f
+        li_c, mask_c, nom_c, grid_c, inner_c, fov_c = li_f, mask_f, nom_f, grid_f, inner_f, fov_f
         if fine_volume == "fdk+coarse-sirt":  # no coarse level to take the correction from
             fine_volume = "sirt"
     params = np.zeros((nominal.n_views, 9))
@@ -237,7 +244,7 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
     # the coarse level's reconstruction with the geometry entering each iteration: its volume
     # for the coarse estimate, its FDK's NCC for undo_inconsistent, its SIRT correction for a
     # fine level without SIRT
-    rec_c = rebuild(li_c, nom_c, grid_c, mask_c, sirt_iterations, inner_c)
+    rec_c = rebuild(li_c, nom_c, grid_c, mask_c, sirt_iterations, inner_c, fov_c)
     for it in range(n_iter):
         t0 = time.perf_counter()
         start = params.copy()
@@ -245,7 +252,7 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
         n_passes = (coarse_passes if it == 0 else 1) if has_coarse else 0
         for rep in range(n_passes):
             if rep:  # a warm-up pass: the coarse volume again, with the geometry of the last pass
-                rec_c = rebuild(li_c, nom_c.perturbed(params), grid_c, mask_c, sirt_iterations, inner_c)
+                rec_c = rebuild(li_c, nom_c.perturbed(params), grid_c, mask_c, sirt_iterations, inner_c, fov_c)
             before = params
             cfg = narrowed(coarse_cfg, it)
             if rep:
@@ -259,7 +266,7 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
                 break
         correction = (rec_c.volume - rec_c.fdk, grid_c) if fine_volume == "fdk+coarse-sirt" and not exterior else None
         vol = rebuild(li_f, nom_f.perturbed(params), grid_f, mask_f, sirt_iterations if fine_volume == "sirt" else 0,
-                      inner_f, correction=correction, measure_fdk=False).volume
+                      inner_f, fov_f, correction=correction, measure_fdk=False).volume
         params, fine_info = executor.estimate(estimate, li_f, nom_f, params, vol, grid_f, narrowed(fine_cfg, it), mask_f)
         skipped.update(fine_info.get("skipped_views", ()))
         params = remove_gauge(nominal.perturbed(params), nominal, points).params_relative_to(nominal)
@@ -275,7 +282,7 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
         moved = moved_px(nominal, params, start, points)
         last = it + 1 == n_iter or moved < stop_update_px
         # the next iteration's coarse volume (and the consistency check): not after the last
-        rec_next = (rebuild(li_c, nom_c.perturbed(params), grid_c, mask_c, sirt_iterations, inner_c)
+        rec_next = (rebuild(li_c, nom_c.perturbed(params), grid_c, mask_c, sirt_iterations, inner_c, fov_c)
                     if undo_inconsistent or not last else None)
         rmse, corr = projection_consistency(vol, grid_f, nom_f.perturbed(params), li_f, mask_f)
         step = params - start

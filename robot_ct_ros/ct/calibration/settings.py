@@ -52,6 +52,8 @@ FDK plus the coarse level's SIRT correction resampled, or its FDK alone."""
 
 EXTERIOR_MODES = ("off", "on", "auto")
 """Whether the estimation volume models the object outside the ROI (robot_ct_ros.ct.calibration.exterior)."""
+FOV_SUPPORT_MODES = ("off", "on", "auto")
+"""Whether the estimation volume's FDK is kept to the field of view (reconstruction.field_of_view_mask)."""
 
 PROJECTION_KINDS = ("truncated", "complete", "auto")
 """Whether the projections are truncated (estimation volumes FDK + SIRT) or see the whole object
@@ -130,6 +132,11 @@ class CalibrationSettings:
     projections: str = setting("truncated", "truncated (interior scan: FDK + SIRT estimation volumes) or complete "
                                "(the object inside the field of view: FDK alone); auto: decide from the data",
                                choices=PROJECTION_KINDS)
+    fov_support: str = setting("auto", "zero the estimation volume's FDK outside the field of view (voxels whose "
+                               "measured rays do not cover every direction: the square grid's corners); auto: where "
+                               "the detector's edges see air (truncation level at most "
+                               "calibration.volume.TRUNCATED_ABOVE), so the object lies inside it",
+                               choices=FOV_SUPPORT_MODES)
     sirt_iterations: int = setting(15, "SIRT iterations of each estimation volume of a truncated scan", minimum=0,
                                    maximum=1000)
     coarse_binning: int | None = setting(None, "binning of the coarse level (off: the schedule's)", minimum=1,

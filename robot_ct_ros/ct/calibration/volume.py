@@ -33,7 +33,7 @@ class EstimationVolume(NamedTuple):
 
 def reconstruct_for_estimation(line_integrals, geom, grid, mask, sirt_iterations: int, fdk_kwargs=None,
                                fdk_shape_yx=None, correction=None, measure_fdk: bool = True,
-                               fdk=None) -> EstimationVolume:
+                               fdk=None, support=None) -> EstimationVolume:
     """The volume the views are registered against: FDK, then ``sirt_iterations`` of masked SIRT.
 
     FDK of a truncated scan does not reproject to its own data (the extrapolated rows leave
@@ -53,7 +53,9 @@ def reconstruct_for_estimation(line_integrals, geom, grid, mask, sirt_iterations
     consistent the geometry is, which SIRT cannot inflate by fitting an underdetermined
     (few-view) problem. It costs a reprojection: without SIRT and with ``measure_fdk`` False it
     is skipped (NaN). ``fdk`` is the FDK to run (default :func:`~robot_ct_ros.ct.reconstruction.fdk`;
-    the loop passes its executor's, :mod:`robot_ct_ros.ct.calibration.distributed`).
+    the loop passes its executor's, :mod:`robot_ct_ros.ct.calibration.distributed`). ``support``
+    (bool, ``grid.shape_zyx``; :func:`~robot_ct_ros.ct.reconstruction.field_of_view_mask`) keeps
+    the FDK to the voxels it reconstructs from complete data; SIRT may fill the rest.
     """
     from robot_ct_ros.ct.iterative import sirt
     from robot_ct_ros.ct.reconstruction import fdk as fdk_in_process, resample
@@ -66,6 +68,8 @@ def reconstruct_for_estimation(line_integrals, geom, grid, mask, sirt_iterations
         inner = np.zeros_like(vol)
         inner[:, y0:y0 + fdk_shape_yx[0], x0:x0 + fdk_shape_yx[1]] = vol[:, y0:y0 + fdk_shape_yx[0], x0:x0 + fdk_shape_yx[1]]
         vol = inner
+    if support is not None:
+        vol = np.where(support, vol, np.float32(0.0))
     if correction is not None:
         delta, delta_grid = correction
         return EstimationVolume(vol + resample(delta, delta_grid, grid), float("nan"), vol)
