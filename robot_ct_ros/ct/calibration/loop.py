@@ -229,6 +229,8 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
     fov = not exterior and (settings.fov_support == "on" or (settings.fov_support == "auto" and level is not None
                                                             and level <= TRUNCATED_ABOVE))
     fov_f = field_of_view_mask(nom_f, grid_f) if fov else None
+    if fov:
+        say(f"field of view: the estimation volumes' FDK is zero in the {1 - fov_f.mean():.0%} of the grid outside it")
     if has_coarse:
         li_c, mask_c, nom_c, grid_c = _level(li, mask, nominal, grid_e, coarse_binning)
         inner_c = grid.binned(coarse_binning).shape_zyx[1:]
