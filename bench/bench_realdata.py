@@ -61,7 +61,8 @@ from robot_ct_ros.bag import read_scan  # noqa: E402
 from robot_ct_ros.ct import calibration  # noqa: E402
 from robot_ct_ros.ct.metrics import edge_sharpness, reprojection_error, roi_points  # noqa: E402
 from robot_ct_ros.ct.opposed_rays import opposed_ray_offset  # noqa: E402
-from robot_ct_ros.ct.reconstruction import WINDOWS, fdk, field_of_view_mask  # noqa: E402
+from robot_ct_ros.ct.field_of_view import field_of_view_mask  # noqa: E402
+from robot_ct_ros.ct.reconstruction import WINDOWS, fdk  # noqa: E402
 from robot_ct_ros.jobs.figures import COLUMNS, markdown_table, plot_param_error, summarize  # noqa: E402
 from robot_ct_ros.jobs.htc2022 import import_htc2022  # noqa: E402
 
@@ -135,7 +136,7 @@ def synthetic_twin(li, mask, geom, grid, *, seed: int, upsample: int = 2):
     """Data the documented geometry explains exactly, as close to the measured ones as we can make them.
 
     The object: our FDK of the measured data (documented geometry, every view) on ``grid``, zero
-    outside the field of view (:func:`~robot_ct_ros.ct.reconstruction.field_of_view_mask`: the square
+    outside the field of view (:func:`~robot_ct_ros.ct.field_of_view.field_of_view_mask`: the square
     grid's corners, where FDK's incomplete data leave streaks that are no object), resampled ``upsample`` times finer across the slice (cubic spline, negatives cut) and three
     slices thick so that the fan plane lies inside it. Its line integrals through ``geom``
     come from RTK's Joseph projector (not ours), plus white Gaussian noise at the measured data's
@@ -322,17 +323,17 @@ def main(argv=None) -> int:
                          "geometry_check": chk, "sigma_detector_mm": args.error_px * g0.col_pitch_mm,
                          "sigma_source_mm": sigma_src, "cases": {}}
             report["phantoms"][ph] = ph_report
-            data = {"measured": li}  # the calibrated views of each data source
+            sources = {"measured": li}  # the calibrated views of each data source
             if any(c in TWIN_OF for c in cases):
                 say(f"phantom {ph}: synthetic twin (RTK Joseph projector)")
                 twin_all, twin_sigma, twin_corr = synthetic_twin(li_all, mask_all, g0, grid, seed=args.seed + 99)
                 ph_report["twin"] = {"noise_sigma": twin_sigma, "correlation_with_measured": twin_corr}
-                data["twin"] = np.ascontiguousarray(twin_all[views])
+                sources["twin"] = np.ascontiguousarray(twin_all[views])
             truth = {}  # per data source: the FDK with the documented geometry, its wall time and sharpness
             for case in cases:
                 kind = TWIN_OF.get(case, case)  # the injection: the measured case's kind and seed
                 source = "twin" if case in TWIN_OF else "measured"
-                li = data[source]
+                li = sources[source]
 
                 def reconstruct(geom, li=li, mask=mask):
                     return fdk(li, geom, grid, valid_mask=mask)
@@ -455,7 +456,7 @@ def main(argv=None) -> int:
              "**Synthetic twin.** Cases `twin` and `twin-documented` repeat `independent` and `documented` (the same "
              "injected errors) on data that the documented geometry explains exactly: our FDK of the measured data "
              "(every view, documented geometry), zero outside the field of view (the grid's corners, which not every "
-             "direction's rays reach: reconstruction.field_of_view_mask), resampled twice as fine across the slice "
+             "direction's rays reach: field_of_view.field_of_view_mask), resampled twice as fine across the slice "
              "(cubic spline, three slices "
              "thick), projected through the documented geometry by RTK's Joseph projector (not ours), plus white "
              "Gaussian noise at the measured data's level (median absolute second difference along the row; "

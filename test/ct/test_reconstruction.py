@@ -17,10 +17,10 @@ from robot_ct_ros.ct.reconstruction import (
     estimate_scan_axis,
     fdk,
     fdk_view_weights,
-    field_of_view_mask,
     fill_invalid_pixels,
     ramp_kernel_spectrum,
 )
+from robot_ct_ros.ct.field_of_view import field_of_view_mask
 from robot_ct_ros.ct.trajectory import circular_scan
 
 SOD_MM = 128.0

@@ -28,7 +28,7 @@ from robot_ct_ros.ct.calibration.volume import (EXTERIOR_ABOVE, TRUNCATED_ABOVE,
                                                 truncation_level)
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid, observable_params
 from robot_ct_ros.ct.metrics import remove_gauge, roi_points
-from robot_ct_ros.ct.reconstruction import field_of_view_mask
+from robot_ct_ros.ct.field_of_view import field_of_view_mask
 
 __all__ = ["calibrate", "settings_with"]
 

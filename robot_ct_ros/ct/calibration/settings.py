@@ -53,7 +53,7 @@ FDK plus the coarse level's SIRT correction resampled, or its FDK alone."""
 EXTERIOR_MODES = ("off", "on", "auto")
 """Whether the estimation volume models the object outside the ROI (robot_ct_ros.ct.calibration.exterior)."""
 FOV_SUPPORT_MODES = ("off", "on", "auto")
-"""Whether the estimation volume's FDK is kept to the field of view (reconstruction.field_of_view_mask)."""
+"""Whether the estimation volume's FDK is kept to the field of view (ct.field_of_view.field_of_view_mask)."""
 
 PROJECTION_KINDS = ("truncated", "complete", "auto")
 """Whether the projections are truncated (estimation volumes FDK + SIRT) or see the whole object

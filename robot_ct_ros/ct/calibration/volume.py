@@ -54,7 +54,7 @@ def reconstruct_for_estimation(line_integrals, geom, grid, mask, sirt_iterations
     (few-view) problem. It costs a reprojection: without SIRT and with ``measure_fdk`` False it
     is skipped (NaN). ``fdk`` is the FDK to run (default :func:`~robot_ct_ros.ct.reconstruction.fdk`;
     the loop passes its executor's, :mod:`robot_ct_ros.ct.calibration.distributed`). ``support``
-    (bool, ``grid.shape_zyx``; :func:`~robot_ct_ros.ct.reconstruction.field_of_view_mask`) keeps
+    (bool, ``grid.shape_zyx``; :func:`~robot_ct_ros.ct.field_of_view.field_of_view_mask`) keeps
     the FDK to the voxels it reconstructs from complete data; SIRT may fill the rest.
     """
     from robot_ct_ros.ct.iterative import sirt

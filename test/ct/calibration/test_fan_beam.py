@@ -140,7 +140,7 @@ def test_the_field_of_view_support_keeps_fdk_streaks_in_the_corners_out_of_the_e
     leave streaks that are no object (about a tenth of the peak here). Started at the true
     geometry, the estimate leaves it less when the estimation volume is zero there (fov_support,
     auto for a scan whose detector edges see air), on every sampling seed."""
-    from robot_ct_ros.ct.reconstruction import field_of_view_mask
+    from robot_ct_ros.ct.field_of_view import field_of_view_mask
 
     _, true, grid, measured = fan
     assert not field_of_view_mask(true, grid).all()
