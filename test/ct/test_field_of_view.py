@@ -1,0 +1,50 @@
+"""The field of view: the voxels whose measured rays cover every direction (ct/field_of_view.py)."""
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from robot_ct_ros.ct.field_of_view import field_of_view_mask
+from robot_ct_ros.ct.geometry import VolumeGrid
+from robot_ct_ros.ct.trajectory import circular_scan, fov_radius_mm
+
+
+def _radius_mm(grid):
+    """Distance of each voxel centre from the z axis, shaped like the grid."""
+    nz, ny, nx = grid.shape_zyx
+    idx = np.stack(np.meshgrid(np.arange(nx), np.arange(ny), np.arange(nz), indexing="ij"), -1).reshape(-1, 3)
+    p = grid.index_to_world(idx)
+    return np.hypot(p[:, 0], p[:, 1]).reshape(nx, ny, nz).transpose(2, 1, 0)
+
+
+@pytest.mark.parametrize("offset_mm", [0.0, -4.0])
+def test_field_of_view_mask_is_the_circle_the_rays_cover(offset_mm):
+    """Centred detector: the circle every view sees; offset: the wider one the conjugate views fill in.
+    Only voxels within a small band about that circle may differ (direction bins of a few degrees)."""
+    n_cols, pitch = 100 if offset_mm == 0 else 60, 0.2
+    geom = circular_scan(120, 100.0, 160.0, 1, n_cols, pitch, pitch, det_offset_u_mm=offset_mm)
+    grid = VolumeGrid.centered((1, 90, 90), 0.2)
+    edge = 0.5 * n_cols * pitch + abs(offset_mm)
+    r_fov = fov_radius_mm(edge, 100.0, 160.0)
+    radius = _radius_mm(grid)
+    assert radius.max() > r_fov + 2.0 and radius.min() < 1.0  # the grid's corners lie outside
+    mask = field_of_view_mask(geom, grid)
+    wrong = mask != (radius <= r_fov)
+    assert np.abs(radius[wrong] - r_fov).max() < 0.03 * r_fov
+    assert wrong.mean() < 0.02
+
+
+def test_field_of_view_mask_turns_with_the_scan_and_is_all_true_without_complete_data():
+    geom = circular_scan(90, 100.0, 160.0, 4, 80, 0.2, 0.2)
+    grid = VolumeGrid.centered((6, 80, 80), 0.2)
+    mask = field_of_view_mask(geom, grid)
+    assert 0.3 < mask.mean() < 0.9
+    R = Rotation.from_rotvec([0.4, -1.1, 0.7]).as_matrix()
+    np.testing.assert_array_equal(field_of_view_mask(geom.moved(R, (5.0, -3.0, 20.0)), grid.moved(R, (5.0, -3.0, 20.0))),
+                                  mask)
+    # evaluated on blocks (a cost bound): the blocks' answers, close to the voxels' own
+    coarse = field_of_view_mask(geom, grid, max_evaluations=90 * 6 * 80 * 80 / 8)
+    assert (coarse != mask).mean() < 0.05
+    # a quarter turn: no voxel's rays cover every direction, FDK is approximate everywhere, nothing is cut
+    short = circular_scan(30, 100.0, 160.0, 4, 80, 0.2, 0.2, arc_rad=np.pi / 2)
+    assert field_of_view_mask(short, grid).all()
