@@ -408,4 +408,3 @@ def test_one_row_fan_beam_fdk_reconstructs_the_slice_it_sees():
     vt = fdk(proj, fan, thick)
     np.testing.assert_allclose(vt[:, 2], vol[:, 0], atol=1e-6)
     assert np.all(vt[:, [0, 4]] == 0)
-
