@@ -1,8 +1,8 @@
 """Benchmark: is the measured HTC2022 data's pull away from the documented geometry noise, or reproducible?
 
 bench_realdata.py's case ``documented`` starts every method at the documented geometry, and on the
-measured scans they move away from it by about 0.2 px, against about 0.1 px on the synthetic twin
-(data the documented geometry explains exactly). This bench asks whether that pull is the
+measured scans they move away from it several times as far as on the synthetic twin (data the
+documented geometry explains exactly; realdata.md). This bench asks whether that pull is the
 estimator's noise or something the data hold: it calibrates the even views (0, 2, ..., 718) and the
 odd views (1, 3, ..., 719) of each scan separately, two disjoint sets of measurements half a degree
 apart, each started at the documented geometry (``ncc-lle-exact``, default settings, the prior of
