@@ -206,7 +206,9 @@ def main(argv=None) -> int:
           "1 px at the centre, its seed; realdata.md's figures use the same views and errors), the estimate "
           "compared with the documented geometry and with the same method's estimate from the documented start "
           "on the same views (what these data give it without injected errors; for ncc-lle-exact the even half "
-          "above). Every method on the measured data, ncc-lle-exact on the twins. Wall time: both runs.", "",
+          "above). On the measured data the methods of --methods (" + ", ".join(methods) + "), ncc-lle-exact on "
+          "the twins. Wall time: the injected run, and for a method other than ncc-lle-exact also its "
+          "documented start.", "",
           markdown_table(injected, INJECTED_COLUMNS), "",
           "## Angular harmonics of c (even half, amplitude in px)", "", markdown_table(harm, harm_cols), "",
           f"Total {total / 60:.1f} min on this machine ({platform.machine()}, {os.cpu_count()} cores), "
