@@ -26,9 +26,9 @@ from robot_ct_ros.ct.calibration.settings import CalibrationSettings
 from robot_ct_ros.ct.calibration.volume import (EXTERIOR_ABOVE, TRUNCATED_ABOVE, EstimationVolume, estimation_grid,
                                                 projection_consistency, reconstruct_for_estimation,
                                                 truncation_level)
+from robot_ct_ros.ct.field_of_view import field_of_view_mask
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid, observable_params
 from robot_ct_ros.ct.metrics import remove_gauge, roi_points
-from robot_ct_ros.ct.field_of_view import field_of_view_mask
 
 __all__ = ["calibrate", "settings_with"]
 
@@ -225,7 +225,7 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
     li_f, mask_f, nom_f, grid_f = _level(li, mask, nominal, grid_e, fine_binning)
     inner_f = grid.binned(fine_binning).shape_zyx[1:]
     # FDK's field of view on each level, from the nominal geometry (the corrections move it by far less than a voxel):
-    # auto where the detector's edges see air, so the object lies inside it (docs/calibration.md §5b)
+    # auto where the detector's edges see air, so the object lies inside it (docs/calibration.md §6)
     fov = not exterior and (settings.fov_support == "on" or (settings.fov_support == "auto" and level is not None
                                                             and level <= TRUNCATED_ABOVE))
     fov_f = field_of_view_mask(nom_f, grid_f) if fov else None
