@@ -137,7 +137,7 @@ def test_every_method_runs_on_a_thin_detector(thin, method):
 
 def test_the_field_of_view_support_keeps_fdk_streaks_in_the_corners_out_of_the_estimate(fan):
     """The square grid's corners lie outside the fan's field of view, where FDK's incomplete data
-    leave streaks that are no object (about a tenth of the peak here). Started at the true
+    leave streaks that are no object. Started at the true
     geometry, the estimate leaves it less when the estimation volume is zero there (fov_support,
     auto for a scan whose detector edges see air), on every sampling seed."""
     from robot_ct_ros.ct.field_of_view import field_of_view_mask
