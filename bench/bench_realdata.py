@@ -59,9 +59,9 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 
 from robot_ct_ros.bag import read_scan  # noqa: E402
 from robot_ct_ros.ct import calibration  # noqa: E402
+from robot_ct_ros.ct.field_of_view import field_of_view_mask  # noqa: E402
 from robot_ct_ros.ct.metrics import edge_sharpness, reprojection_error, roi_points  # noqa: E402
 from robot_ct_ros.ct.opposed_rays import opposed_ray_offset  # noqa: E402
-from robot_ct_ros.ct.field_of_view import field_of_view_mask  # noqa: E402
 from robot_ct_ros.ct.reconstruction import WINDOWS, fdk  # noqa: E402
 from robot_ct_ros.jobs.figures import COLUMNS, markdown_table, plot_param_error, summarize  # noqa: E402
 from robot_ct_ros.jobs.htc2022 import import_htc2022  # noqa: E402
@@ -137,10 +137,10 @@ def synthetic_twin(li, mask, geom, grid, *, seed: int, upsample: int = 2):
 
     The object: our FDK of the measured data (documented geometry, every view) on ``grid``, zero
     outside the field of view (:func:`~robot_ct_ros.ct.field_of_view.field_of_view_mask`: the square
-    grid's corners, where FDK's incomplete data leave streaks that are no object), resampled ``upsample`` times finer across the slice (cubic spline, negatives cut) and three
-    slices thick so that the fan plane lies inside it. Its line integrals through ``geom``
-    come from RTK's Joseph projector (not ours), plus white Gaussian noise at the measured data's
-    level (:func:`noise_sigma`). Returns the twin's line integrals, the noise sigma and their
+    grid's corners, where FDK's incomplete data leave streaks that are no object), resampled
+    ``upsample`` times finer across the slice (cubic spline, negatives cut) and three slices thick
+    so that the fan plane lies inside it. Its line integrals through ``geom`` come from RTK's Joseph
+    projector (not ours), plus white Gaussian noise at the measured data's level (:func:`noise_sigma`). Returns the twin's line integrals, the noise sigma and their
     Pearson correlation with the measured ones."""
     from scipy import ndimage
 
@@ -445,7 +445,8 @@ def main(argv=None) -> int:
              f"the prior off); the guard takes the same values as the robots' stated accuracy. `gdc` and `gdc-log` "
              f"have no prior. The disc lies inside the field of view (the detector's edges see air), so every "
              f"estimation volume's FDK is kept to it (fov_support auto: zero in the square grid's corners, whose "
-             f"incomplete data leave streaks). A one-row detector estimates only s_u, s_w, d_u, d_w and r_v. Case `documented` injects "
+             f"incomplete data leave streaks). A one-row detector estimates only s_u, s_w, d_u, d_w and r_v. "
+             f"Case `documented` injects "
              f"nothing: each method starts at the documented geometry, and its error says how far the data (and "
              f"the method's own scatter) move it from there. Row `{ORACLE}`: the error left if every view's shift "
              f"of the rotation centre's projection (d_u + k s_u, k = (SDD - SOD) / SOD) were known exactly and "

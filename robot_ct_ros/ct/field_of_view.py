@@ -66,11 +66,11 @@ def field_of_view_mask(geom: ConeGeometry, grid: VolumeGrid, *, max_evaluations:
     """
     nz, ny, nx = grid.shape_zyx
     n_views = geom.n_views
-    n_bins = int(min(32, max(4, n_views // 6)))
-    budget = max(max_evaluations / max(n_views, 1), 1.0)
-    block = max(1, int(math.ceil((nz * ny * nx / budget) ** (1.0 / 3.0))))
     if n_views < 3:
         return np.ones(grid.shape_zyx, dtype=bool)
+    n_bins = int(min(32, max(4, n_views // 6)))
+    budget = max(max_evaluations / n_views, 1.0)
+    block = max(1, int(math.ceil((nz * ny * nx / budget) ** (1.0 / 3.0))))
     while True:  # blocks per axis (a thin axis keeps its voxels when it is shorter than the block)
         bz, by, bx = (min(block, n) for n in (nz, ny, nx))
         cshape = (-(-nz // bz), -(-ny // by), -(-nx // bx))
