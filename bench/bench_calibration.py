@@ -10,6 +10,9 @@ detector; photon-counting noise, flat field and dead pixels from DetectorModel):
      (about 0.6 mm and 0.15 deg over the scan, on all 6 detector parameters)
   c  carotid plaque with a 60 um fibrous cap, ROI on the cap; independent robot errors
 
+Every other setting of CalibrationSettings has its option, as on ``robot-ct calibrate`` (e.g.
+``--fov-support on``, ``--padding 2``), applied to every correcting method and named in results.md.
+
 Methods: none (nominal geometry), l2-lle, ncc-lle, ncc-lle-exact, gdc, gdc-log (all through
 calibration.calibrate, one alternating loop), true geometry; on the drift scenario (b) also
 ncc-lle-exact with the drift model (calibrate(drift_order=3), no per-view prior), and on the
@@ -48,6 +51,7 @@ from robot_ct_ros.ct.reconstruction import fdk  # noqa: E402
 from robot_ct_ros.ct.metrics import roi_points  # noqa: E402
 from robot_ct_ros.jobs.figures import markdown_table, method_notes, plot_cap_slabs, summarize, write_report  # noqa: E402
 from robot_ct_ros.ct.trajectory import SeedSystem, fov_radius_mm, robotic_roi_scan  # noqa: E402
+from robot_ct_ros.cli import add_settings_arguments, settings_from_args  # noqa: E402
 
 DRIFT_METHOD = "ncc-lle-exact + drift(3)"
 """ncc-lle-exact with the geometry fitted as a cubic drift in acquisition order
@@ -195,7 +199,9 @@ SCATTER_METRICS = ("reproj_mean_px", "reproj_p95_px", "ssim")  # the table's col
 REPEAT_SEED_STEP = calibration.ENSEMBLE_SEED_STEP  # --repeats: seeds 0, 1000, ..., an ensemble's members
 
 
-def run_method(method: str, sc, iterations: int, say, seed: int = 0):
+def run_method(method: str, sc, iterations: int, say, seed: int = 0, base=None):
+    """One method on the scenario ``sc``: ((geometry, volume, notes, wall s) or calibrate's result, how it ran).
+    ``base`` (CalibrationSettings, default: the defaults) holds the settings every correcting method starts from."""
     t0 = time.perf_counter()
     if method == "none":
         v = sc.reconstruct(sc.nominal)
@@ -204,24 +210,26 @@ def run_method(method: str, sc, iterations: int, say, seed: int = 0):
         v = sc.reconstruct(sc.true)
         return (sc.true, v, (), time.perf_counter() - t0), "fdk"
     prog = (lambda m: say(f"    {m}"))
+    base = calibration.CalibrationSettings() if base is None else base
     if method == DRIFT_METHOD:
-        settings = calibration.CalibrationSettings(method="ncc-lle-exact", iterations=iterations, drift_order=3,
-                                                   seed=seed).without_prior()
+        settings = base.replace(method="ncc-lle-exact", iterations=iterations, drift_order=3, seed=seed).without_prior()
         return calibration.calibrate(sc.li, sc.nominal, sc.grid, settings, valid_mask=sc.mask,
                                      progress=prog), "calibration.calibrate(drift_order=3, no prior)"
     if method == EXTERIOR_METHOD:
-        settings = calibration.CalibrationSettings(method="ncc-lle-exact", iterations=iterations, seed=seed,
-                                                   exterior="on", exterior_half_width_mm=sc.exterior_half_width_mm)
+        settings = base.replace(method="ncc-lle-exact", iterations=iterations, seed=seed, exterior="on",
+                                exterior_half_width_mm=sc.exterior_half_width_mm)
         return calibration.calibrate(sc.li, sc.nominal, sc.grid, settings, valid_mask=sc.mask,
                                      progress=prog), (f"calibration.calibrate(exterior=on, half-width "
                                                       f"{sc.exterior_half_width_mm:.0f} mm)")
     if method in calibration.METHODS:
-        return calibration.calibrate(sc.li, sc.nominal, sc.grid, method=method, iterations=iterations,
-                                     valid_mask=sc.mask, seed=seed, progress=prog), "calibration.calibrate"
+        settings = base.replace(method=method, iterations=iterations, seed=seed)
+        return calibration.calibrate(sc.li, sc.nominal, sc.grid, settings, valid_mask=sc.mask,
+                                     progress=prog), "calibration.calibrate"
     raise ValueError(f"unknown method {method!r}")
 
 
-def sampling_scatter(sc, results: dict, rows: list, truth_vol, repeats: int, iterations: int, say) -> dict:
+def sampling_scatter(sc, results: dict, rows: list, truth_vol, repeats: int, iterations: int, say,
+                     base=None) -> dict:
     """Each sampling method of ``results`` again with ``repeats - 1`` more sampling seeds on the
     same scan, and the mean of all its seeds' geometries (calibration.average_estimates, what
     calibrate_ensemble returns): {method: {"seeds": [{"seed", "reproj_mean_px",
@@ -241,7 +249,7 @@ def sampling_scatter(sc, results: dict, rows: list, truth_vol, repeats: int, ite
         estimates = [results[method]]
         for r in range(1, repeats):
             seed = r * REPEAT_SEED_STEP
-            res, _ = run_method(method, sc, iterations, lambda m: None, seed=seed)
+            res, _ = run_method(method, sc, iterations, lambda m: None, seed=seed, base=base)
             estimates.append(res)
             runs.append({"seed": seed, **metrics(res)})
             say(f"  {method}, sampling seed {seed}: {runs[-1]['reproj_mean_px']:.3f} px, SSIM "
@@ -277,7 +285,18 @@ def scatter_lines(scatter: dict) -> list:
     return lines + [""]
 
 
-_STOP_PX = calibration.CalibrationSettings().stop_update_px
+BENCH_OWNS = ("method", "iterations", "seed")
+"""Settings the bench sets itself (--methods, --iterations, the sampling seeds); every other field of
+CalibrationSettings has its command-line option here (--fov-support on, --padding 2, ...), applied to
+every correcting method."""
+
+
+def changed_settings(settings) -> dict:
+    """The fields of ``settings`` that differ from the defaults: {name: value}."""
+    default = calibration.CalibrationSettings().to_dict()
+    return {k: v for k, v in settings.to_dict().items() if default.get(k) != v}
+
+
 
 
 def main(argv=None) -> int:
@@ -296,7 +315,12 @@ def main(argv=None) -> int:
                     help="run each sampling method (LLE) with this many sampling seeds on the same scan and "
                          "report their scatter below each table (default 1: the table's run only)")
     ap.add_argument("--out", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "docs", "results"))
+    ap.add_argument("--no-figures", action="store_true", help="write the tables alone (e.g. for a run with a setting changed)")
+    add_settings_arguments(ap, skip=BENCH_OWNS)
     args = ap.parse_args(argv)
+    default = calibration.CalibrationSettings()
+    base = settings_from_args(args, **{k: getattr(default, k) for k in BENCH_OWNS})  # --iterations, --seed: the bench's
+    changed = changed_settings(base)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     for m in methods:
         if m not in ALL_METHODS:
@@ -328,7 +352,7 @@ def main(argv=None) -> int:
                 continue  # a drift model for independent per-view errors would be the wrong model
             if m == EXTERIOR_METHOD and key not in EXTERIOR_SCENARIOS:
                 continue  # the exterior model is for objects much wider than the field of view
-            res, via[m] = run_method(m, sc, args.iterations, say)
+            res, via[m] = run_method(m, sc, args.iterations, say, base=base)
             results[m] = res
             wall = res.wall_s if hasattr(res, "wall_s") else res[3]
             say(f"  {m}: {wall:.1f} s ({via[m]})")
@@ -343,9 +367,9 @@ def main(argv=None) -> int:
         paths = write_report(out, results, sc.grid, truth, sc.nominal, name=f"scenario_{key}", title=title,
                              initial_rmse=initial, notes={"via": via},
                              reconstruct=sc.reconstruct,
-                             reconstruct_cap=strip)
+                             reconstruct_cap=strip, figures=not args.no_figures)
         rows = paths["rows"]
-        if strip is not None:
+        if strip is not None and not args.no_figures:
             paths["cap"] = plot_cap_slabs(
                 os.path.join(out, f"scenario_{key}_cap.png"), strip.volumes, strip.grid, cap,
                 reference=strip.volumes.get("true geometry"),
@@ -353,7 +377,7 @@ def main(argv=None) -> int:
                       f"{strip.grid.extent_mm[2]:.0f} mm of vessel")
         say("\n" + markdown_table(rows))
         notes = method_notes(results, sc.nominal, sc.true, roi_points(sc.grid))
-        scatter = sampling_scatter(sc, results, rows, truth_vol, args.repeats, args.iterations, say)
+        scatter = sampling_scatter(sc, results, rows, truth_vol, args.repeats, args.iterations, say, base=base)
         scenarios.append({"key": key, "title": title, "rows": rows, "via": via, "notes": notes,
                           "sampling_scatter": scatter,
                           "true_cap_um": None if cap is None else 1000 * cap.thickness_mm,
@@ -366,7 +390,7 @@ def main(argv=None) -> int:
     total = time.perf_counter() - t_all
     settings = {"views": args.views, "detector": list(args.det), "binning": args.binning, "vol": args.vol,
                 "iterations": args.iterations, "seed": args.seed, "repeats": args.repeats, "methods": methods,
-                "total_wall_s": total, "cpus": os.cpu_count(), "machine": platform.platform(),
+                "calibration_settings_changed": changed, "total_wall_s": total, "cpus": os.cpu_count(), "machine": platform.platform(),
                 "load_at_end": os.getloadavg()}
     with open(os.path.join(out, "results.json"), "w") as f:
         json.dump({"settings": settings, "scenarios": scenarios}, f, indent=2,
@@ -375,11 +399,14 @@ def main(argv=None) -> int:
              f"Simulated robotic interior scans (seed-system ROI trajectory, reduced detector): {args.views} views, "
              f"detector {args.det[0]}x{args.det[1]} at {args.binning * 55} um, photon-counting noise; ROI grid "
              f"{args.vol} voxels across; at most {args.iterations} outer iteration(s) per method (fewer where one "
-             f"moved the views less than {_STOP_PX} px); seed {args.seed}. "
+             f"moved the views less than {base.stop_update_px} px); seed {args.seed}. "
              f"GDC methods: Gauss-Newton variant, see ct/calibration/gdc.py. Reprojection error: ROI "
              f"points, best global rigid motion (gauge) removed, pixels. SSIM against the FDK reconstruction with "
              f"the true geometry, each estimate moved into the true gauge first. Total {total / 60:.1f} min on {os.cpu_count()} CPU(s) "
              f"(load at end {os.getloadavg()[0]:.2f}).", ""]
+    if changed:
+        lines += ["Settings changed from the defaults for every correcting method: "
+                  + ", ".join(f"`{k}` {v}" for k, v in changed.items()) + ".", ""]
     for s in scenarios:
         lines += [f"## {s['title']}", ""]
         if s["true_cap_um"] is not None:
@@ -393,7 +420,7 @@ def main(argv=None) -> int:
             + [f"![{f}]({f})" for f in s["figures"]] + [""]
     with open(os.path.join(out, "results.md"), "w") as f:
         f.write("\n".join(lines) + "\n")
-    say(f"wrote {out}/results.md, results.json and figures; total {total / 60:.1f} min")
+    say(f"wrote {out}/results.md, results.json{'' if args.no_figures else ' and figures'}; total {total / 60:.1f} min")
     return 0
 
 

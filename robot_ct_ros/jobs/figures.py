@@ -297,7 +297,7 @@ def plot_param_error(path, results: dict, true_geom: ConeGeometry, points_mm, *,
 def write_report(out_dir, results: dict, grid: VolumeGrid, truth=None, nominal: ConeGeometry | None = None, *,
                  name: str = "report", title: str = "", points_mm=None, slice_center_mm=None, zoom: float = 0.6,
                  initial_rmse: float | None = None, notes: dict | None = None, reconstruct=None,
-                 reconstruct_cap=None) -> dict:
+                 reconstruct_cap=None, figures: bool = True) -> dict:
     """Write the figures and the table of one scan's calibration results; returns their paths.
 
     ``results`` maps method name to a :class:`~robot_ct_ros.ct.calibration.CalibrationResult`
@@ -305,8 +305,8 @@ def write_report(out_dir, results: dict, grid: VolumeGrid, truth=None, nominal: 
     ``truth`` = (true geometry, reconstruction with it, phantom or None). ``nominal``: if
     given and no "none" entry exists, the nominal geometry is added to the parameter-error
     plot as "none". ``initial_rmse`` is plotted at iteration 0. ``notes`` go into the JSON.
-    ``reconstruct``, ``reconstruct_cap``: see :func:`summarize`.
-    Returned dict: paths under keys "slices", "rmse", "param_error" (truth known),
+    ``reconstruct``, ``reconstruct_cap``: see :func:`summarize`. ``figures`` False: the table alone.
+    Returned dict: paths under keys "slices", "rmse", "param_error" (truth known; with figures),
     "markdown", "json", and the table "rows".
     """
     out = Path(out_dir)
@@ -315,10 +315,11 @@ def write_report(out_dir, results: dict, grid: VolumeGrid, truth=None, nominal: 
     rows = summarize(results, grid, truth, pts, reconstruct=reconstruct, reconstruct_cap=reconstruct_cap)
     true_geom, true_vol = (truth[0], truth[1]) if truth is not None else (None, None)
     paths = {"rows": rows}
-    paths["slices"] = plot_slices(out / f"{name}_slices.png", results, grid, center_mm=slice_center_mm, zoom=zoom,
-                                  reference=true_vol, title=title)
-    paths["rmse"] = plot_rmse(out / f"{name}_rmse.png", results, initial_rmse=initial_rmse, title=title)
-    if true_geom is not None:
+    if figures:
+        paths["slices"] = plot_slices(out / f"{name}_slices.png", results, grid, center_mm=slice_center_mm, zoom=zoom,
+                                      reference=true_vol, title=title)
+        paths["rmse"] = plot_rmse(out / f"{name}_rmse.png", results, initial_rmse=initial_rmse, title=title)
+    if figures and true_geom is not None:
         geoms = dict(results)
         if nominal is not None and "none" not in geoms:
             geoms = {"none": (nominal, np.zeros(grid.shape_zyx, np.float32), ())} | geoms

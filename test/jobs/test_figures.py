@@ -71,6 +71,19 @@ def test_report_files_and_numbers(tmp_path, inputs):
     assert rows["none"]["reproj_mean_px"] > rows["m1"]["reproj_mean_px"]
 
 
+def test_report_without_figures_writes_the_same_table_alone(tmp_path, inputs):
+    phantom, grid, truth_vol, nominal, true, results = inputs
+    with_figures = write_report(tmp_path / "a", results, grid, truth=(true, truth_vol, phantom), nominal=nominal,
+                                name="s", title="tiny")
+    table_only = write_report(tmp_path / "b", results, grid, truth=(true, truth_vol, phantom), nominal=nominal,
+                              name="s", title="tiny", figures=False)
+    assert sorted(f.name for f in (tmp_path / "b").iterdir()) == ["s.json", "s.md"]
+    assert not {"slices", "rmse", "param_error"} & set(table_only)
+    md = table_only["markdown"].read_text()
+    assert "![" not in md and md == with_figures["markdown"].read_text().split("![")[0]
+    assert table_only["rows"] == with_figures["rows"]
+
+
 def test_report_without_truth(tmp_path, inputs):
     phantom, grid, truth_vol, nominal, true, results = inputs
     paths = write_report(tmp_path, results, grid, name="u")
