@@ -3,7 +3,8 @@
 The guard (robot_ct_ros.ct.calibration.guard, docs/calibration.md section 11) keeps the nominal
 geometry where the data do not support a correction. It must refuse harmful corrections and keep
 helpful ones. This script runs no calibration: it reads what the benches already wrote into
-``--results`` (results.json, sweep.json, interior.json, exterior_reach.json, realdata.json) and,
+``--results`` (results.json and the ``results.json`` of each folder there, bench_calibration's runs with a
+setting changed; sweep.json, interior.json, exterior_reach.json, realdata.json) and,
 for each method and scan, takes:
 
 * the nominal geometry's error and the final error (gauge-aligned reprojection error of ROI
@@ -103,9 +104,12 @@ def collect(results_dir: str) -> tuple[list, list]:
         with open(path) as f:
             return json.load(f)
 
-    d = load("results.json")
-    for sc in (d or {}).get("scenarios", []):
-        out += _rows_source("results.json", f"({sc['key']})", sc["rows"], sc.get("notes", {}))
+    # results.json, then the runs of bench_calibration with a setting changed, one folder each (docs/results/padding_2/)
+    variants = sorted(n for n in os.listdir(results_dir) if os.path.isfile(os.path.join(results_dir, n, "results.json")))
+    for name in ["results.json"] + [f"{n}/results.json" for n in variants]:
+        d = load(name)
+        for sc in (d or {}).get("scenarios", []):
+            out += _rows_source(name, f"({sc['key']})", sc["rows"], sc.get("notes", {}))
     d = load("interior.json")
     for sc in (d or {}).get("scans", []):
         out += _rows_source("interior.json", f"neck {sc['sigma']:g} mm / {sc['sigma']:g} deg", sc["rows"],

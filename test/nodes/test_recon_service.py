@@ -50,9 +50,11 @@ def test_collects_a_replayed_scan_and_corrects_it_when_the_scan_is_done(ros, tmp
     out = tmp_path / "recon"
     # the final projection NCC of this 10-view 24 x 40 scan lies between 0.18 and 0.51 over sampling seeds 0 to 4
     # (before and after the per-view sampling of 2026-12-03), around the guard's default 0.5: the guard's model
-    # check is set lower, so that the correction is applied and its plumbing tested
+    # check (both floors: the scan is strongly truncated) is set lower, so that the correction is applied and its
+    # plumbing tested
     recon = ros.add(ReconServiceNode(context=ros.context, parameter_overrides=_params(
-        output_dir=str(out), method="ncc-lle-exact", iterations=1, auto_run=True, guard_min_ncc=0.1)))
+        output_dir=str(out), method="ncc-lle-exact", iterations=1, auto_run=True, guard_min_ncc=0.1,
+        guard_min_ncc_unmodelled=0.1)))
     replay = ros.add(ReplayNode(context=ros.context, parameter_overrides=_params(
         bag_path=str(bag), rate_hz=200.0, wait_for_subscribers=1)))  # recon_service's /ct/projection
     assert ros.spin_until(lambda: replay.done and recon.n_paired == N, timeout_s=30.0), recon.n_paired

@@ -318,12 +318,14 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
     notes += exterior_notes
     unguarded = None
     explained = history[-1].projection_ncc if history else float("nan")
-    if settings.guard and explained < settings.guard_min_ncc:
+    # a strongly truncated scan whose exterior was not modelled needs a model that explains more (docs/calibration.md §11)
+    min_ncc = max(settings.guard_min_ncc, settings.guard_min_ncc_unmodelled) if unmodelled else settings.guard_min_ncc
+    if settings.guard and explained < min_ncc:
         # the data term is dominated by what the model lacks (the object outside the ROI): its optimum is not the
         # geometry's, and no consistency figure can vouch for it
         unguarded, params = params, np.zeros_like(params)
         notes.append(f"guard: the estimation model explains the data poorly (projection NCC {explained:.3f} < "
-                     f"{settings.guard_min_ncc:g}); the data do not support the correction and the nominal geometry is "
+                     f"{min_ncc:g}); the data do not support the correction and the nominal geometry is "
                      f"kept (for an interior scan of a wide object, state how far it reaches from the ROI centre: exterior_half_width_mm)")
     elif settings.guard and accuracy is not None:
         # where the ROI model's data term is biased (strong truncation, no exterior) the correction may not move the

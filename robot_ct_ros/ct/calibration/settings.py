@@ -172,6 +172,9 @@ class CalibrationSettings:
     guard_min_ncc: float = setting(0.5, "the scan keeps its nominal geometry when the estimation model explains the "
                                    "data this poorly: the final projection NCC of its reprojection against the data",
                                    minimum=0.0, maximum=1.0)
+    guard_min_ncc_unmodelled: float = setting(0.7, "the same floor for a strongly truncated scan whose object outside "
+                                              "the ROI was not modelled: there a model that explains the data only "
+                                              "half has steered the views wrong", minimum=0.0, maximum=1.0)
     guard_view_quantile: float = setting(0.999, "a view moved beyond guard_max_ratio times this quantile of the "
                                          "stated accuracy's displacements keeps its nominal geometry", minimum=0.5,
                                          maximum=1.0)

@@ -511,9 +511,9 @@ def test_the_guard_is_stricter_on_a_strongly_truncated_scan_whose_exterior_was_n
 
     _, _, _, inside = _small_scan(n_views=8, body_width_mm=9.0, length_mm=30.0)
     nominal, _, grid, wider = _small_scan(n_views=8, body_width_mm=40.0, length_mm=30.0)
-    # guard_min_ncc 0: the ROI model's poor fit of the wide body must not decide first
+    # the model-NCC floors 0: the ROI model's poor fit of the wide body must not decide first
     kw = dict(method="ncc-lle-exact", iterations=1, schedule="fast", exterior_voxel_mm=2.0, final_volume=False,
-              guard_min_ncc=0.0)
+              guard_min_ncc=0.0, guard_min_ncc_unmodelled=0.0)
 
     def limit(notes):
         found = [re.search(r"times the robots' stated accuracy \(limit ([\d.]+)\)", n) for n in notes]
@@ -530,3 +530,23 @@ def test_the_guard_is_stricter_on_a_strongly_truncated_scan_whose_exterior_was_n
     refused = calibrate(wider, nominal, grid, guard_max_ratio_unmodelled=0.9 * ratio, **kw)
     np.testing.assert_array_equal(refused.params, 0.0)
     assert any("nominal geometry is kept" in n for n in refused.notes), refused.notes
+
+
+def test_a_strongly_truncated_scan_whose_exterior_was_not_modelled_needs_a_model_that_explains_more():
+    """guard_min_ncc_unmodelled is the model-NCC floor there (the stricter of it and guard_min_ncc); a scan
+    whose exterior was modelled keeps guard_min_ncc. Each floor decides at the correction's own NCC."""
+    nominal, _, grid, wider = _small_scan(n_views=8, body_width_mm=40.0, length_mm=30.0)
+    kw = dict(method="ncc-lle-exact", iterations=1, schedule="fast", exterior_voxel_mm=2.0, final_volume=False,
+              guard_min_ncc=0.0, guard_max_ratio=100.0, guard_max_ratio_unmodelled=100.0)
+    free = calibrate(wider, nominal, grid, guard_min_ncc_unmodelled=0.0, **kw)
+    ncc = free.history[-1].projection_ncc
+    assert 0.0 < ncc < 1.0 and np.abs(free.params).max() > 0
+    refused = calibrate(wider, nominal, grid, guard_min_ncc_unmodelled=min(1.0, ncc + 0.01), **kw)
+    np.testing.assert_array_equal(refused.params, 0.0)
+    assert any("explains the data poorly" in n and f"< {min(1.0, ncc + 0.01):g}" in n for n in refused.notes), \
+        refused.notes
+    kept = calibrate(wider, nominal, grid, guard_min_ncc_unmodelled=max(0.0, ncc - 0.01), **kw)
+    np.testing.assert_array_equal(kept.params, free.params)
+    # the exterior modelled (its reach stated): the unmodelled floor does not apply
+    modelled = calibrate(wider, nominal, grid, exterior_half_width_mm=20.0, guard_min_ncc_unmodelled=1.0, **kw)
+    assert not any("explains the data poorly" in n for n in modelled.notes), modelled.notes
