@@ -297,8 +297,6 @@ def changed_settings(settings) -> dict:
     return {k: v for k, v in settings.to_dict().items() if default.get(k) != v}
 
 
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--views", type=int, default=90, help="views per scan (default 90)")

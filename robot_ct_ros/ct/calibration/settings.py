@@ -173,8 +173,8 @@ class CalibrationSettings:
                                    "data this poorly: the final projection NCC of its reprojection against the data",
                                    minimum=0.0, maximum=1.0)
     guard_min_ncc_unmodelled: float = setting(0.7, "the same floor for a strongly truncated scan whose object outside "
-                                              "the ROI was not modelled: there a model that explains the data only "
-                                              "half has steered the views wrong", minimum=0.0, maximum=1.0)
+                                              "the ROI was not modelled: there corrections whose model explained the "
+                                              "data at about 0.5 have made the geometry worse", minimum=0.0, maximum=1.0)
     guard_view_quantile: float = setting(0.999, "a view moved beyond guard_max_ratio times this quantile of the "
                                          "stated accuracy's displacements keeps its nominal geometry", minimum=0.5,
                                          maximum=1.0)
