@@ -26,7 +26,10 @@ can do from what the reconstruction feeds it:
 10. the loop of table 5 under the fast schedule (4 x 4, then 2 x 2 binned data);
 11. data from outside the field of view: the exterior taken from a wide, low-magnification scout
     scan of the whole neck (simulated as the interior scan, with its own robot errors) and held
-    fixed, the ROI reconstructed from the interior data that remain.
+    fixed, the ROI reconstructed from the interior data that remain;
+12. how much of each view's error the estimate recovers in the combinations the ROI sees (the
+    projection shifts d + (M - 1) s and the in-plane rotation): slope on the truth, correlation, noise;
+13. that absorption undone with a response measured by moving the geometry by known amounts.
 
 ``--tables 6`` computes only table 6 and keeps the others from the json already in ``--out``.
 
@@ -385,6 +388,76 @@ def table_scout(st: Study, args, say, voxels=(0.5, 0.25), coarse_passes: int = 3
     return rows
 
 
+def shift_combinations(st: Study) -> dict:
+    """Name -> function of (views, 9) parameters giving what the ROI's projection sees of them, per view
+    (detector mm): the ROI centre's projection shift along u and v from a detector shift d and a source
+    shift s, d + (M - 1) s, and the in-plane rotation times the detector's half-width. A ROI a few mm
+    across cannot separate d from s; it sees these (the rest moves its points by a fraction of a pixel)."""
+    m1 = float(np.mean(st.sc.nominal.magnification())) - 1.0
+    half_mm = 0.5 * st.sc.nominal.n_cols * float(np.mean(st.sc.nominal.col_pitch_mm))
+    return {f"u shift (d_u + {m1:.2f} s_u)": lambda p: p[:, 3] + m1 * p[:, 0],
+            f"v shift (d_v + {m1:.2f} s_v)": lambda p: p[:, 4] + m1 * p[:, 1],
+            "in-plane rotation x detector half-width": lambda p: p[:, 8] * half_mm}
+
+
+def table_absorption(st: Study, say) -> list:
+    """12: how much of each view's error the estimate recovers, per combination the ROI sees
+    (:func:`shift_combinations`), against the volumes from the true and from the nominal geometry
+    (coarse level, one pass from the nominal geometry): the slope of the estimate on the truth (1:
+    all of it; what the volume absorbed is 1 - slope), their correlation, and the estimate's scatter
+    about slope x truth (the noise, px of the detector)."""
+    zero = np.zeros((st.n, 9))
+    pitch = float(np.mean(st.sc.nominal.col_pitch_mm))
+    rows = []
+    for name, p_rec in (("true", st.true_p), ("nominal", zero)):
+        est = st.estimate("coarse", zero, st.volume("coarse", p_rec))
+        for combo, f in shift_combinations(st).items():
+            truth, got = f(st.true_p), f(est)
+            slope, icpt = np.polyfit(truth, got, 1)
+            rows.append({"volume from": f"the {name} geometry", "combination": combo,
+                         "truth RMS (px)": round(float(truth.std() / pitch), 3),
+                         "slope on the truth": round(float(slope), 3),
+                         "correlation": round(float(np.corrcoef(truth, got)[0, 1]), 3),
+                         "noise (px)": round(float((got - slope * truth - icpt).std() / pitch), 3),
+                         "error (px)": round(float((got - truth).std() / pitch), 3)})
+            say(f"  12. {rows[-1]}")
+    return rows
+
+
+def table_response(st: Study, say, probes: int = 3, caps=(0.5, 0.7, 0.9)) -> list:
+    """13: the absorption undone with a measured response. Volumes are reconstructed (coarse) with the
+    nominal geometry moved by ``probes`` known random errors of the robots' size, and each view
+    estimated from there; the change of the estimates regressed on the known moves gives the 9 x 9
+    response A (estimate change = A x move, over all views). If the estimate followed e = g* + A (g - g*),
+    the truth would be g* = (I - A)^-1 (e - A g); A's eigenvalues are capped, since near 1 the inverse
+    only amplifies the noise."""
+    zero = np.zeros((st.n, 9))
+    t0 = time.perf_counter()
+    e0 = st.estimate("coarse", zero, st.volume("coarse", zero))
+    moves, changes = [], []
+    for k in range(probes):
+        d = sim.robot_coordination(st.sc.sigma, st.sc.sigma, seed=st.sc.seed + 1000 + k).sample(st.n)
+        moves.append(d)
+        changes.append(st.estimate("coarse", d, st.volume("coarse", d)) - e0)
+    X, Y = np.concatenate(moves), np.concatenate(changes)
+    scale = X.std(axis=0)
+    Xs = X / scale
+    B = np.linalg.solve(Xs.T @ Xs + 1e-3 * len(Xs) * np.eye(9), Xs.T @ Y)
+    A = (B / scale[:, None]).T
+    w, V = np.linalg.eig(A)
+    eig = ", ".join(f"{x:.2f}" for x in np.sort(w.real)[::-1])
+    rows = [{"estimate": "one pass against the nominal-geometry volume", "A's eigenvalues": eig,
+             "reproj. error mean (px)": round(st.error_px(e0), 3), "wall time (s)": round(time.perf_counter() - t0, 1)}]
+    for cap in caps:
+        Ac = np.real(V @ np.diag(np.minimum(w.real, cap)) @ np.linalg.inv(V))
+        g = e0 @ np.linalg.inv(np.eye(9) - Ac).T  # g = 0 (nominal): g* = (I - A)^-1 e
+        rows.append({"estimate": f"undone with A, eigenvalues capped at {cap:g}", "A's eigenvalues": eig,
+                     "reproj. error mean (px)": round(st.error_px(g), 3), "wall time (s)": 0.0})
+    for r in rows:
+        say(f"  13. {r}")
+    return rows
+
+
 TABLES = {
     "1": ("The estimator against volumes reconstructed with a chosen geometry",
           lambda st, args, say: table_reconstruction_geometry(st, say)),
@@ -401,6 +474,9 @@ TABLES = {
            "the default, accurate: 2 x 2 binned, then full size)",
            lambda st, args, say: table_loop(st, args.loop_iterations, say, schedule="fast", label="10")),
     "11": ("The exterior from a wide scout scan, held fixed (3 coarse alternations, then one fine pass)", table_scout),
+    "12": ("How much of each view's error the estimate recovers, per combination the ROI sees (coarse, one pass)",
+           lambda st, args, say: table_absorption(st, say)),
+    "13": ("The absorption undone with a measured response (coarse)", lambda st, args, say: table_response(st, say)),
 }
 """Number -> (title, builder(study, args, say) -> rows)."""
 
