@@ -15,7 +15,8 @@ for each method and scan, takes:
 * the regime: the exterior modelled, strongly truncated without it, or not strongly truncated.
 
 Each verdict is then one of: kept a helpful correction, refused a harmful one (right); applied a
-harmful one (a miss); refused a helpful one (lost). Scans started at their true geometry (the
+harmful one (a miss); refused a helpful one (lost); or, where undo_inconsistent undid the first
+iteration (its note says so), made no correction. Scans started at their true geometry (the
 real-data cases ``documented`` and ``twin-documented``) have nothing to correct and are left out.
 Cells whose bench predates a note (no regime or R in them) say so instead of guessing. Writes
 ``guard.md`` and ``guard.json`` into ``--out``.
@@ -38,6 +39,8 @@ from robot_ct_ros.jobs.figures import markdown_table  # noqa: E402
 OUTCOMES = ("kept a helpful correction", "refused a harmful correction", "applied a harmful correction",
             "refused a helpful correction")
 """The verdicts: the first two are right, the third a miss, the fourth a loss."""
+NO_CORRECTION = "made no correction"
+"""A calibration that ended where it started (undo_inconsistent undid its first iteration): nothing to judge."""
 
 
 def _number(pattern: str, notes) -> float | None:
@@ -73,6 +76,8 @@ def record(source: str, scan: str, method: str, nominal_px: float, after_px: flo
                else f"applied, {int(views_kept)} view(s) kept nominal" if views_kept else "applied")
     if before is None:
         outcome = "unknown (no error before the guard)"
+    elif any("no correction was made" in n for n in notes):
+        outcome = NO_CORRECTION
     elif scan_kept:
         outcome = OUTCOMES[1] if before >= nominal_px else OUTCOMES[3]
     else:
@@ -143,7 +148,7 @@ def summary(records: list) -> list:
     for reg in sorted({r["regime"] for r in records}):
         rs = [r for r in records if r["regime"] == reg]
         row = {"regime": reg, "calibrations": len(rs)}
-        for o in OUTCOMES:
+        for o in OUTCOMES + (NO_CORRECTION,):
             row[o] = sum(r["outcome"] == o for r in rs)
         for label, good in (("R of helpful corrections", True), ("R of harmful corrections", False)):
             vals = [r["ratio"] for r in rs if r["ratio"] is not None and r["before_px"] is not None
@@ -172,7 +177,9 @@ def main(argv=None) -> int:
              "moved the views against random errors of the robots' stated accuracy; limit: the scan-level limit the "
              "guard applied (guard_max_ratio, or guard_max_ratio_unmodelled on a strongly truncated scan without the "
              "exterior model). Outcome: a helpful correction kept or a harmful one refused is right; a harmful one "
-             "applied is a miss, a helpful one refused a loss. Scans started at their true geometry are left out.", "",
+             "applied is a miss, a helpful one refused a loss; a calibration that undid its first iteration "
+             "(undo_inconsistent) made no correction and is not judged. Scans started at their true geometry are left "
+             "out.", "",
              "## Summary", "", markdown_table(summ, [(k, k, "{}") for k in summ[0]]), "",
              f"Misses and losses: {len(wrong)} of {len(records)}"
              + (": " + "; ".join(f"{r['source']} {r['scan']} {r['method']} ({r['outcome']}, {r['before_px']} against "

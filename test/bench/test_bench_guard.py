@@ -19,8 +19,12 @@ def test_every_outcome_is_told_from_the_errors_and_the_notes(tmp_path, load_benc
     truncated = "strongly truncated (truncation level 0.640 > 0.3), yet the object outside the ROI was not modelled"
     results = {"scenarios": [{"key": "x", "rows": [_row("none", 3.0), _row("good", 0.5), _row("bad", 3.5),
                                                    _row("refused-bad", 3.0), _row("refused-good", 3.0),
-                                                   _row("poor-model", 3.0, 0.3), _row("true geometry", 0.0)],
+                                                   _row("poor-model", 3.0, 0.3), _row("undone", 3.0),
+                                                   _row("true geometry", 0.0)],
                               "notes": {"good": [applied.format(0.9, 1.5)], "bad": [truncated, applied.format(0.95, 1)],
+                                        "undone": ["undo_inconsistent: iteration 1 lowered the FDK's data consistency "
+                                                   "(reprojection NCC 0.9 -> 0.8) and was undone; no correction "
+                                                   "was made", applied.format(0, 1.5)],
                                         "refused-bad": [truncated, refused.format(1.09, 1),
                                                         "before the guard 3.338 px mean, 6.0 px p95"],
                                         "refused-good": [refused.format(1.6, 1.5),
@@ -32,7 +36,8 @@ def test_every_outcome_is_told_from_the_errors_and_the_notes(tmp_path, load_benc
     records, read = bench.collect(str(tmp_path))
     assert read == ["results.json"]
     by = {r["method"]: r for r in records}
-    assert set(by) == {"good", "bad", "refused-bad", "refused-good", "poor-model"}  # no 'none', no truth
+    assert set(by) == {"good", "bad", "refused-bad", "refused-good", "poor-model", "undone"}  # no 'none', no truth
+    assert by["undone"]["outcome"] == "made no correction"  # ended where it started: neither a miss nor a keep
     assert by["good"]["outcome"] == "kept a helpful correction" and by["good"]["ratio"] == 0.9
     assert by["good"]["regime"] == "ROI model, not strongly truncated" and by["good"]["limit"] == 1.5
     assert by["bad"]["outcome"] == "applied a harmful correction" and by["bad"]["limit"] == 1.0
@@ -45,10 +50,11 @@ def test_every_outcome_is_told_from_the_errors_and_the_notes(tmp_path, load_benc
     summary = {s["regime"]: s for s in bench.summary(records)}
     assert summary["strongly truncated, not modelled"]["refused a harmful correction"] == 2
     assert summary["strongly truncated, not modelled"]["R of harmful corrections"] == "0.95-1.09"
+    assert summary["ROI model, not strongly truncated"]["made no correction"] == 1
     out = tmp_path / "out"
     assert bench.main(["--results", str(tmp_path), "--out", str(out)]) == 0
     text = (out / "guard.md").read_text()
-    assert "Misses and losses: 2 of 5" in text and "refused-good" in text
+    assert "Misses and losses: 2 of 6" in text and "refused-good" in text
 
 
 def test_no_bench_results_is_an_error(tmp_path, load_bench):

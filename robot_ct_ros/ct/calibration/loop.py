@@ -242,6 +242,7 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
     params = np.zeros((nominal.n_views, 9))
     held = ~observable_params(nominal)
     history = []
+    undone_note = None  # set when undo_inconsistent undoes an iteration: the result must say so
     skipped = set()  # views that saw too little of the grid to be estimated at some level
     # the coarse level's reconstruction with the geometry entering each iteration: its volume
     # for the coarse estimate, its FDK's NCC for undo_inconsistent, its SIRT correction for a
@@ -295,6 +296,9 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
         if undo_inconsistent and not exterior and not rec_next.fdk_ncc > rec_in.fdk_ncc:
             say(f"iteration {it + 1}/{n_iter}: data consistency fell ({rec_in.fdk_ncc:.5f} -> {rec_next.fdk_ncc:.5f}); "
                 f"undone, stopping")
+            undone_note = (f"undo_inconsistent: iteration {it + 1} lowered the FDK's data consistency (reprojection "
+                           f"NCC {rec_in.fdk_ncc:.5f} -> {rec_next.fdk_ncc:.5f}) and was undone; "
+                           + (f"the geometry of iteration {it} stays" if it else "no correction was made"))
             params = start
             break
         rec_c = rec_next
@@ -316,6 +320,8 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
     if exterior:
         notes.append("the object outside the ROI was modelled (exterior model)")
     notes += exterior_notes
+    if undone_note:
+        notes.append(undone_note)
     unguarded = None
     explained = history[-1].projection_ncc if history else float("nan")
     # a strongly truncated scan whose exterior was not modelled needs a model that explains more (docs/calibration.md §11)

@@ -98,9 +98,11 @@ def test_undo_inconsistent_restores_the_geometry_and_compares_with_the_one_enter
         said = []
         result = calibrate(measured, true, grid, method="l2-lle", iterations=2, configs=(poor, poor), coarse_passes=passes,
                            coarse_tol_px=0.0, undo_inconsistent=True, progress=said.append)
-        undone = [line for line in said if "undone" in line]
+        undone = [line for line in said if "data consistency fell" in line]
         assert len(undone) == 1 and len(result.history) == 0
         assert np.array_equal(result.params, np.zeros_like(result.params))  # back at the entering geometry
+        told = [n for n in result.notes if n.startswith("undo_inconsistent: iteration 1 ")]
+        assert len(told) == 1 and "no correction was made" in told[0]  # the result says so, not only the log
         assert sum("coarse estimate" in line for line in said) == passes
         before[passes] = undone[0].split("fell (")[1].split(" ->")[0]
     assert before[1] == before[3]
