@@ -405,16 +405,26 @@ def table_absorption(st: Study, say) -> list:
     (:func:`shift_combinations`), against the volumes from the true and from the nominal geometry
     (coarse level, one pass from the nominal geometry): the slope of the estimate on the truth (1:
     all of it; what the volume absorbed is 1 - slope), their correlation, and the estimate's scatter
-    about slope x truth (the noise, px of the detector)."""
+    about slope x truth (the noise, px of the detector). The last rows repeat the nominal-geometry
+    volume's without the robots' prior: whether the prior, which pulls towards the nominal geometry,
+    is what holds the estimate back."""
     zero = np.zeros((st.n, 9))
     pitch = float(np.mean(st.sc.nominal.col_pitch_mm))
     rows = []
-    for name, p_rec in (("true", st.true_p), ("nominal", zero)):
-        est = st.estimate("coarse", zero, st.volume("coarse", p_rec))
+    with_prior = st.coarse
+    no_prior = replace(default_lle_configs("ncc-exact", prior_sigma=None)[0], roi_support_fraction=None)
+    vols = {"true": st.volume("coarse", st.true_p), "nominal": st.volume("coarse", zero)}
+    for name, cfg, prior in (("true", with_prior, "the robots'"), ("nominal", with_prior, "the robots'"),
+                             ("nominal", no_prior, "none")):
+        st.coarse = cfg
+        try:
+            est = st.estimate("coarse", zero, vols[name])
+        finally:
+            st.coarse = with_prior
         for combo, f in shift_combinations(st).items():
             truth, got = f(st.true_p), f(est)
             slope, icpt = np.polyfit(truth, got, 1)
-            rows.append({"volume from": f"the {name} geometry", "combination": combo,
+            rows.append({"volume from": f"the {name} geometry", "prior": prior, "combination": combo,
                          "truth RMS (px)": round(float(truth.std() / pitch), 3),
                          "slope on the truth": round(float(slope), 3),
                          "correlation": round(float(np.corrcoef(truth, got)[0, 1]), 3),
