@@ -110,14 +110,15 @@ class Study:
                                          half_width_mm=HALF_WIDTH_MM, iterations=iterations or s.exterior_iterations,
                                          subsets=s.exterior_subsets, after_pass=after_pass)
 
-    def estimate(self, level: str, params, volume, views=None, *, mask=None):
+    def estimate(self, level: str, params, volume, views=None, *, mask=None, cfg=None):
         """One estimation pass of ``views`` (default all) from ``params`` against ``volume``; ``mask``
-        (the level's shape) replaces the level's valid-pixel mask."""
+        (the level's shape) replaces the level's valid-pixel mask, ``cfg`` the level's LLE configuration."""
         views = np.arange(self.n) if views is None else views
-        li, nom, grid, mask_l, cfg = ((self.li_c, self.nom_c, self.grid_c, self.mask_c, self.coarse)
-                                      if level == "coarse"
-                                      else (self.sc.li, self.sc.nominal, self.grid_f, self.sc.mask, self.fine))
+        li, nom, grid, mask_l, cfg_l = ((self.li_c, self.nom_c, self.grid_c, self.mask_c, self.coarse)
+                                        if level == "coarse"
+                                        else (self.sc.li, self.sc.nominal, self.grid_f, self.sc.mask, self.fine))
         mask = mask_l if mask is None else mask
+        cfg = cfg_l if cfg is None else cfg
         out = np.array(params, float)
         out[views], _ = estimate_views(li[views], nom.subset(views), out[views], volume, grid, cfg, mask[views],
                                        view_ids=views)
@@ -411,16 +412,11 @@ def table_absorption(st: Study, say) -> list:
     zero = np.zeros((st.n, 9))
     pitch = float(np.mean(st.sc.nominal.col_pitch_mm))
     rows = []
-    with_prior = st.coarse
     no_prior = replace(default_lle_configs("ncc-exact", prior_sigma=None)[0], roi_support_fraction=None)
     vols = {"true": st.volume("coarse", st.true_p), "nominal": st.volume("coarse", zero)}
-    for name, cfg, prior in (("true", with_prior, "the robots'"), ("nominal", with_prior, "the robots'"),
+    for name, cfg, prior in (("true", None, "the robots'"), ("nominal", None, "the robots'"),
                              ("nominal", no_prior, "none")):
-        st.coarse = cfg
-        try:
-            est = st.estimate("coarse", zero, vols[name])
-        finally:
-            st.coarse = with_prior
+        est = st.estimate("coarse", zero, vols[name], cfg=cfg)
         for combo, f in shift_combinations(st).items():
             truth, got = f(st.true_p), f(est)
             slope, icpt = np.polyfit(truth, got, 1)
