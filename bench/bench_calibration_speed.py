@@ -96,6 +96,11 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", default=None, help="also write the numbers to this JSON file")
     args = ap.parse_args(argv)
+    overrides = {"fine_volume": args.fine_volume, "coarse_passes": args.coarse_passes}
+    try:  # a bad value is a one-line usage error, before the scan is simulated
+        calibration.CalibrationSettings(schedule=args.schedule, **{k: v for k, v in overrides.items() if v is not None})
+    except ValueError as exc:
+        ap.error(str(exc))
     t_all = time.perf_counter()
 
     def say(msg):
@@ -116,7 +121,6 @@ def main(argv=None) -> int:
     e0 = gauge_aligned_reprojection_error(sc.nominal, sc.true, roi_points(sc.grid))
     say(f"  grid {sc.grid.shape_zyx[::-1]} (x, y, z); nominal geometry error {e0['mean_px']:.3f} px "
         f"(p95 {e0['p95_px']:.3f})")
-    overrides = {"fine_volume": args.fine_volume, "coarse_passes": args.coarse_passes}
     runs = [run("ncc-lle", sc, args.iterations, args.schedule, say, **overrides)]
     if args.gdc_iterations > 0:
         runs.append(run("gdc-log", sc, args.gdc_iterations, args.schedule, say, **overrides))

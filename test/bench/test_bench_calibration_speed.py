@@ -38,3 +38,10 @@ def test_without_changes_the_schedule_decides(load_bench, monkeypatch):
     with pytest.raises(RuntimeError, match="seen enough"):
         bench.main(["--views", "16", "--det", "24x24", "--vol", "16", "--gdc-iterations", "0", "--no-rtk"])
     assert len(seen) == 1 and "fine_volume" not in seen[0] and "coarse_passes" not in seen[0]
+
+
+def test_a_bad_setting_is_a_usage_error_before_any_work(load_bench, capsys):
+    bench = load_bench("bench_calibration_speed")
+    with pytest.raises(SystemExit) as exc:
+        bench.main(["--coarse-passes", "0", "--no-rtk"])
+    assert exc.value.code == 2 and "coarse_passes must be >= 1" in capsys.readouterr().err
