@@ -7,7 +7,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 export PYTHONPATH := $(CURDIR)$(if $(PYTHONPATH),:$(PYTHONPATH))
 
-.PHONY: venv demo test bench bench-calibration bench-calibration-speed bench-interior bench-exterior-reach bench-interior-diagnosis bench-realdata bench-realdata-halves bench-embedding bench-sweep bench-guard bench-dask bench-fullsize bench-streaming clean
+.PHONY: venv demo test bench bench-calibration bench-calibration-speed bench-interior bench-exterior-reach bench-interior-diagnosis bench-realdata bench-realdata-halves bench-realdata-consistency bench-embedding bench-sweep bench-guard bench-dask bench-fullsize bench-streaming clean
 
 venv: $(STAMP)
 
@@ -47,6 +47,9 @@ bench-realdata: $(STAMP)
 
 bench-realdata-halves: $(STAMP)
 	$(PY) bench/bench_realdata_halves.py --out docs/results
+
+bench-realdata-consistency: $(STAMP)
+	$(PY) bench/bench_realdata_consistency.py --out docs/results
 
 bench-embedding: $(STAMP)
 	$(PY) bench/bench_embedding.py --out docs/results

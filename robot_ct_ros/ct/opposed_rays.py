@@ -21,7 +21,7 @@ from scipy import ndimage
 
 from robot_ct_ros.ct.geometry import ConeGeometry
 
-__all__ = ["OpposedRays", "opposed_ray_mismatch", "opposed_ray_offset"]
+__all__ = ["OpposedRays", "OpposedViewShifts", "opposed_ray_mismatch", "opposed_ray_offset", "opposed_ray_view_shifts"]
 
 
 def _plane_frame(geom: ConeGeometry):
@@ -40,22 +40,8 @@ def _plane_frame(geom: ConeGeometry):
     return centre, e1, e2
 
 
-def opposed_ray_mismatch(line_integrals, geom: ConeGeometry, shift_mm: float = 0.0, *, smooth_px: float = 1.0,
-                         central_fraction: float = 0.8) -> float:
-    """RMS difference between every ray and its opposed ray, with every detector shifted by
-    ``shift_mm`` along its ``u``.
-
-    Parameters
-    ----------
-    line_integrals : (n, 1, cols) or (n, cols) array
-        One-row projections over a full circle.
-    smooth_px : float
-        Gaussian smoothing along the detector row before comparing (sigma, pixels), so that the
-        interpolation of the opposed rays does not favour fractional offsets by averaging noise.
-    central_fraction : float
-        Only rays within this fraction of the largest distance from the centre are compared
-        (the outermost rays have no opposed partner inside the row).
-    """
+def _one_row(line_integrals, geom: ConeGeometry, smooth_px: float) -> np.ndarray:
+    """The projections as a (views, cols) float64 array, checked and smoothed along the row."""
     p = np.asarray(line_integrals, np.float64)
     p = p.reshape(p.shape[0], -1) if p.ndim == 3 and p.shape[1] == 1 else p
     if p.ndim != 2 or geom.n_rows != 1 or p.shape != (geom.n_views, geom.n_cols):
@@ -66,7 +52,13 @@ def opposed_ray_mismatch(line_integrals, geom: ConeGeometry, shift_mm: float = 0
         raise ValueError("opposed rays need finite projections")
     if smooth_px > 0:
         p = ndimage.gaussian_filter1d(p, smooth_px, axis=1, mode="nearest")
-    g = geom.replace(detector_mm=geom.detector_mm + float(shift_mm) * geom.u)
+    return p
+
+
+def _opposed(p: np.ndarray, g: ConeGeometry, central_fraction: float):
+    """Every ray's opposed measurement under the geometry ``g``: (opposed values (views, cols), the
+    rays that have one on the detector and lie within ``central_fraction`` of the largest distance
+    from the centre (views, cols) bool)."""
     n, nc = p.shape
     centre, e1, e2 = _plane_frame(g)
     phi = np.unwrap(np.arctan2((g.source_mm - centre) @ e2, (g.source_mm - centre) @ e1))
@@ -115,7 +107,28 @@ def opposed_ray_mismatch(line_integrals, geom: ConeGeometry, shift_mm: float = 0
     vb, okb = sample(j1, c_b)
     opposed = (1 - f) * va + f * vb
     dist = _line_distance(src - centre, d)  # of each line from the rotation centre
-    ok = oka & okb & (dist < central_fraction * dist.max())
+    return opposed, oka & okb & (dist < central_fraction * dist.max())
+
+
+def opposed_ray_mismatch(line_integrals, geom: ConeGeometry, shift_mm: float = 0.0, *, smooth_px: float = 1.0,
+                         central_fraction: float = 0.8) -> float:
+    """RMS difference between every ray and its opposed ray, with every detector shifted by
+    ``shift_mm`` along its ``u``.
+
+    Parameters
+    ----------
+    line_integrals : (n, 1, cols) or (n, cols) array
+        One-row projections over a full circle.
+    smooth_px : float
+        Gaussian smoothing along the detector row before comparing (sigma, pixels), so that the
+        interpolation of the opposed rays does not favour fractional offsets by averaging noise.
+    central_fraction : float
+        Only rays within this fraction of the largest distance from the centre are compared
+        (the outermost rays have no opposed partner inside the row).
+    """
+    p = _one_row(line_integrals, geom, smooth_px)
+    g = geom.replace(detector_mm=geom.detector_mm + float(shift_mm) * geom.u)
+    opposed, ok = _opposed(p, g, central_fraction)
     if ok.sum() < 10:
         raise ValueError("fewer than 10 rays have an opposed ray on the detector")
     return float(np.sqrt(np.mean((opposed[ok] - p[ok]) ** 2)))
@@ -140,10 +153,12 @@ class OpposedRays:
 
 
 def opposed_ray_offset(line_integrals, geom: ConeGeometry, *, reach_px: float = 1.0, steps: int = 21,
-                       smooth_px: float = 1.0) -> OpposedRays:
+                       smooth_px: float = 1.0, central_fraction: float = 0.8) -> OpposedRays:
     """The detector shift (along ``u``, the same for every view) at which opposed rays agree best,
     searched over ``reach_px`` pixels each way in ``steps`` steps: the stated geometry's
-    centre-of-rotation error as the data see it.
+    centre-of-rotation error as the data see it. ``central_fraction`` chooses the rays compared
+    (:func:`opposed_ray_mismatch`): on a scan that one geometry explains, the offset is the same
+    whichever rays are compared.
 
     Raises
     ------
@@ -154,7 +169,8 @@ def opposed_ray_offset(line_integrals, geom: ConeGeometry, *, reach_px: float = 
     if not (reach_px > 0 and int(steps) >= 3):
         raise ValueError("the search needs reach_px > 0 and at least 3 steps")
     shifts = np.linspace(-reach_px, reach_px, int(steps)) * geom.col_pitch_mm
-    m = np.array([opposed_ray_mismatch(line_integrals, geom, s, smooth_px=smooth_px) for s in shifts])
+    m = np.array([opposed_ray_mismatch(line_integrals, geom, s, smooth_px=smooth_px, central_fraction=central_fraction)
+                  for s in shifts])
     k = int(np.argmin(m))
     if k in (0, len(m) - 1):
         raise ValueError(f"the opposed rays agree best at the edge of the search ({shifts[k] / geom.col_pitch_mm:+g} "
@@ -162,3 +178,61 @@ def opposed_ray_offset(line_integrals, geom: ConeGeometry, *, reach_px: float = 
     a, b, _ = np.polyfit(shifts[k - 1:k + 2], m[k - 1:k + 2], 2)
     best = float(-b / (2 * a)) if a > 0 else float(shifts[k])
     return OpposedRays(tuple(float(x) for x in shifts), tuple(float(x) for x in m), best, best / geom.col_pitch_mm)
+
+
+@dataclass(frozen=True)
+class OpposedViewShifts:
+    """Per view, the shift of its detector along ``u`` at which its rays agree best with their
+    opposed rays, every other view kept as stated (mm and detector pixels, NaN where the best
+    agreement lies at the edge of the search, flagged in ``at_edge``).
+
+    What it measures: if the scan's views were really measured with their detectors shifted by
+    e(view) from the stated geometry, a view's shift is about e(view) + e(opposed view), the
+    opposed views being those half a turn away (within the fan angle). A component of e that
+    repeats every half turn (an even angular harmonic) appears doubled; one that changes sign
+    every half turn (an odd harmonic, the first among them a shift of the whole object) cancels
+    and cannot be seen.
+    """
+
+    shift_mm: np.ndarray
+    shift_px: np.ndarray
+    at_edge: np.ndarray
+
+
+def opposed_ray_view_shifts(line_integrals, geom: ConeGeometry, *, reach_px: float = 2.0, steps: int = 41,
+                            smooth_px: float = 1.0, central_fraction: float = 0.8) -> OpposedViewShifts:
+    """Each view's detector shift (along its ``u``) at which its rays agree best with their opposed
+    rays, searched over ``reach_px`` pixels each way in ``steps`` steps (a parabola through the
+    least mismatch and its neighbours): how far each view's centre of rotation lies from the
+    stated one, as the opposed views see it (:class:`OpposedViewShifts` says what that sum is).
+    The same checks as :func:`opposed_ray_mismatch`; every view needs 10 compared rays.
+    """
+    if not (reach_px > 0 and int(steps) >= 3):
+        raise ValueError("the search needs reach_px > 0 and at least 3 steps")
+    p = _one_row(line_integrals, geom, smooth_px)
+    opposed, ok = _opposed(p, geom, central_fraction)
+    n, nc = p.shape
+    y = np.arange(nc, dtype=np.float64)
+    ok &= (y >= reach_px + 1)[None, :] & (y <= nc - 2 - reach_px)[None, :]  # the same rays at every shift
+    if np.any(ok.sum(axis=1) < 10):
+        raise ValueError(f"{int(np.sum(ok.sum(axis=1) < 10))} views have fewer than 10 rays with an opposed "
+                         f"ray on the detector")
+    shifts_px = np.linspace(-reach_px, reach_px, int(steps))
+    mismatch = np.empty((len(shifts_px), n))
+    for k, shift in enumerate(shifts_px):
+        # the view's detector moved by +shift: its column c sits where column c + shift was
+        src = y - shift
+        c0 = np.clip(np.floor(src).astype(np.int64), 0, nc - 2)
+        w = src - c0
+        moved = (1 - w) * p[:, c0] + w * p[:, c0 + 1]
+        mismatch[k] = np.sum(np.where(ok, (moved - opposed) ** 2, 0.0), axis=1) / ok.sum(axis=1)
+    best = np.argmin(mismatch, axis=0)
+    at_edge = (best == 0) | (best == len(shifts_px) - 1)
+    k = np.clip(best, 1, len(shifts_px) - 2)
+    cols = np.arange(n)
+    m0, m1, m2 = mismatch[k - 1, cols], mismatch[k, cols], mismatch[k + 1, cols]
+    curv = m0 - 2 * m1 + m2
+    step = shifts_px[1] - shifts_px[0]
+    frac = np.where(curv > 0, 0.5 * (m0 - m2) / np.where(curv > 0, curv, 1.0), 0.0)
+    found_px = np.where(at_edge, np.nan, shifts_px[k] + np.clip(frac, -1, 1) * step)
+    return OpposedViewShifts(found_px * geom.col_pitch_mm, found_px, at_edge)

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from robot_ct_ros.ct.opposed_rays import opposed_ray_mismatch, opposed_ray_offset
+from robot_ct_ros.ct.opposed_rays import opposed_ray_mismatch, opposed_ray_offset, opposed_ray_view_shifts
 from robot_ct_ros.ct.simulation.analytic import ellipsoid_line_integrals
 from robot_ct_ros.ct.simulation.phantoms import ellipsoid
 from robot_ct_ros.ct.trajectory import circular_scan
@@ -15,7 +15,8 @@ PITCH_MM = 0.4
 
 def _disc_scan(offset_mm, *, axis=(0.0, 0.0, 1.0), n_views=240, noise=0.0, seed=0):
     """A one-row fan-beam scan of a disc with off-centre holes, measured with the detector
-    shifted by ``offset_mm`` along u, and the geometry that does not know it."""
+    shifted by ``offset_mm`` along u (one value, or one per view), and the geometry that does not
+    know it."""
     stated = circular_scan(n_views, 300.0, 450.0, 1, 160, PITCH_MM, PITCH_MM, axis=axis)
     a = np.asarray(axis, float) / np.linalg.norm(axis)
     e1 = np.cross(a, [1.0, 0, 0] if abs(a[0]) < 0.9 else [0, 1.0, 0])
@@ -26,7 +27,7 @@ def _disc_scan(offset_mm, *, axis=(0.0, 0.0, 1.0), n_views=240, noise=0.0, seed=
     prims = [ellipsoid((0, 0, 0), (30, 30, 200), 0.02, rotvec=rot, mode="add")]
     for x, y, r in ((12, 5, 3), (-8, 15, 2), (-14, -10, 4), (5, -20, 2.5)):
         prims.append(ellipsoid(R @ np.array([x, y, 0.0]), (r, 0.7 * r, 200), -0.02, rotvec=rot, mode="add"))
-    measured = stated.replace(detector_mm=stated.detector_mm + offset_mm * stated.u)
+    measured = stated.replace(detector_mm=stated.detector_mm + np.reshape(offset_mm, (-1, 1)) * stated.u)
     li = ellipsoid_line_integrals(prims, measured)
     if noise:
         li = li + np.random.default_rng(seed).normal(0, noise, li.shape).astype(np.float32)
@@ -72,3 +73,44 @@ def test_an_offset_beyond_the_search_is_not_reported_as_found():
     with pytest.raises(ValueError, match="more than 1 px"):
         opposed_ray_offset(li, stated, reach_px=1.0)
     assert opposed_ray_offset(li, stated, reach_px=3.0, steps=31).best_shift_px == pytest.approx(1.6, abs=0.05)
+
+
+def _harmonic(x, h):
+    return abs(np.fft.rfft(x)[h]) / len(x) * 2
+
+
+def test_per_view_shifts_see_the_even_harmonics_of_the_views_errors_doubled_and_not_the_odd():
+    """Each view's shift is its own error plus its opposed views': a component repeating every
+    half turn doubles, one changing sign every half turn cancels."""
+    n = 480
+    theta = np.arange(n) * 2 * np.pi / n
+    error_px = 0.1 + 0.3 * np.cos(2 * theta + 0.4) + 0.3 * np.sin(3 * theta)
+    li, stated = _disc_scan(error_px * PITCH_MM, n_views=n)
+    found = opposed_ray_view_shifts(li, stated, smooth_px=3.0)
+    assert not found.at_edge.any()
+    assert np.allclose(found.shift_mm, found.shift_px * PITCH_MM)
+    assert np.mean(found.shift_px) / 2 == pytest.approx(0.1, abs=0.03)  # the common centre of rotation
+    assert _harmonic(found.shift_px, 2) == pytest.approx(0.6, abs=0.06)
+    assert _harmonic(found.shift_px, 3) < 0.05
+    expected = error_px + np.roll(error_px, -n // 2)
+    assert np.sqrt(np.mean((found.shift_px - expected) ** 2)) < 0.15
+
+
+def test_per_view_shifts_of_a_consistent_scan_scatter_about_zero_in_any_frame():
+    li, stated = _disc_scan(0.0, axis=(0.3, 1.0, -0.2), n_views=480)
+    found = opposed_ray_view_shifts(li, stated, smooth_px=3.0)
+    assert abs(np.mean(found.shift_px)) < 0.03
+    assert np.sqrt(np.mean(found.shift_px ** 2)) < 0.2
+    assert max(_harmonic(found.shift_px, h) for h in (2, 4, 6)) < 0.05
+
+
+def test_a_per_view_shift_beyond_the_search_is_flagged_not_reported():
+    n = 480
+    error_px = np.zeros(n)
+    error_px[10] = 3.0
+    li, stated = _disc_scan(error_px * PITCH_MM, n_views=n)
+    found = opposed_ray_view_shifts(li, stated, reach_px=1.0, steps=21, smooth_px=3.0)
+    assert np.flatnonzero(found.at_edge).tolist() == [10] and np.isnan(found.shift_px[10])
+    assert np.all(np.isfinite(np.delete(found.shift_px, 10)))
+    with pytest.raises(ValueError, match="steps"):
+        opposed_ray_view_shifts(li, stated, steps=2)

@@ -1,0 +1,38 @@
+"""bench/bench_realdata_consistency.py: the harmonics, the opposed sum and the rim it reports."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from robot_ct_ros.ct.trajectory import circular_scan
+
+
+def test_the_opposed_sum_doubles_even_harmonics_and_cancels_odd_ones(load_bench):
+    bench = load_bench("bench_realdata_consistency")
+    theta = np.linspace(0, 2 * np.pi, 360, endpoint=False)
+    c = 0.2 + 0.1 * np.cos(2 * theta + 0.3) + 0.07 * np.sin(3 * theta) + 0.05 * np.cos(6 * theta)
+    h = bench.harmonics(bench.opposed_sum(c))
+    assert abs(h[1]) == pytest.approx(0.2) and abs(h[5]) == pytest.approx(0.1)
+    assert abs(h[2]) < 1e-12 and abs(h[0]) < 1e-12
+    assert np.angle(h[1]) == pytest.approx(0.3)  # phases are kept, so two estimates can be compared
+    assert np.mean(bench.opposed_sum(c)) == pytest.approx(0.4)
+
+
+def test_lowpass_keeps_the_low_harmonics_only(load_bench):
+    bench = load_bench("bench_realdata_consistency")
+    theta = np.linspace(0, 2 * np.pi, 720, endpoint=False)
+    low, high = np.cos(4 * theta), 0.5 * np.sin(40 * theta)
+    assert np.allclose(bench.lowpass(3.0 + low + high, 12), low, atol=1e-12)
+
+
+def test_the_rim_is_where_the_object_ends_on_the_row(load_bench):
+    """A disc of radius 20 mm centred on the axis, seen by a fan whose outermost ray passes
+    SOD sin(atan(half width / SDD)) from the centre."""
+    bench = load_bench("bench_realdata_consistency")
+    geom = circular_scan(8, 400.0, 600.0, 1, 400, 0.2, 0.2)
+    x_mm = (np.arange(400) - 199.5) * 0.2
+    dist = 400.0 * np.sin(np.arctan(x_mm / 600.0))  # each column's ray from the centre
+    li = np.broadcast_to(np.sqrt(np.clip(20.0 ** 2 - dist ** 2, 0, None)), (8, 1, 400))
+    outer = 400.0 * np.sin(np.arctan(199.5 * 0.2 / 600.0))
+    assert bench.rim_fraction(li, geom) == pytest.approx(20.0 / outer, abs=0.01)
