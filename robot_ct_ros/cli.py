@@ -182,6 +182,10 @@ def _cmd_info(args) -> int:
         print(f"centre     opposed rays not checked: {o['not_checked']}" if "not_checked" in o else
               f"centre     opposed rays agree best with every detector shifted {o['best_shift_px']:+.3f} px "
               f"({o['best_shift_mm']:+.4f} mm) along u: the stated centre of rotation's error as the data see it")
+        if o.get("by_ray_distance"):
+            parts = ", ".join(f"within {100 * float(f):.0f} % {v:+.3f} px" for f, v in o["by_ray_distance"].items())
+            print(f"centre     by the rays' distance from the centre: {parts} "
+                  f"(one geometry explains the scan where these agree)")
     for w in s["warnings"]:
         print(f"warning    {w}")
     return 0

@@ -324,8 +324,11 @@ def test_info_checks_a_fan_beam_scans_centre_of_rotation_by_opposed_rays(tmp_pat
 
     bags = Path(__file__).resolve().parents[1] / "bags"
     assert main(["info", "--json", str(bags / "htc2022_01a")]) == 0
-    found = json.loads(capsys.readouterr().out)["opposed_rays"]["best_shift_px"]
+    opposed = json.loads(capsys.readouterr().out)["opposed_rays"]
+    found = opposed["best_shift_px"]
     assert abs(found) < 0.2
+    assert sorted(opposed["by_ray_distance"]) == ["0.4", "0.8", "0.95"]
+    assert opposed["by_ray_distance"]["0.8"] == found  # the default rays
     scan = read_scan(bags / "htc2022_01a")
     g = scan.geom
     shifted = g.replace(detector_mm=g.detector_mm - 0.5 * g.col_pitch_mm * g.u)  # stated half a pixel off
@@ -334,5 +337,9 @@ def test_info_checks_a_fan_beam_scans_centre_of_rotation_by_opposed_rays(tmp_pat
     line = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("centre"))
     assert "opposed rays agree best with every detector shifted +0." in line
     assert float(line.split("shifted ")[1].split(" px")[0]) == pytest.approx(found + 0.5, abs=0.05)
+    assert main(["info", "--json", str(tmp_path / "shifted")]) == 0
+    moved = json.loads(capsys.readouterr().out)["opposed_rays"]["by_ray_distance"]
+    for fraction, shift_px in opposed["by_ray_distance"].items():  # a stated shift moves every ray alike
+        assert moved[fraction] == pytest.approx(shift_px + 0.5, abs=0.05)
     assert main(["info", str(bags / "sim_mouse_80")]) == 0
     assert "opposed rays" not in capsys.readouterr().out
