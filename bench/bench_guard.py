@@ -3,8 +3,8 @@
 The guard (robot_ct_ros.ct.calibration.guard, docs/calibration.md section 11) keeps the nominal
 geometry where the data do not support a correction. It must refuse harmful corrections and keep
 helpful ones. This script runs no calibration: it reads what the benches already wrote into
-``--results`` (results.json and the ``results.json`` of each folder there, bench_calibration's runs with a
-setting changed; sweep.json, interior.json, exterior_reach.json, realdata.json) and,
+``--results`` (results.json, sweep.json and interior.json, each also from every folder there that holds
+one: a run with a setting or the seed changed; exterior_reach.json, realdata.json) and,
 for each method and scan, takes:
 
 * the nominal geometry's error and the final error (gauge-aligned reprojection error of ROI
@@ -109,23 +109,29 @@ def collect(results_dir: str) -> tuple[list, list]:
         with open(path) as f:
             return json.load(f)
 
-    # results.json, then the runs of bench_calibration with a setting changed, one folder each (docs/results/padding_2/)
-    variants = sorted(n for n in os.listdir(results_dir) if os.path.isfile(os.path.join(results_dir, n, "results.json")))
-    for name in ["results.json"] + [f"{n}/results.json" for n in variants]:
+    def with_variants(name):
+        """``name`` at the top, then in each folder that holds one: a bench run with a setting or the
+        seed changed (docs/results/padding_2/results.json, docs/results/interior_seed_1/interior.json)."""
+        folders = sorted(n for n in os.listdir(results_dir) if os.path.isfile(os.path.join(results_dir, n, name)))
+        return [name] + [f"{n}/{name}" for n in folders]
+
+    for name in with_variants("results.json"):
         d = load(name)
         for sc in (d or {}).get("scenarios", []):
             out += _rows_source(name, f"({sc['key']})", sc["rows"], sc.get("notes", {}))
-    d = load("interior.json")
-    for sc in (d or {}).get("scans", []):
-        out += _rows_source("interior.json", f"neck {sc['sigma']:g} mm / {sc['sigma']:g} deg", sc["rows"],
-                            sc.get("notes", {}))
-    d = load("sweep.json")
-    for scale, cell in sorted((d or {}).get("scales", {}).items(), key=lambda kv: float(kv[0])):
-        nominal = cell["errors_px"]["none"]
-        for m, e in cell["errors_px"].items():
-            if m != "none":
-                out.append(record("sweep.json", f"mouse {float(scale):g}x", m, nominal, e, cell["notes"].get(m, ()),
-                                  cell["model_ncc"].get(m)))
+    for name in with_variants("interior.json"):
+        d = load(name)
+        for sc in (d or {}).get("scans", []):
+            out += _rows_source(name, f"neck {sc['sigma']:g} mm / {sc['sigma']:g} deg", sc["rows"],
+                                sc.get("notes", {}))
+    for name in with_variants("sweep.json"):
+        d = load(name)
+        for scale, cell in sorted((d or {}).get("scales", {}).items(), key=lambda kv: float(kv[0])):
+            nominal = cell["errors_px"]["none"]
+            for m, e in cell["errors_px"].items():
+                if m != "none":
+                    out.append(record(name, f"mouse {float(scale):g}x", m, nominal, e, cell["notes"].get(m, ()),
+                                      cell["model_ncc"].get(m)))
     d = load("exterior_reach.json")
     for r in (d or {}).get("rows", []):
         reach = "up to the sources" if not r["half_width_mm"] else f"{r['half_width_mm']:g} mm"

@@ -60,3 +60,23 @@ def test_every_outcome_is_told_from_the_errors_and_the_notes(tmp_path, load_benc
 def test_no_bench_results_is_an_error(tmp_path, load_bench):
     with pytest.raises(SystemExit):
         load_bench("bench_guard").main(["--results", str(tmp_path), "--out", str(tmp_path / "out")])
+
+
+def test_interior_and_sweep_runs_with_another_seed_are_read_from_their_folders(tmp_path, load_bench):
+    bench = load_bench("bench_guard")
+    applied = "guard: the correction is 0.80 times the robots' stated accuracy (limit 1.5)"
+    for folder, final in (("", 1.4), ("interior_seed_1", 1.6)):
+        (tmp_path / folder).mkdir(exist_ok=True)
+        scans = {"scans": [{"sigma": 0.1, "rows": [_row("none", 2.2), _row("ncc-lle-exact", final)],
+                            "notes": {"ncc-lle-exact": [applied]}}]}
+        (tmp_path / folder / "interior.json").write_text(json.dumps(scans))
+    sweep = {"scales": {"2": {"errors_px": {"none": 3.0, "gdc": 0.5}, "notes": {"gdc": [applied]},
+                              "model_ncc": {"gdc": 0.97}}}}
+    (tmp_path / "sweep_seed_1").mkdir()
+    (tmp_path / "sweep_seed_1" / "sweep.json").write_text(json.dumps(sweep))
+    records, read = bench.collect(str(tmp_path))
+    assert read == ["interior.json", "interior_seed_1/interior.json", "sweep_seed_1/sweep.json"]
+    by_source = {r["source"]: r for r in records}
+    assert by_source["interior.json"]["after_px"] == 1.4
+    assert by_source["interior_seed_1/interior.json"]["after_px"] == 1.6
+    assert by_source["sweep_seed_1/sweep.json"]["outcome"] == "kept a helpful correction"
