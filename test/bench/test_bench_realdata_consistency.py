@@ -36,3 +36,10 @@ def test_the_rim_is_where_the_object_ends_on_the_row(load_bench):
     li = np.broadcast_to(np.sqrt(np.clip(20.0 ** 2 - dist ** 2, 0, None)), (8, 1, 400))
     outer = 400.0 * np.sin(np.arctan(199.5 * 0.2 / 600.0))
     assert bench.rim_fraction(li, geom) == pytest.approx(20.0 / outer, abs=0.01)
+
+
+def test_the_figure_of_the_two_sums_is_written(tmp_path, load_bench):
+    bench = load_bench("bench_realdata_consistency")
+    theta = np.linspace(0, 2 * np.pi, 360, endpoint=False)
+    path = bench.plot_sums(tmp_path / "sums.png", np.cos(2 * theta), np.cos(2 * theta + 0.1), "title")
+    assert path.exists() and path.stat().st_size > 1000
