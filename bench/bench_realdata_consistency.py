@@ -81,6 +81,20 @@ def rim_fraction(line_integrals, geom) -> float:
     return float(max(dist[0], dist[1]) / max(dist[2], dist[3]))
 
 
+def half_turn_odd(s: np.ndarray) -> np.ndarray:
+    """(s(view) - s(view + 180 deg)) / 2: the part of a sum of opposed views' shifts that no per-view
+    shift produces (a sum e(view) + e(opposed view) repeats every half turn)."""
+    return (s - np.roll(s, -len(s) // 2)) / 2.0
+
+
+def half_turn_odd_summary(s: np.ndarray) -> dict:
+    """RMS of :func:`half_turn_odd` (px) and the view angle where its harmonics 1..LOWPASS peak (deg,
+    modulo 180: it is as large half a turn later, with the other sign)."""
+    odd = half_turn_odd(s)
+    peak = int(np.argmax(np.abs(lowpass(odd))[:len(s) // 2]))
+    return {"odd_rms_px": float(np.sqrt(np.mean(odd ** 2))), "odd_peak_deg": peak * 360.0 / len(s)}
+
+
 def opposed_sum(c: np.ndarray) -> np.ndarray:
     """c(view) + c(view half a turn later), for views uniform over the circle."""
     return c + np.roll(c, -len(c) // 2)
@@ -146,7 +160,8 @@ def main(argv=None) -> int:
             for source, s in sums.items():
                 h = harmonics(s)
                 per_view.append({"data": f"{ph}, {source}", "cor_px": float(np.mean(s) / 2),
-                                 "rms_px": float(np.std(s)), **{f"h{k + 1}": float(abs(h[k])) for k in range(HARMONICS)}})
+                                 "rms_px": float(np.std(s)), **{f"h{k + 1}": float(abs(h[k])) for k in range(HARMONICS)},
+                                 **half_turn_odd_summary(s)})
             detail[ph] = {"opposed_sum_px": {k: v.tolist() for k, v in sums.items()}}
             if args.no_calibration:
                 continue
@@ -187,7 +202,9 @@ def main(argv=None) -> int:
     off_cols = (("data", "data", "{}"), ("rim", "rim", "{:.2f}")) + tuple((f"f{int(round(f * 100))}", f"rays within {int(round(f * 100))} %",
                                                    "{:+.3f}") for f in FRACTIONS)
     pv_cols = ((("data", "data", "{}"), ("cor_px", "mean / 2 (px)", "{:+.3f}"), ("rms_px", "RMS (px)", "{:.3f}"))
-               + tuple((f"h{k}", f"h{k}", "{:.3f}") for k in range(1, HARMONICS + 1)))
+               + tuple((f"h{k}", f"h{k}", "{:.3f}") for k in range(1, HARMONICS + 1))
+               + (("odd_rms_px", "not a per-view shift: RMS (px)", "{:.3f}"),
+                  ("odd_peak_deg", "its peak (deg, mod 180)", "{:.0f}")))
     ag_cols = (("data", "data", "{}"), ("cor_cal_px", "calibration's mean c (px)", "{:+.3f}"),
                ("error_px", "its error vs documented (px)", "{:.3f}"))
     for hk in (2, 4, 6):
@@ -212,7 +229,11 @@ def main(argv=None) -> int:
           "view's detector shift at which its rays agree best with their opposed rays, the others as "
           "documented: e(view) + e(opposed view). Mean / 2: the centre of rotation it implies. Harmonics: "
           "amplitudes (px) of the sum's angular harmonics; even harmonics of e appear doubled, odd ones cancel, "
-          "so odd harmonics here are the method's own bias (compare the twin).", "",
+          "so odd harmonics here are the method's own bias (compare the twin). Not a per-view shift: the part "
+          "of the sum that changes sign every half turn, (s(view) - s(view + 180 deg)) / 2, which no per-view "
+          "shift produces (the data of views half a turn apart disagree otherwise, or the method's interpolation "
+          "between views does); its peak: the view angle where it is largest (harmonics 1-12; it is as large "
+          "half a turn later, with the other sign).", "",
           markdown_table(per_view, pv_cols), ""]
     if against:
         md += ["## 3. Against the calibration from the documented start", "",

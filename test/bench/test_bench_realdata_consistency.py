@@ -43,3 +43,16 @@ def test_the_figure_of_the_two_sums_is_written(tmp_path, load_bench):
     theta = np.linspace(0, 2 * np.pi, 360, endpoint=False)
     path = bench.plot_sums(tmp_path / "sums.png", np.cos(2 * theta), np.cos(2 * theta + 0.1), "title")
     assert path.exists() and path.stat().st_size > 1000
+
+
+def test_per_view_shifts_leave_no_half_turn_odd_part(load_bench):
+    """A sum e(view) + e(opposed view) repeats every half turn, whatever e; a disagreement between the
+    start and the end of the scan does not."""
+    bench = load_bench("bench_realdata_consistency")
+    rng = np.random.default_rng(1)
+    assert np.allclose(bench.half_turn_odd(bench.opposed_sum(rng.normal(size=720))), 0.0)
+    seam = np.zeros(720)
+    seam[350:370] = -0.5  # the views whose opposed rays cross the scan's start and end
+    found = bench.half_turn_odd_summary(seam)
+    assert found["odd_rms_px"] > 0.05 and min(found["odd_peak_deg"], 180 - found["odd_peak_deg"]) < 10
+    assert bench.half_turn_odd_summary(np.roll(seam, 180))["odd_peak_deg"] == pytest.approx(90, abs=10)
