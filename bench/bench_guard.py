@@ -3,8 +3,8 @@
 The guard (robot_ct_ros.ct.calibration.guard, docs/calibration.md section 11) keeps the nominal
 geometry where the data do not support a correction. It must refuse harmful corrections and keep
 helpful ones. This script runs no calibration: it reads what the benches already wrote into
-``--results`` (results.json, sweep.json and interior.json, each also from every folder there that holds
-one: a run with a setting or the seed changed; exterior_reach.json, realdata.json) and,
+``--results`` (results.json, sweep.json, interior.json and exterior_reach.json, each also from every folder
+there that holds one: a run with a setting or the seed changed; realdata.json) and,
 for each method and scan, takes:
 
 * the nominal geometry's error and the final error (gauge-aligned reprojection error of ROI
@@ -132,12 +132,14 @@ def collect(results_dir: str) -> tuple[list, list]:
                 if m != "none":
                     out.append(record(name, f"mouse {float(scale):g}x", m, nominal, e, cell["notes"].get(m, ()),
                                       cell["model_ncc"].get(m)))
-    d = load("exterior_reach.json")
-    for r in (d or {}).get("rows", []):
-        reach = "up to the sources" if not r["half_width_mm"] else f"{r['half_width_mm']:g} mm"
-        out.append(record("exterior_reach.json", "neck 0.1 mm / 0.1 deg", f"ncc-lle-exact, exterior reach {reach}",
-                          d["nominal_mean_px"], r["mean_px"], r.get("notes", ()) if isinstance(r.get("notes"), list)
-                          else [r.get("notes", "")], r.get("model_ncc"), r.get("unguarded_mean_px")))
+    for name in with_variants("exterior_reach.json"):
+        d = load(name)
+        for r in (d or {}).get("rows", []):
+            reach = "up to the sources" if not r["half_width_mm"] else f"{r['half_width_mm']:g} mm"
+            sigma = d.get("sigma", 0.1)
+            out.append(record(name, f"neck {sigma:g} mm / {sigma:g} deg", f"ncc-lle-exact, exterior reach {reach}",
+                              d["nominal_mean_px"], r["mean_px"], r.get("notes", ()) if isinstance(r.get("notes"), list)
+                              else [r.get("notes", "")], r.get("model_ncc"), r.get("unguarded_mean_px")))
     d = load("realdata.json")
     for ph, p in (d or {}).get("phantoms", {}).items():
         for case, c in p.get("cases", {}).items():

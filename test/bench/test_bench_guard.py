@@ -74,8 +74,15 @@ def test_interior_and_sweep_runs_with_another_seed_are_read_from_their_folders(t
                               "model_ncc": {"gdc": 0.97}}}}
     (tmp_path / "sweep_seed_1").mkdir()
     (tmp_path / "sweep_seed_1" / "sweep.json").write_text(json.dumps(sweep))
+    reach = {"sigma": 0.1, "nominal_mean_px": 2.1, "rows": [{"half_width_mm": 0, "mean_px": 2.5, "model_ncc": 0.89,
+                                                             "notes": [applied]}]}
+    (tmp_path / "exterior_reach_seed_1").mkdir()
+    (tmp_path / "exterior_reach_seed_1" / "exterior_reach.json").write_text(json.dumps(reach))
     records, read = bench.collect(str(tmp_path))
-    assert read == ["interior.json", "interior_seed_1/interior.json", "sweep_seed_1/sweep.json"]
+    assert read == ["interior.json", "interior_seed_1/interior.json", "sweep_seed_1/sweep.json",
+                    "exterior_reach_seed_1/exterior_reach.json"]
+    reached = next(r for r in records if r["source"] == "exterior_reach_seed_1/exterior_reach.json")
+    assert reached["outcome"] == "applied a harmful correction" and reached["scan"] == "neck 0.1 mm / 0.1 deg"
     by_source = {r["source"]: r for r in records}
     assert by_source["interior.json"]["after_px"] == 1.4
     assert by_source["interior_seed_1/interior.json"]["after_px"] == 1.6
