@@ -47,6 +47,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 from bench_realdata import DATA, load_phantom, synthetic_twin, view_mask  # noqa: E402
+from bench_realdata_halves import centre_shift_px, harmonics  # noqa: E402
 from robot_ct_ros.ct import calibration  # noqa: E402
 from robot_ct_ros.ct.metrics import reprojection_error, roi_points  # noqa: E402
 from robot_ct_ros.ct.opposed_rays import opposed_ray_offset, opposed_ray_view_shifts  # noqa: E402
@@ -56,11 +57,6 @@ FRACTIONS = (0.4, 0.6, 0.8, 0.95)
 SMOOTH_PX = 3.0
 HARMONICS = 8
 LOWPASS = 12
-
-
-def harmonics(x: np.ndarray, n: int = HARMONICS) -> np.ndarray:
-    """Complex amplitudes of the angular harmonics 1..n of ``x`` sampled uniformly over the circle."""
-    return (np.fft.rfft(np.asarray(x, float) - np.mean(x)) / len(x) * 2.0)[1:n + 1]
 
 
 def lowpass(x: np.ndarray, n: int = LOWPASS) -> np.ndarray:
@@ -158,7 +154,7 @@ def main(argv=None) -> int:
                 sums[source] = found.shift_px
             sums["measured - twin"] = sums["measured"] - sums["synthetic twin"]
             for source, s in sums.items():
-                h = harmonics(s)
+                h = harmonics(s, HARMONICS)
                 per_view.append({"data": f"{ph}, {source}", "cor_px": float(np.mean(s) / 2),
                                  "rms_px": float(np.std(s)), **{f"h{k + 1}": float(abs(h[k])) for k in range(HARMONICS)},
                                  **half_turn_odd_summary(s)})
@@ -171,12 +167,10 @@ def main(argv=None) -> int:
             settings = calibration.CalibrationSettings().with_prior(sigma_src, 0.01, detector_mm=g.col_pitch_mm)
             res = calibration.calibrate(np.ascontiguousarray(li[views]), geom, grid, settings,
                                         valid_mask=view_mask(mask, views))
-            dso = float(np.median(geom.sod_mm()))
-            k = (float(np.median(geom.sdd_mm)) - dso) / dso
-            c = (res.params[:, 3] + k * res.params[:, 0]) / geom.col_pitch_mm
+            c = centre_shift_px(res.params, geom, less_mean=False)
             s_cal = opposed_sum(c)
             s_opp = sums["measured - twin"][views]
-            h_cal, h_opp = harmonics(s_cal), harmonics(s_opp)
+            h_cal, h_opp = harmonics(s_cal, HARMONICS), harmonics(s_opp, HARMONICS)
             row = {"data": f"{ph}, even views", "cor_cal_px": float(np.mean(c)),
                    "error_px": float(reprojection_error(res.geom, geom, roi_points(grid))["mean_px"]),
                    "corr": float(np.corrcoef(lowpass(s_cal), lowpass(s_opp))[0, 1]),

@@ -73,19 +73,23 @@ INJECTED_COLUMNS = (("data", "data", "{}"), ("method", "method", "{}"),
 METHODS = ("ncc-lle-exact", "ncc-lle", "l2-lle", "gdc", "gdc-log")
 
 
-def centre_shift_px(params: np.ndarray, geom) -> np.ndarray:
-    """Per-view shift of the rotation centre's projection, d_u + k s_u (k = (SDD - SOD) / SOD), less its
-    mean, in detector pixels."""
+def centre_shift_px(params: np.ndarray, geom, *, less_mean: bool = True) -> np.ndarray:
+    """Per-view shift of the rotation centre's projection, d_u + k s_u (k = (SDD - SOD) / SOD), in
+    detector pixels; less its mean unless ``less_mean`` is False (the mean is a centre-of-rotation shift)."""
     dso = float(np.median(geom.sod_mm()))
     k = (float(np.median(geom.sdd_mm)) - dso) / dso
     c = (params[:, 3] + k * params[:, 0]) / geom.col_pitch_mm
-    return c - c.mean()
+    return c - c.mean() if less_mean else c
+
+
+def harmonics(c: np.ndarray, n: int = HARMONICS) -> np.ndarray:
+    """Complex amplitudes of the angular harmonics 1..n of ``c`` sampled uniformly over the full circle."""
+    return (np.fft.rfft(np.asarray(c, float)) / len(c) * 2.0)[1:n + 1]
 
 
 def harmonic_amplitudes(c: np.ndarray, n: int = HARMONICS) -> list:
     """Amplitudes of the angular harmonics 1..n of ``c`` sampled uniformly over the full circle."""
-    spectrum = np.fft.rfft(c) / len(c) * 2.0
-    return [float(abs(spectrum[h])) for h in range(1, n + 1)]
+    return [float(abs(a)) for a in harmonics(c, n)]
 
 
 def compare_halves(c_even: np.ndarray, c_odd: np.ndarray) -> dict:
