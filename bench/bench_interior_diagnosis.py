@@ -29,7 +29,10 @@ can do from what the reconstruction feeds it:
     fixed, the ROI reconstructed from the interior data that remain;
 12. how much of each view's error the estimate recovers in the combinations the ROI sees (the
     projection shifts d + (M - 1) s and the in-plane rotation): slope on the truth, correlation, noise;
-13. that absorption undone with a response measured by moving the geometry by known amounts.
+13. that absorption undone with a response measured by moving the geometry by known amounts;
+14. what the other views' data tell about a view, band by band: volumes from the true geometry without
+    the view's fold, on data binned 2, 4 and 8 times, how well they predict the views they did not see and
+    where the estimate ends against them.
 
 ``--tables 6`` computes only table 6 and keeps the others from the json already in ``--out``.
 
@@ -93,16 +96,30 @@ class Study:
         self.li_c, self.mask_c = bin_masked(sc.li, sc.mask, 2)
         self.nom_c = sc.nominal.binned(2)
         self.true_p = sc.true.params_relative_to(sc.nominal)
+        self._bands = {}
 
     def error_px(self, params) -> float:
         return reprojection_error(self.sc.nominal.perturbed(params), self.sc.true, self.points)["mean_px"]
 
-    def volume(self, level: str, params, views=None, *, voxel_mm=None, iterations=None,
+    def level(self, level):
+        """(line integrals, nominal geometry, grid, valid mask, LLE configuration) of ``level``: "coarse"
+        (2 x 2 binned data, the loop's coarse configuration), "fine" (full size, the fine one), or a binning
+        factor (the data binned so, the coarse configuration with one LLE level: that band alone)."""
+        if level == "coarse":
+            return self.li_c, self.nom_c, self.grid_c, self.mask_c, self.coarse
+        if level == "fine":
+            return self.sc.li, self.sc.nominal, self.grid_f, self.sc.mask, self.fine
+        if level not in self._bands:
+            li, mask = bin_masked(self.sc.li, self.sc.mask, level)
+            self._bands[level] = (li, self.sc.nominal.binned(level), self.grid_f.binned(level), mask,
+                                  replace(self.coarse, levels=1))
+        return self._bands[level]
+
+    def volume(self, level, params, views=None, *, voxel_mm=None, iterations=None,
                after_pass=None) -> VolumeParts:
         """The exterior model reconstructed from the level's data (``views`` of them) with the geometry ``params``."""
         s = self.settings
-        li, nom, grid, mask = ((self.li_c, self.nom_c, self.grid_c, self.mask_c) if level == "coarse"
-                               else (self.sc.li, self.sc.nominal, self.grid_f, self.sc.mask))
+        li, nom, grid, mask, _ = self.level(level)
         geom = nom.perturbed(params)
         if views is not None:
             li, geom, mask = li[views], geom.subset(views), mask[views]
@@ -110,13 +127,11 @@ class Study:
                                          half_width_mm=HALF_WIDTH_MM, iterations=iterations or s.exterior_iterations,
                                          subsets=s.exterior_subsets, after_pass=after_pass)
 
-    def estimate(self, level: str, params, volume, views=None, *, mask=None, cfg=None):
+    def estimate(self, level, params, volume, views=None, *, mask=None, cfg=None):
         """One estimation pass of ``views`` (default all) from ``params`` against ``volume``; ``mask``
         (the level's shape) replaces the level's valid-pixel mask, ``cfg`` the level's LLE configuration."""
         views = np.arange(self.n) if views is None else views
-        li, nom, grid, mask_l, cfg_l = ((self.li_c, self.nom_c, self.grid_c, self.mask_c, self.coarse)
-                                        if level == "coarse"
-                                        else (self.sc.li, self.sc.nominal, self.grid_f, self.sc.mask, self.fine))
+        li, nom, grid, mask_l, cfg_l = self.level(level)
         mask = mask_l if mask is None else mask
         cfg = cfg_l if cfg is None else cfg
         out = np.array(params, float)
@@ -464,6 +479,40 @@ def table_response(st: Study, say, probes: int = 3, caps=(0.5, 0.7, 0.9)) -> lis
     return rows
 
 
+def table_bands(st: Study, say, bands=(2, 4, 8), folds: int = 12) -> list:
+    """14: what the other views' data tell about a view, band by band. At each binning (one LLE level on
+    data binned so: the coarser, the lower the band), volumes reconstructed with the *true* geometry
+    without each view's interleaved fold (as table 7): how well they predict the views they did not see
+    (projection NCC at the true geometry, against the volume from every view, which includes the view's
+    own data), and where each view's estimate from the nominal geometry ends against them; for
+    comparison, the estimate against the volumes from every view with the true and the nominal geometry."""
+    zero = np.zeros((st.n, 9))
+    rows = []
+    for b in bands:
+        t0 = time.perf_counter()
+        li, nom, grid, mask, _ = st.level(b)
+        true_geom = nom.perturbed(st.true_p)
+        own = st.volume(b, st.true_p)
+        ncc_own = projection_consistency(own, grid, true_geom, li, mask)[1]
+        p, ncc_held = zero.copy(), []
+        for f in range(folds):
+            test = np.arange(f, st.n, folds)
+            vol = st.volume(b, st.true_p, np.setdiff1d(np.arange(st.n), test))
+            ncc_held.append(projection_consistency(vol, grid, true_geom.subset(test), li[test], mask[test])[1]
+                            * len(test))
+            p = st.estimate(b, p, vol, test)
+        rows.append({"binning": b, "pixel (mm)": round(float(nom.col_pitch_mm), 3),
+                     "projection NCC, own views in": round(float(ncc_own), 5),
+                     "projection NCC, own views held out": round(float(sum(ncc_held) / st.n), 5),
+                     "estimate, true geometry, own views in (px)": round(st.error_px(st.estimate(b, zero, own)), 3),
+                     "estimate, true geometry, own views held out (px)": round(st.error_px(p), 3),
+                     "estimate, nominal geometry, own views in (px)": round(
+                         st.error_px(st.estimate(b, zero, st.volume(b, zero))), 3),
+                     "wall time (s)": round(time.perf_counter() - t0, 1)})
+        say(f"  14. {rows[-1]}")
+    return rows
+
+
 TABLES = {
     "1": ("The estimator against volumes reconstructed with a chosen geometry",
           lambda st, args, say: table_reconstruction_geometry(st, say)),
@@ -483,6 +532,8 @@ TABLES = {
     "12": ("How much of each view's error the estimate recovers, per combination the ROI sees (coarse, one pass)",
            lambda st, args, say: table_absorption(st, say)),
     "13": ("The absorption undone with a measured response (coarse)", lambda st, args, say: table_response(st, say)),
+    "14": ("What the other views tell about a view, band by band (12 interleaved folds held out, one LLE level "
+           "on the binned data)", lambda st, args, say: table_bands(st, say)),
 }
 """Number -> (title, builder(study, args, say) -> rows)."""
 
