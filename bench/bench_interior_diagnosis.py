@@ -32,7 +32,7 @@ can do from what the reconstruction feeds it:
 13. that absorption undone with a response measured by moving the geometry by known amounts;
 14. what the other views' data tell about a view, band by band: volumes from the true geometry without
     the view's fold, on data binned 2, 4 and 8 times, how well they predict the views they did not see and
-    where the estimate ends against them.
+    where the estimate ends against them; at 180, 360 and 720 views.
 
 ``--tables 6`` computes only table 6 and keeps the others from the json already in ``--out``.
 
@@ -479,13 +479,24 @@ def table_response(st: Study, say, probes: int = 3, caps=(0.5, 0.7, 0.9)) -> lis
     return rows
 
 
-def table_bands(st: Study, say, bands=(2, 4, 8), folds: int = 12) -> list:
+def table_bands(st: Study, say, bands=(2, 4, 8), folds: int = 12, more_views=(), det=None, args=None) -> list:
     """14: what the other views' data tell about a view, band by band. At each binning (one LLE level on
     data binned so: the coarser, the lower the band), volumes reconstructed with the *true* geometry
     without each view's interleaved fold (as table 7): how well they predict the views they did not see
     (projection NCC at the true geometry, against the volume from every view, which includes the view's
     own data), and where each view's estimate from the nominal geometry ends against them; for
-    comparison, the estimate against the volumes from every view with the true and the nominal geometry."""
+    comparison, the estimate against the volumes from every view with the true and the nominal geometry.
+    ``more_views``: the same for the scan with that many views (same photons per view, as table 8; needs
+    ``args`` and ``det``), where the views lie closer together and a left-out view's neighbours nearer."""
+    rows = []
+    for n in (st.n,) + tuple(more_views):
+        s = st if n == st.n else Study(make_scan(args.sigma, views=n, det=det, axis="y", seed=args.seed,
+                                                 nxy=args.nxy, say=lambda m: None), st.settings)
+        rows += _bands(s, say, bands, folds)
+    return rows
+
+
+def _bands(st: Study, say, bands, folds: int) -> list:
     zero = np.zeros((st.n, 9))
     rows = []
     for b in bands:
@@ -501,7 +512,7 @@ def table_bands(st: Study, say, bands=(2, 4, 8), folds: int = 12) -> list:
             ncc_held.append(projection_consistency(vol, grid, true_geom.subset(test), li[test], mask[test])[1]
                             * len(test))
             p = st.estimate(b, p, vol, test)
-        rows.append({"binning": b, "pixel (mm)": round(float(nom.col_pitch_mm), 3),
+        rows.append({"views": st.n, "binning": b, "pixel (mm)": round(float(nom.col_pitch_mm), 3),
                      "projection NCC, own views in": round(float(ncc_own), 5),
                      "projection NCC, own views held out": round(float(sum(ncc_held) / st.n), 5),
                      "estimate, true geometry, own views in (px)": round(st.error_px(st.estimate(b, zero, own)), 3),
@@ -533,7 +544,9 @@ TABLES = {
            lambda st, args, say: table_absorption(st, say)),
     "13": ("The absorption undone with a measured response (coarse)", lambda st, args, say: table_response(st, say)),
     "14": ("What the other views tell about a view, band by band (12 interleaved folds held out, one LLE level "
-           "on the binned data)", lambda st, args, say: table_bands(st, say)),
+           "on the binned data; 360 and 720 views with the same photons per view)",
+           lambda st, args, say: table_bands(st, say, more_views=(360, 720), args=args,
+                                             det=tuple(int(x) for x in args.det.lower().split("x")))),
 }
 """Number -> (title, builder(study, args, say) -> rows)."""
 

@@ -67,7 +67,7 @@ def test_views_held_out_are_predicted_worse_than_views_in_at_each_band(load_benc
     assert (nom.n_rows, nom.n_cols) == (4, 10) and nom.col_pitch_mm == 4 * sc.nominal.col_pitch_mm
     assert grid == st.grid_f.binned(4) and cfg.levels == 1
     (row,) = bench.table_bands(st, lambda m: None, bands=(2,), folds=4)
-    assert row["binning"] == 2
+    assert row["binning"] == 2 and row["views"] == 24
     assert -1.0 <= row["projection NCC, own views held out"] < row["projection NCC, own views in"] <= 1.0
     for key in ("estimate, true geometry, own views in (px)", "estimate, true geometry, own views held out (px)",
                 "estimate, nominal geometry, own views in (px)"):
