@@ -38,8 +38,8 @@ can do from what the reconstruction feeds it:
 
 Writes ``interior_diagnosis.md`` and ``.json`` into ``--out``.
 
-    .venv/bin/python bench/bench_interior_diagnosis.py --out docs/results     # about 90 min on 2 cores
-    .venv/bin/python bench/bench_interior_diagnosis.py --tables 11 --out docs/results   # one table (11: 8 min)
+    .venv/bin/python bench/bench_interior_diagnosis.py --out docs/results     # about 110 min on 2 cores
+    .venv/bin/python bench/bench_interior_diagnosis.py --tables 11 --out docs/results   # one table (11: 8 min, 14: 16 min)
 """
 
 from __future__ import annotations
