@@ -13,11 +13,15 @@ Independent per-view robot errors of sigma 0.1 mm / 0.1 deg and 0.3 mm / 0.3 deg
 Every method of the registry runs through calibration.calibrate with default settings twice: as
 is, and with the object's reach stated (``exterior_half_width_mm`` 30 mm; ``exterior`` auto then
 models the object outside the ROI: the "+ exterior" rows); per method: gauge-aligned reprojection error of ROI points (mean, p95, px), SSIM against the FDK
-with the true geometry, wall time. Writes ``interior.md``, ``interior.json`` and figures into
+with the true geometry, wall time. Every other calibration setting has its option as on ``robot-ct
+calibrate`` (``--exterior-voxel-mm 0.25``, ...), applied to every method and named in ``interior.md``;
+the prior is each scan's robot error. Writes ``interior.md``, ``interior.json`` and figures into
 ``--out``.
 
     .venv/bin/python bench/bench_interior.py --out docs/results --oracle # about 90 min on 2 cores
     .venv/bin/python bench/bench_interior.py --sigmas 0.1 --methods none,ncc-lle-exact --views 90
+    .venv/bin/python bench/bench_interior.py --sigmas 0.1 --methods "none,ncc-lle-exact + exterior" \
+        --exterior-voxel-mm 0.25 --out docs/results/interior_exterior_voxel_0.25
 """
 
 from __future__ import annotations
@@ -33,8 +37,12 @@ from types import SimpleNamespace
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
+from bench_calibration import BENCH_OWNS, changed_settings  # noqa: E402
+
+from robot_ct_ros.cli import add_settings_arguments, settings_from_args  # noqa: E402
 from robot_ct_ros.ct import calibration  # noqa: E402
 from robot_ct_ros.ct import simulation as sim  # noqa: E402
 from robot_ct_ros.ct.geometry import VolumeGrid  # noqa: E402
@@ -156,7 +164,13 @@ def main(argv=None) -> int:
                     help="also estimate the views against the true object (ROI alone, and with the outside on 1, "
                          "0.5, 0.25 mm voxels): what the data term can do with a perfect volume")
     ap.add_argument("--out", default="out/bench_interior")
+    add_settings_arguments(ap, skip=BENCH_OWNS)
     args = ap.parse_args(argv)
+    if args.prior_sigma is not None:
+        ap.error("--prior-sigma: the prior is each scan's robot error (--sigmas), as a user states it")
+    default = calibration.CalibrationSettings()
+    settings = settings_from_args(args, iterations=args.iterations, method=default.method, seed=default.seed)
+    changed = {k: v for k, v in changed_settings(settings).items() if k != "iterations"}
     rows, cols = (int(x) for x in args.det.lower().split("x"))
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     os.makedirs(args.out, exist_ok=True)
@@ -165,10 +179,9 @@ def main(argv=None) -> int:
     def say(msg):
         print(msg, flush=True)
 
-    settings = calibration.CalibrationSettings(iterations=args.iterations)
     report = {"bench": "bench/bench_interior.py", "argv": sys.argv[1:] if argv is None else list(argv),
               "machine": f"{platform.machine()}, {os.cpu_count()} cores", "settings": settings.to_dict(),
-              "scans": []}
+              "settings_changed": changed, "scans": []}
     lines = ["# Interior-scan benchmark (bench/bench_interior.py)", "",
              f"A {sim.interior_neck_phantom(args.seed).info['body_width_mm']:.0f} mm neck of ellipsoids through the "
              f"seed system's robotic ROI trajectory, {args.views} views, {rows} x {cols} detector of 110 um; "
@@ -180,6 +193,9 @@ def main(argv=None) -> int:
              "Reprojection error: ROI points, gauge removed, px of the 110 um detector; SSIM against the FDK "
              "with the true geometry; wall time on this machine. Each method's notes (the guard's verdict) below "
              "its table.", ""]
+    if changed:
+        lines += ["Settings changed from the defaults for every method: "
+                  + ", ".join(f"`{k}` {v}" for k, v in changed.items()) + ".", ""]
     for sigma in (float(x) for x in args.sigmas.split(",")):
         sc = make_scan(sigma, views=args.views, det=(rows, cols), axis=args.axis, seed=args.seed, nxy=args.nxy,
                        say=say)

@@ -1,0 +1,26 @@
+"""bench/bench_interior.py: calibration settings given on its command line reach every method and its report."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+
+def test_a_setting_given_to_the_bench_reaches_the_calibration_and_the_report(load_bench, tmp_path):
+    """A tiny interior neck with the exterior on 1 mm voxels: the report names the changed setting, the
+    json holds it in the settings every method ran with, and the '+ exterior' row modelled the object
+    outside the ROI (its notes say so). The prior stays the bench's own (each scan's robot error)."""
+    bench = load_bench("bench_interior")
+    out = tmp_path / "interior"
+    assert bench.main(["--sigmas", "0.1", "--methods", "none,ncc-lle-exact + exterior", "--views", "12",
+                       "--det", "16x40", "--nxy", "16", "--iterations", "1", "--exterior-voxel-mm", "1",
+                       "--out", str(out)]) == 0
+    report = json.loads((out / "interior.json").read_text())
+    assert report["settings_changed"] == {"exterior_voxel_mm": 1.0}
+    assert report["settings"]["exterior_voxel_mm"] == 1.0
+    assert "`exterior_voxel_mm` 1.0" in (out / "interior.md").read_text()
+    notes = report["scans"][0]["notes"]["ncc-lle-exact + exterior"]
+    assert any("the object outside the ROI was modelled" in n for n in notes)
+    with pytest.raises(SystemExit):
+        bench.main(["--prior-sigma", "1,1", "--out", str(out)])
