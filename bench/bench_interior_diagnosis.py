@@ -497,6 +497,7 @@ def table_bands(st: Study, say, bands=(2, 4, 8), folds: int = 12, more_views=(),
 
 
 def _bands(st: Study, say, bands, folds: int) -> list:
+    """Table 14's rows for one scan (its Study), one per binning in ``bands``."""
     zero = np.zeros((st.n, 9))
     rows = []
     for b in bands:

@@ -197,8 +197,9 @@ def main(argv=None) -> int:
               "offsets": offsets, "per_view": per_view, "against_calibration": against, "detail": detail,
               "total_s": total}
     (out / "realdata_consistency.json").write_text(json.dumps(report, indent=1))
-    off_cols = (("data", "data", "{}"), ("smooth_px", "smoothing (px)", "{:g}"), ("rim", "rim", "{:.2f}")) + tuple((f"f{int(round(f * 100))}", f"rays within {int(round(f * 100))} %",
-                                                   "{:+.3f}") for f in FRACTIONS)
+    off_cols = ((("data", "data", "{}"), ("smooth_px", "smoothing (px)", "{:g}"), ("rim", "rim", "{:.2f}"))
+                + tuple((f"f{int(round(f * 100))}", f"rays within {int(round(f * 100))} %", "{:+.3f}")
+                        for f in FRACTIONS))
     pv_cols = ((("data", "data", "{}"), ("cor_px", "mean / 2 (px)", "{:+.3f}"), ("rms_px", "RMS (px)", "{:.3f}"))
                + tuple((f"h{k}", f"h{k}", "{:.3f}") for k in range(1, HARMONICS + 1))
                + (("odd_rms_px", "not a per-view shift: RMS (px)", "{:.3f}"),
@@ -218,10 +219,11 @@ def main(argv=None) -> int:
           "## 1. The centre of rotation, by the distance of the rays compared", "",
           "The detector shift (px, the same for every view) at which opposed rays agree best, comparing only "
           "the rays within the given fraction of the largest distance from the rotation centre "
-          "(opposed_ray_offset, shifts of -1 to 1 px in 0.1 px steps, a parabola through the least three), with the "
-          "rows Gaussian-smoothed along the detector by the given sigma first: a shift that only the interpolation "
-          "of a sharp edge between pixels produced would change with the smoothing. Rim: where the object's outermost edge lies, as such a fraction (the outermost column "
-          "whose mean over views exceeds 5 % of the largest).", "",
+          "(opposed_ray_offset, shifts of -1 to 1 px in 0.1 px steps, a parabola through the least three), "
+          "with the rows Gaussian-smoothed along the detector by the given sigma first: a shift that only the "
+          "interpolation of a sharp edge between pixels produced would change with the smoothing. Rim: where "
+          "the object's outermost edge lies, as such a fraction (the outermost column whose mean over views "
+          "exceeds 5 % of the largest).", "",
           markdown_table(offsets, off_cols), "",
           "## 2. Per view: the sum of a view's and its opposed views' shifts", "",
           f"opposed_ray_view_shifts ({SMOOTH_PX:g} px smoothing, shifts of -2 to 2 px in 0.1 px steps): each "
