@@ -134,9 +134,9 @@ def collect(results_dir: str) -> tuple[list, list]:
                                       cell["model_ncc"].get(m)))
     for name in with_variants("exterior_reach.json"):
         d = load(name)
+        sigma = (d or {}).get("sigma", 0.1)
         for r in (d or {}).get("rows", []):
             reach = "up to the sources" if not r["half_width_mm"] else f"{r['half_width_mm']:g} mm"
-            sigma = d.get("sigma", 0.1)
             out.append(record(name, f"neck {sigma:g} mm / {sigma:g} deg", f"ncc-lle-exact, exterior reach {reach}",
                               d["nominal_mean_px"], r["mean_px"], r.get("notes", ()) if isinstance(r.get("notes"), list)
                               else [r.get("notes", "")], r.get("model_ncc"), r.get("unguarded_mean_px")))

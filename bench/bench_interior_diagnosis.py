@@ -97,6 +97,18 @@ class Study:
         self.nom_c = sc.nominal.binned(2)
         self.true_p = sc.true.params_relative_to(sc.nominal)
         self._bands = {}
+        self._more_views = {}
+
+    def with_views(self, n: int, args) -> "Study":
+        """This study, or the same scan with ``n`` views (``args``: the scan arguments; same photons per view),
+        made once and kept for the tables that use it."""
+        if n == self.n:
+            return self
+        if n not in self._more_views:
+            det = tuple(int(x) for x in args.det.lower().split("x"))
+            self._more_views[n] = Study(make_scan(args.sigma, views=n, det=det, axis="y", seed=args.seed,
+                                                  nxy=args.nxy, say=lambda m: None), self.settings)
+        return self._more_views[n]
 
     def error_px(self, params) -> float:
         return reprojection_error(self.sc.nominal.perturbed(params), self.sc.true, self.points)["mean_px"]
@@ -279,11 +291,9 @@ def table_views(st: Study, args, say, more=(360, 720)) -> list:
     """8: the same scan with more views (same photons per view), the estimator against volumes from the
     true and from the nominal geometry (coarse level)."""
     rows = []
-    det = tuple(int(x) for x in args.det.lower().split("x"))
     for n in (st.n,) + tuple(more):
         t0 = time.perf_counter()
-        s = st if n == st.n else Study(make_scan(args.sigma, views=n, det=det, axis="y", seed=args.seed, nxy=args.nxy,
-                                                 say=lambda m: None), st.settings)
+        s = st.with_views(n, args)
         zero = np.zeros((s.n, 9))
         row = {"views": n, "nominal error (px)": round(s.error_px(zero), 3)}
         for name, p in (("true", s.true_p), ("nominal", zero)):
@@ -479,7 +489,7 @@ def table_response(st: Study, say, probes: int = 3, caps=(0.5, 0.7, 0.9)) -> lis
     return rows
 
 
-def table_bands(st: Study, say, bands=(2, 4, 8), folds: int = 12, more_views=(), det=None, args=None) -> list:
+def table_bands(st: Study, say, bands=(2, 4, 8), folds: int = 12, more_views=(), args=None) -> list:
     """14: what the other views' data tell about a view, band by band. At each binning (one LLE level on
     data binned so: the coarser, the lower the band), volumes reconstructed with the *true* geometry
     without each view's interleaved fold (as table 7): how well they predict the views they did not see
@@ -487,12 +497,10 @@ def table_bands(st: Study, say, bands=(2, 4, 8), folds: int = 12, more_views=(),
     own data), and where each view's estimate from the nominal geometry ends against them; for
     comparison, the estimate against the volumes from every view with the true and the nominal geometry.
     ``more_views``: the same for the scan with that many views (same photons per view, as table 8; needs
-    ``args`` and ``det``), where the views lie closer together and a left-out view's neighbours nearer."""
+    ``args``), where the views lie closer together and a left-out view's neighbours nearer."""
     rows = []
     for n in (st.n,) + tuple(more_views):
-        s = st if n == st.n else Study(make_scan(args.sigma, views=n, det=det, axis="y", seed=args.seed,
-                                                 nxy=args.nxy, say=lambda m: None), st.settings)
-        rows += _bands(s, say, bands, folds)
+        rows += _bands(st.with_views(n, args), say, bands, folds)
     return rows
 
 
@@ -546,8 +554,7 @@ TABLES = {
     "13": ("The absorption undone with a measured response (coarse)", lambda st, args, say: table_response(st, say)),
     "14": ("What the other views tell about a view, band by band (12 interleaved folds held out, one LLE level "
            "on the binned data; 360 and 720 views with the same photons per view)",
-           lambda st, args, say: table_bands(st, say, more_views=(360, 720), args=args,
-                                             det=tuple(int(x) for x in args.det.lower().split("x")))),
+           lambda st, args, say: table_bands(st, say, more_views=(360, 720), args=args)),
 }
 """Number -> (title, builder(study, args, say) -> rows)."""
 
