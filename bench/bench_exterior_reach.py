@@ -11,6 +11,10 @@ the guard's verdict, and the estimate before the guard. Writes ``exterior_reach.
 ``exterior_reach.json`` into ``--out``.
 
     .venv/bin/python bench/bench_exterior_reach.py --out docs/results      # about 35 min on 2 cores
+
+Every other calibration setting has its option as on ``robot-ct calibrate`` (``--exterior-iterations 30``, ...),
+named in ``exterior_reach.md``; the bench sets the method, the iterations, the exterior and its reach, and the
+prior (the robots' accuracy, ``--sigma``) itself.
 """
 
 from __future__ import annotations
@@ -25,9 +29,14 @@ import time
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
+from bench_calibration import BENCH_OWNS, changed_settings  # noqa: E402
 from bench_interior import make_scan  # noqa: E402
 
+from robot_ct_ros.cli import add_settings_arguments, settings_from_args  # noqa: E402
 from robot_ct_ros.ct import calibration  # noqa: E402
+
+REACH_OWNS = (*BENCH_OWNS, "exterior", "exterior_half_width_mm")
+"""Settings the bench sets itself: the method, the iterations, and the exterior model with the reach of each row."""
 from robot_ct_ros.ct.metrics import reprojection_error, roi_points  # noqa: E402
 
 
@@ -37,19 +46,29 @@ def main(argv=None) -> int:
     ap.add_argument("--reaches", default="22,30,45,64,0",
                     help="exterior half-widths in mm, comma-separated (0: up to the sources)")
     ap.add_argument("--views", type=int, default=180)
+    ap.add_argument("--det", default="96x160", help="ROWSxCOLS binned pixels (110 um)")
+    ap.add_argument("--nxy", type=int, default=96, help="ROI grid voxels across")
     ap.add_argument("--iterations", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="out/bench_exterior_reach")
+    add_settings_arguments(ap, skip=REACH_OWNS)
     args = ap.parse_args(argv)
+    if args.prior_sigma is not None:
+        ap.error("--prior-sigma: the prior is the robots' accuracy (--sigma), as a user states it")
+    default = calibration.CalibrationSettings()
+    base = settings_from_args(args, **{k: getattr(default, k) for k in REACH_OWNS})
+    changed = changed_settings(base)
     os.makedirs(args.out, exist_ok=True)
     t_all = time.perf_counter()
 
     def say(msg):
         print(msg, flush=True)
 
-    sc = make_scan(args.sigma, views=args.views, det=(96, 160), axis="y", seed=args.seed, nxy=96, say=say)
+    rows_det, cols_det = (int(x) for x in args.det.lower().split("x"))
+    sc = make_scan(args.sigma, views=args.views, det=(rows_det, cols_det), axis="y", seed=args.seed, nxy=args.nxy,
+                   say=say)
     pts = roi_points(sc.grid)
-    settings = calibration.CalibrationSettings(iterations=args.iterations).with_prior(args.sigma, args.sigma)
+    settings = base.replace(iterations=args.iterations).with_prior(args.sigma, args.sigma)
     nominal = reprojection_error(sc.nominal, sc.true, pts)
     rows = []
     for reach in (float(x) for x in args.reaches.split(",")):
@@ -70,15 +89,19 @@ def main(argv=None) -> int:
             f"{rows[-1]['wall_s']:.0f} s")
     report = {"bench": "bench/bench_exterior_reach.py", "argv": sys.argv[1:] if argv is None else list(argv),
               "machine": f"{platform.machine()}, {os.cpu_count()} cores", "sigma": args.sigma,
+              "settings_changed": changed,
               "body_mm": sc.body_mm, "fov_mm": sc.fov_mm, "nominal_mean_px": nominal["mean_px"],
               "nominal_p95_px": nominal["p95_px"], "rows": rows, "wall_s": time.perf_counter() - t_all}
     lines = ["# How far the exterior model must reach (bench/bench_exterior_reach.py)", "",
              f"The interior neck of bench_interior.py ({sc.body_mm:.0f} mm wide, half-width {sc.body_mm / 2:.1f} mm, "
-             f"field of view {sc.fov_mm:.2f} mm, {args.views} views, axis +y), robot errors {args.sigma:g} mm / "
+             f"field of view {sc.fov_mm:.2f} mm, {args.views} views, {rows_det} x {cols_det} detector, axis +y), "
+             f"robot errors {args.sigma:g} mm / "
              f"{args.sigma:g} deg, seed {args.seed}; ncc-lle-exact with the exterior model reaching the given "
              f"half-width from the ROI centre (0: up to the sources), {args.iterations} iterations, the prior and the "
              f"guard at the robots' accuracy. The nominal geometry: {nominal['mean_px']:.3f} px mean, "
-             f"{nominal['p95_px']:.3f} px p95 (gauge-aligned, ROI points).", "",
+             f"{nominal['p95_px']:.3f} px p95 (gauge-aligned, ROI points)."
+             + ("" if not changed else " Settings changed from the defaults: "
+                + ", ".join(f"`{k}` {v}" for k, v in changed.items()) + "."), "",
              "| exterior half-width (mm) | reproj. error mean (px) | p95 (px) | before the guard (px) | model NCC "
              "| guard | wall time (s) |", "| --- | --- | --- | --- | --- | --- | --- |"]
     for r in rows:

@@ -12,6 +12,10 @@ truncation_level), and whether the method ended worse than the nominal geometry.
 
     .venv/bin/python bench/bench_truncation_sweep.py --out docs/results     # about 90 min on 2 cores
     .venv/bin/python bench/bench_truncation_sweep.py --out docs/results --keep --scales 3 --methods gdc
+
+Every other calibration setting has its option as on ``robot-ct calibrate`` (``--exterior-iterations 30``, ...),
+applied to every method and named in ``sweep.md``; the bench sets the method, the iterations, the sampling
+seed and the exterior's reach itself.
 """
 
 from __future__ import annotations
@@ -25,8 +29,10 @@ import time
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-from bench_calibration import EXTERIOR_METHOD, make_scenario, run_method  # noqa: E402
+from bench_calibration import (BENCH_OWNS, EXTERIOR_METHOD, _det, changed_settings, make_scenario,  # noqa: E402
+                               run_method)
 
+from robot_ct_ros.cli import add_settings_arguments, settings_from_args  # noqa: E402
 from robot_ct_ros.ct import calibration  # noqa: E402
 from robot_ct_ros.ct.calibration.volume import truncation_level  # noqa: E402
 from robot_ct_ros.ct.metrics import reprojection_error, roi_points  # noqa: E402
@@ -37,14 +43,19 @@ REACH_STATED = {f"{m} (reach stated)": m for m in CORRECTING}
 """Each method with the mouse's reach stated (exterior_half_width_mm, the mouse's far side) and ``exterior`` at its
 default, auto: the object outside the ROI is modelled above the truncation level EXTERIOR_ABOVE."""
 METHODS = ("none", *CORRECTING, EXTERIOR_METHOD, *REACH_STATED)
+SWEEP_OWNS = (*BENCH_OWNS, "exterior", "exterior_half_width_mm")
+"""Settings the sweep sets itself: its rows are the method, with or without the mouse's reach stated."""
 
 
-def run(method: str, sc, iterations: int):
+def run(method: str, sc, iterations: int, base=None):
+    """One row's method on the scan ``sc``; ``base`` (CalibrationSettings, default: the defaults) holds the
+    settings every correcting method starts from."""
+    base = calibration.CalibrationSettings() if base is None else base
     if method in REACH_STATED:
-        settings = calibration.CalibrationSettings(method=REACH_STATED[method], iterations=iterations, seed=0,
-                                                   exterior_half_width_mm=sc.exterior_half_width_mm)
+        settings = base.replace(method=REACH_STATED[method], iterations=iterations, seed=0,
+                                exterior_half_width_mm=sc.exterior_half_width_mm)
         return calibration.calibrate(sc.li, sc.nominal, sc.grid, settings, valid_mask=sc.mask)
-    return run_method(method, sc, iterations, lambda s: None, seed=0)[0]
+    return run_method(method, sc, iterations, lambda s: None, seed=0, base=base)[0]
 
 
 def main(argv=None) -> int:
@@ -52,12 +63,18 @@ def main(argv=None) -> int:
     ap.add_argument("--scales", default="1,1.5,2,3", help="widths of the mouse, times scenario (a)'s")
     ap.add_argument("--methods", default=",".join(METHODS))
     ap.add_argument("--views", type=int, default=90)
+    ap.add_argument("--det", type=_det, default=(64, 96), help="detector ROWSxCOLS after binning (default 64x96)")
+    ap.add_argument("--vol", type=int, default=64, help="ROI grid voxels across (default 64)")
     ap.add_argument("--iterations", type=int, default=3)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="out/bench_sweep")
     ap.add_argument("--keep", action="store_true",
                     help="keep the cells of the existing sweep.json in --out that this run does not compute")
+    add_settings_arguments(ap, skip=SWEEP_OWNS)
     args = ap.parse_args(argv)
+    default = calibration.CalibrationSettings()
+    base = settings_from_args(args, **{k: getattr(default, k) for k in SWEEP_OWNS})
+    changed = changed_settings(base)
     run_methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     run_scales = [float(x) for x in args.scales.split(",")]
     os.makedirs(args.out, exist_ok=True)
@@ -66,8 +83,10 @@ def main(argv=None) -> int:
     if args.keep and os.path.exists(os.path.join(args.out, "sweep.json")):
         with open(os.path.join(args.out, "sweep.json")) as f:
             old = json.load(f)
-        if (old["views"], old["iterations"], old["seed"]) != (args.views, args.iterations, args.seed):
-            raise SystemExit("--keep: the existing sweep.json was run with other --views, --iterations or --seed")
+        if ((old["views"], tuple(old.get("det", (64, 96))), old.get("vol", 64), old["iterations"], old["seed"],
+             old.get("settings_changed", {})) != (args.views, args.det, args.vol, args.iterations, args.seed, changed)):
+            raise SystemExit("--keep: the existing sweep.json was run with other --views, --det, --vol, --iterations, "
+                             "--seed or calibration settings")
         table = {float(s): r for s, r in old["scales"].items()}
         kept_from = old.get("runs", [{"argv": "earlier run", "total_s": old.get("total_s")}])
 
@@ -75,13 +94,13 @@ def main(argv=None) -> int:
         print(f"[{time.perf_counter() - t_all:7.1f} s] {msg}", flush=True)
 
     for scale in run_scales:
-        sc = make_scenario("a", args.views, (64, 96), 64, 4, args.seed, say, phantom_scale=scale)
+        sc = make_scenario("a", args.views, args.det, args.vol, 4, args.seed, say, phantom_scale=scale)
         pts = roi_points(sc.grid)
         level = truncation_level(sc.li, sc.mask)
         row = table.setdefault(scale, {"errors_px": {}, "wall_s": {}, "model_ncc": {}, "notes": {}})
         row["truncation_level"] = level
         for m in run_methods:
-            res = run(m, sc, args.iterations)
+            res = run(m, sc, args.iterations, base)
             geom = res.geom if hasattr(res, "geom") else res[0]
             row["errors_px"][m] = reprojection_error(geom, sc.true, pts)["mean_px"]
             row["wall_s"][m] = res.wall_s if hasattr(res, "wall_s") else res[3]
@@ -101,7 +120,9 @@ def main(argv=None) -> int:
              "for the whole scan (its notes are in sweep.json). Second table: the model NCC (the last iteration's "
              "projection NCC, the guard's first test). Rows '(reach stated)': the method with the mouse's reach "
              "(exterior_half_width_mm, its far side) stated and exterior left at auto, which models the object "
-             "outside the ROI above a truncation level of 0.3.", "",
+             "outside the ROI above a truncation level of 0.3."
+             + ("" if not changed else " Settings changed from the defaults for every method: "
+                + ", ".join(f"`{k}` {v}" for k, v in changed.items()) + "."), "",
              "| method | " + " | ".join(f"{s:g}x (truncation {table[s]['truncation_level']:.3f})" for s in scales) + " |",
              "| --- | " + " | ".join("---" for _ in scales) + " |"]
     for m in methods:
@@ -131,7 +152,8 @@ def main(argv=None) -> int:
     with open(os.path.join(args.out, "sweep.md"), "w") as f:
         f.write("\n".join(lines) + "\n")
     with open(os.path.join(args.out, "sweep.json"), "w") as f:
-        json.dump({"views": args.views, "iterations": args.iterations, "seed": args.seed,
+        json.dump({"views": args.views, "det": list(args.det), "vol": args.vol, "iterations": args.iterations,
+                   "seed": args.seed, "settings_changed": changed,
                    "scales": {str(s): table[s] for s in scales}, "runs": runs,
                    "total_s": sum(r["total_s"] for r in runs if r.get("total_s") is not None)}, f, indent=2)
     say(f"wrote {args.out}/sweep.md, sweep.json ({total / 60:.1f} min)")
