@@ -12,7 +12,7 @@ from robot_ct_ros.ct.calibration.result import CalibrationResult
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
 from robot_ct_ros.ct.metrics import roi_points
 
-__all__ = ["average_estimates", "ENSEMBLE_SEED_STEP", "member_seeds"]
+__all__ = ["average_estimates", "ENSEMBLE_SEED_STEP", "member_notes", "member_seeds"]
 
 
 ENSEMBLE_SEED_STEP = 1000
@@ -38,6 +38,10 @@ def average_estimates(results, line_integrals, nominal: ConeGeometry, grid: Volu
     gauge-aligned displacement of the ROI points (``points_mm``, default those of ``grid``)
     between each run and the mean: the sampling's share of the error, a measure of the
     estimate's precision that needs no ground truth.
+
+    The result keeps what the runs said (:func:`member_notes`: the truncation, the exterior
+    model, each run's guard verdict) and, where the guard changed any run, ``params_unguarded``:
+    the mean of the runs' estimates before their guards.
     """
     from robot_ct_ros.ct.reconstruction import fdk
 
@@ -57,5 +61,32 @@ def average_estimates(results, line_integrals, nominal: ConeGeometry, grid: Volu
     wall = sum(r.wall_s for r in results) + time.perf_counter() - t0
     first = results[0]
     settings = first.settings.replace(ensemble=len(results)) if first.settings is not None else None
+    unguarded = None
+    if any(r.params_unguarded is not None for r in results):
+        unguarded = np.mean([r.params if r.params_unguarded is None else r.params_unguarded for r in results], axis=0)
+    notes = member_notes(results)
+    if len(results) > 1:
+        notes += (f"ensemble of {len(results)}: the mean of the runs' geometries; they lie {spread:.3f} px from it",)
     return CalibrationResult(first.method, params, geom, volume, first.history, wall,
-                             members=sum(r.members for r in results), spread_px=spread, settings=settings)
+                             members=sum(r.members for r in results), spread_px=spread, settings=settings,
+                             notes=notes, params_unguarded=unguarded)
+
+
+def member_notes(results) -> tuple:
+    """The notes of several runs as one list, in the order they first appear: a note every run made
+    once; one that only some runs made (a guard's verdict with its own figures), prefixed with the runs
+    (counted from 1) that made it."""
+    results = list(results)
+    order, made_by = [], {}
+    for k, r in enumerate(results, start=1):
+        for note in r.notes:
+            if note not in made_by:
+                order.append(note)
+                made_by[note] = []
+            made_by[note].append(k)
+    if len(results) == 1:
+        return tuple(order)
+    every = list(range(1, len(results) + 1))
+    return tuple(note if made_by[note] == every
+                 else f"run{'s' if len(made_by[note]) > 1 else ''} {', '.join(map(str, made_by[note]))}: {note}"
+                 for note in order)

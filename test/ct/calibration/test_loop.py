@@ -393,11 +393,41 @@ def test_an_ensemble_is_the_mean_of_its_members_and_says_how_far_they_spread():
     apart = reprojection_error(members[0].geom, members[1].geom, pts)["mean_px"]
     assert 0.0 < both.spread_px and both.spread_px == pytest.approx(0.5 * apart, rel=0.05)
     assert any("ensemble of 2" in line for line in said)
+    # what the members said reaches the ensemble's result: a note both made as it is, one only one made marked so
+    for k, member in enumerate(members, start=1):
+        for note in member.notes:
+            assert note in both.notes or f"run {k}: {note}" in both.notes
+    assert any(n.startswith("ensemble of 2: ") for n in both.notes)
     assert calibrate(measured, nominal, grid, ensemble=1, seed=3, iterations=1).spread_px != 0.0  # nan: one run
     with pytest.raises(ValueError, match="ensemble"):
         calibrate(measured, nominal, grid, ensemble=0)
     with pytest.raises(ValueError, match="no estimates"):
         average_estimates([], measured, nominal, grid)
+
+
+def test_an_ensemble_keeps_its_runs_notes_and_their_estimates_before_the_guard():
+    """A run whose guard kept the nominal geometry says so in the ensemble's notes, and the ensemble's
+    estimate before the guard is the mean of the runs' estimates before theirs."""
+    from dataclasses import replace
+
+    from robot_ct_ros.ct.calibration import average_estimates
+    from robot_ct_ros.ct.calibration.ensemble import member_notes
+
+    nominal, _, grid, measured = _small_scan(n_views=12)
+    run = calibrate(measured, nominal, grid, iterations=1, seed=3)
+    refused = replace(run, params=np.zeros_like(run.params), params_unguarded=run.params + 0.01,
+                      notes=("strongly truncated", "guard: the nominal geometry is kept"))
+    kept = replace(run, notes=("strongly truncated", "guard: the correction is 0.5 times the robots' accuracy"),
+                   params_unguarded=None)
+    both = average_estimates([refused, kept], measured, nominal, grid)
+    np.testing.assert_allclose(both.params, 0.5 * run.params, atol=1e-12)
+    np.testing.assert_allclose(both.params_unguarded, run.params + 0.005, atol=1e-12)
+    assert both.notes[:3] == ("strongly truncated", "run 1: guard: the nominal geometry is kept",
+                              "run 2: guard: the correction is 0.5 times the robots' accuracy")
+    assert both.notes[3].startswith("ensemble of 2: ")
+    assert average_estimates([kept, kept], measured, nominal, grid).params_unguarded is None
+    assert member_notes([kept]) == kept.notes
+    assert member_notes([refused, refused, kept])[1] == "runs 1, 2: guard: the nominal geometry is kept"
 
 
 def test_without_prior_the_loop_reports_no_independent_fraction():
