@@ -22,7 +22,7 @@ gauge-aligned reprojection error of ROI points (mean, p95, px), SSIM against the
 reconstruction, edge sharpness, cap thickness (c, on a full-resolution strip: CapStrip), outer
 iterations, wall time; with --repeats N each LLE method again with N - 1 more sampling seeds on
 the same scan (calibrate(seed=); their scatter, and the mean of their geometries as
-calibrate_ensemble makes it, below each table). Writes results.md,
+calibrate(ensemble=K) makes it, below each table). Writes results.md,
 results.json and figures (report.py) into --out.
 
     .venv/bin/python bench/bench_calibration.py                      # defaults: about 7 min on 2 cores (15 with --repeats 3)
@@ -232,7 +232,7 @@ def sampling_scatter(sc, results: dict, rows: list, truth_vol, repeats: int, ite
                      base=None) -> dict:
     """Each sampling method of ``results`` again with ``repeats - 1`` more sampling seeds on the
     same scan, and the mean of all its seeds' geometries (calibration.average_estimates, what
-    calibrate_ensemble returns): {method: {"seeds": [{"seed", "reproj_mean_px",
+    calibrate(ensemble=K) returns): {method: {"seeds": [{"seed", "reproj_mean_px",
     "reproj_p95_px", "ssim"}, ...] (the table's own run, seed 0, first), "mean_of_seeds": {the
     same metrics, "spread_px"}}}. Same metrics as the table (report.summarize), without the cap."""
     def metrics(res):
@@ -268,7 +268,7 @@ def scatter_lines(scatter: dict) -> list:
     seeds = [r["seed"] for r in next(iter(scatter.values()))["seeds"]]
     lines = [f"Sampling scatter: each LLE method again on the same scan with the sampling seeds "
              f"{', '.join(str(x) for x in seeds)} (the table's run is seed 0), and the mean of their geometries "
-             f"(calibration.average_estimates, as calibrate_ensemble; spread: the seeds' mean distance from it):",
+             f"(calibration.average_estimates, as calibrate(ensemble=K); spread: the seeds' mean distance from it):",
              "", "| method | error mean (px), per seed | mean ± sd | mean geometry: error (px), spread (px) | "
              "SSIM, per seed | SSIM, mean geometry |", "| --- | --- | --- | --- | --- | --- |"]
 

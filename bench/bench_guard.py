@@ -90,6 +90,12 @@ def record(source: str, scan: str, method: str, nominal_px: float, after_px: flo
             "after_px": round(after_px, 3), "outcome": outcome}
 
 
+def _outcome_px(r: dict) -> str:
+    """What a miss or a loss cost: the error a harmful correction ended at (after any views the guard reverted),
+    or the one a refused helpful correction would have reached."""
+    return f"ended at {r['after_px']}" if r["outcome"].startswith("applied") else f"would have reached {r['before_px']}"
+
+
 def _rows_source(source: str, scan: str, rows: list, notes: dict) -> list:
     by = {r["method"]: r for r in rows}
     nominal = by["none"]["reproj_mean_px"]
@@ -190,7 +196,7 @@ def main(argv=None) -> int:
              "out.", "",
              "## Summary", "", markdown_table(summ, [(k, k, "{}") for k in summ[0]]), "",
              f"Misses and losses: {len(wrong)} of {len(records)}"
-             + (": " + "; ".join(f"{r['source']} {r['scan']} {r['method']} ({r['outcome']}, {r['before_px']} against "
+             + (": " + "; ".join(f"{r['source']} {r['scan']} {r['method']} ({r['outcome']}, {_outcome_px(r)} against "
                                  f"{r['nominal_px']} px nominal)" for r in wrong) if wrong else "") + ".", "",
              "## Every calibration", "", markdown_table(records, cols), ""]
     with open(os.path.join(args.out, "guard.md"), "w") as f:

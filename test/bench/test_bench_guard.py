@@ -55,6 +55,9 @@ def test_every_outcome_is_told_from_the_errors_and_the_notes(tmp_path, load_benc
     assert bench.main(["--results", str(tmp_path), "--out", str(out)]) == 0
     text = (out / "guard.md").read_text()
     assert "Misses and losses: 2 of 6" in text and "refused-good" in text
+    # a miss is told by where it ended, a loss by what the refused correction would have reached
+    assert "bad (applied a harmful correction, ended at 3.5 against 3.0 px nominal)" in text
+    assert "refused-good (refused a helpful correction, would have reached 1.2 against 3.0 px nominal)" in text
 
 
 def test_no_bench_results_is_an_error(tmp_path, load_bench):
