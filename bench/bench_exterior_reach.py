@@ -34,10 +34,11 @@ from bench_interior import make_scan  # noqa: E402
 
 from robot_ct_ros.cli import add_settings_arguments, settings_from_args  # noqa: E402
 from robot_ct_ros.ct import calibration  # noqa: E402
+from robot_ct_ros.ct.metrics import reprojection_error, roi_points  # noqa: E402
 
 REACH_OWNS = (*BENCH_OWNS, "exterior", "exterior_half_width_mm")
-"""Settings the bench sets itself: the method, the iterations, and the exterior model with the reach of each row."""
-from robot_ct_ros.ct.metrics import reprojection_error, roi_points  # noqa: E402
+"""Settings the bench sets itself: the method, the iterations, the sampling seed, and the exterior model with the
+reach of each row."""
 
 
 def main(argv=None) -> int:
