@@ -146,12 +146,13 @@ def collect(results_dir: str) -> tuple[list, list]:
             out.append(record(name, f"neck {sigma:g} mm / {sigma:g} deg", f"ncc-lle-exact, exterior reach {reach}",
                               d["nominal_mean_px"], r["mean_px"], r.get("notes", ()) if isinstance(r.get("notes"), list)
                               else [r.get("notes", "")], r.get("model_ncc"), r.get("unguarded_mean_px")))
-    d = load("realdata.json")
-    for ph, p in (d or {}).get("phantoms", {}).items():
-        for case, c in p.get("cases", {}).items():
-            nominal = {r["method"]: r for r in c["rows"]}.get("none", {}).get("reproj_mean_px", 0.0)
-            if nominal > 0:  # a scan started at its true geometry has nothing to correct
-                out += _rows_source("realdata.json", f"HTC2022 {ph} {case}", c["rows"], c.get("notes", {}))
+    for name in with_variants("realdata.json"):
+        d = load(name)
+        for ph, p in (d or {}).get("phantoms", {}).items():
+            for case, c in p.get("cases", {}).items():
+                nominal = {r["method"]: r for r in c["rows"]}.get("none", {}).get("reproj_mean_px", 0.0)
+                if nominal > 0:  # a scan started at its true geometry has nothing to correct
+                    out += _rows_source(name, f"HTC2022 {ph} {case}", c["rows"], c.get("notes", {}))
     return out, read
 
 

@@ -65,7 +65,7 @@ def test_no_bench_results_is_an_error(tmp_path, load_bench):
         load_bench("bench_guard").main(["--results", str(tmp_path), "--out", str(tmp_path / "out")])
 
 
-def test_interior_and_sweep_runs_with_another_seed_are_read_from_their_folders(tmp_path, load_bench):
+def test_runs_with_another_seed_are_read_from_their_folders(tmp_path, load_bench):
     bench = load_bench("bench_guard")
     applied = "guard: the correction is 0.80 times the robots' stated accuracy (limit 1.5)"
     for folder, final in (("", 1.4), ("interior_seed_1", 1.6)):
@@ -81,9 +81,15 @@ def test_interior_and_sweep_runs_with_another_seed_are_read_from_their_folders(t
                                                              "notes": [applied]}]}
     (tmp_path / "exterior_reach_seed_1").mkdir()
     (tmp_path / "exterior_reach_seed_1" / "exterior_reach.json").write_text(json.dumps(reach))
+    real = {"phantoms": {"01a": {"cases": {"independent": {"rows": [_row("none", 1.15), _row("gdc", 0.2)],
+                                                           "notes": {"gdc": [applied]}}}}}}
+    (tmp_path / "realdata_seed_1").mkdir()
+    (tmp_path / "realdata_seed_1" / "realdata.json").write_text(json.dumps(real))
     records, read = bench.collect(str(tmp_path))
     assert read == ["interior.json", "interior_seed_1/interior.json", "sweep_seed_1/sweep.json",
-                    "exterior_reach_seed_1/exterior_reach.json"]
+                    "exterior_reach_seed_1/exterior_reach.json", "realdata_seed_1/realdata.json"]
+    real_record = next(r for r in records if r["source"] == "realdata_seed_1/realdata.json")
+    assert real_record["scan"] == "HTC2022 01a independent" and real_record["outcome"] == "kept a helpful correction"
     reached = next(r for r in records if r["source"] == "exterior_reach_seed_1/exterior_reach.json")
     assert reached["outcome"] == "applied a harmful correction" and reached["scan"] == "neck 0.1 mm / 0.1 deg"
     by_source = {r["source"]: r for r in records}
