@@ -289,12 +289,33 @@ BENCH_OWNS = ("method", "iterations", "seed")
 """Settings the bench sets itself (--methods, --iterations, the sampling seeds); every other field of
 CalibrationSettings has its command-line option here (--fov-support on, --padding 2, ...), applied to
 every correcting method."""
+EXTERIOR_OWNS = (*BENCH_OWNS, "exterior", "exterior_half_width_mm")
+"""What a bench whose rows set the exterior model and its reach themselves owns besides (bench_truncation_sweep.py,
+bench_exterior_reach.py)."""
 
 
 def changed_settings(settings) -> dict:
     """The fields of ``settings`` that differ from the defaults: {name: value}."""
     default = calibration.CalibrationSettings().to_dict()
     return {k: v for k, v in settings.to_dict().items() if default.get(k) != v}
+
+
+def bench_settings(args, owns=BENCH_OWNS):
+    """(settings, changed): the CalibrationSettings of a bench's parsed options (add_settings_arguments with
+    ``skip=owns``), the fields in ``owns``, which the bench sets itself, at their defaults; and
+    :func:`changed_settings` of them."""
+    default = calibration.CalibrationSettings()
+    settings = settings_from_args(args, **{k: getattr(default, k) for k in owns})
+    return settings, changed_settings(settings)
+
+
+def changed_sentence(changed: dict, applied_to: str | None = None) -> str:
+    """The report's sentence naming the settings a bench changed ("" when none), e.g. "Settings changed from
+    the defaults for every method: `padding` 2."."""
+    if not changed:
+        return ""
+    return (f"Settings changed from the defaults{' for ' + applied_to if applied_to else ''}: "
+            + ", ".join(f"`{k}` {v}" for k, v in changed.items()) + ".")
 
 
 def main(argv=None) -> int:
@@ -316,9 +337,7 @@ def main(argv=None) -> int:
     ap.add_argument("--no-figures", action="store_true", help="write the tables alone (e.g. for a run with a setting changed)")
     add_settings_arguments(ap, skip=BENCH_OWNS)
     args = ap.parse_args(argv)
-    default = calibration.CalibrationSettings()
-    base = settings_from_args(args, **{k: getattr(default, k) for k in BENCH_OWNS})  # --iterations, --seed: the bench's
-    changed = changed_settings(base)
+    base, changed = bench_settings(args)  # --iterations, --seed: the bench's
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     for m in methods:
         if m not in ALL_METHODS:
@@ -403,8 +422,7 @@ def main(argv=None) -> int:
              f"the true geometry, each estimate moved into the true gauge first. Total {total / 60:.1f} min on {os.cpu_count()} CPU(s) "
              f"(load at end {os.getloadavg()[0]:.2f}).", ""]
     if changed:
-        lines += ["Settings changed from the defaults for every correcting method: "
-                  + ", ".join(f"`{k}` {v}" for k, v in changed.items()) + ".", ""]
+        lines += [changed_sentence(changed, "every correcting method"), ""]
     for s in scenarios:
         lines += [f"## {s['title']}", ""]
         if s["true_cap_um"] is not None:

@@ -29,16 +29,12 @@ import time
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-from bench_calibration import BENCH_OWNS, changed_settings  # noqa: E402
+from bench_calibration import EXTERIOR_OWNS, bench_settings, changed_sentence  # noqa: E402
 from bench_interior import make_scan  # noqa: E402
 
-from robot_ct_ros.cli import add_settings_arguments, settings_from_args  # noqa: E402
+from robot_ct_ros.cli import add_settings_arguments  # noqa: E402
 from robot_ct_ros.ct import calibration  # noqa: E402
 from robot_ct_ros.ct.metrics import reprojection_error, roi_points  # noqa: E402
-
-REACH_OWNS = (*BENCH_OWNS, "exterior", "exterior_half_width_mm")
-"""Settings the bench sets itself: the method, the iterations, the sampling seed, and the exterior model with the
-reach of each row."""
 
 
 def main(argv=None) -> int:
@@ -52,13 +48,11 @@ def main(argv=None) -> int:
     ap.add_argument("--iterations", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="out/bench_exterior_reach")
-    add_settings_arguments(ap, skip=REACH_OWNS)
+    add_settings_arguments(ap, skip=EXTERIOR_OWNS)  # each row: the exterior model with its reach
     args = ap.parse_args(argv)
     if args.prior_sigma is not None:
         ap.error("--prior-sigma: the prior is the robots' accuracy (--sigma), as a user states it")
-    default = calibration.CalibrationSettings()
-    base = settings_from_args(args, **{k: getattr(default, k) for k in REACH_OWNS})
-    changed = changed_settings(base)
+    base, changed = bench_settings(args, EXTERIOR_OWNS)
     os.makedirs(args.out, exist_ok=True)
     t_all = time.perf_counter()
 
@@ -101,8 +95,7 @@ def main(argv=None) -> int:
              f"half-width from the ROI centre (0: up to the sources), {args.iterations} iterations, the prior and the "
              f"guard at the robots' accuracy. The nominal geometry: {nominal['mean_px']:.3f} px mean, "
              f"{nominal['p95_px']:.3f} px p95 (gauge-aligned, ROI points)."
-             + ("" if not changed else " Settings changed from the defaults: "
-                + ", ".join(f"`{k}` {v}" for k, v in changed.items()) + "."), "",
+             + ("" if not changed else " " + changed_sentence(changed)), "",
              "| exterior half-width (mm) | reproj. error mean (px) | p95 (px) | before the guard (px) | model NCC "
              "| guard | wall time (s) |", "| --- | --- | --- | --- | --- | --- | --- |"]
     for r in rows:

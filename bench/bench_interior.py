@@ -40,9 +40,9 @@ from scipy.spatial.transform import Rotation
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-from bench_calibration import BENCH_OWNS, changed_settings  # noqa: E402
+from bench_calibration import BENCH_OWNS, bench_settings, changed_sentence  # noqa: E402
 
-from robot_ct_ros.cli import add_settings_arguments, settings_from_args  # noqa: E402
+from robot_ct_ros.cli import add_settings_arguments  # noqa: E402
 from robot_ct_ros.ct import calibration  # noqa: E402
 from robot_ct_ros.ct import simulation as sim  # noqa: E402
 from robot_ct_ros.ct.geometry import VolumeGrid  # noqa: E402
@@ -168,9 +168,8 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if args.prior_sigma is not None:
         ap.error("--prior-sigma: the prior is each scan's robot error (--sigmas), as a user states it")
-    default = calibration.CalibrationSettings()
-    settings = settings_from_args(args, iterations=args.iterations, method=default.method, seed=default.seed)
-    changed = {k: v for k, v in changed_settings(settings).items() if k != "iterations"}
+    settings, changed = bench_settings(args)
+    settings = settings.replace(iterations=args.iterations)
     rows, cols = (int(x) for x in args.det.lower().split("x"))
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     os.makedirs(args.out, exist_ok=True)
@@ -194,8 +193,7 @@ def main(argv=None) -> int:
              "with the true geometry; wall time on this machine. Each method's notes (the guard's verdict) below "
              "its table.", ""]
     if changed:
-        lines += ["Settings changed from the defaults for every method: "
-                  + ", ".join(f"`{k}` {v}" for k, v in changed.items()) + ".", ""]
+        lines += [changed_sentence(changed, "every method"), ""]
     for sigma in (float(x) for x in args.sigmas.split(",")):
         sc = make_scan(sigma, views=args.views, det=(rows, cols), axis=args.axis, seed=args.seed, nxy=args.nxy,
                        say=say)

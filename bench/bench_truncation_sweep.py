@@ -29,10 +29,10 @@ import time
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-from bench_calibration import (BENCH_OWNS, EXTERIOR_METHOD, _det, changed_settings, make_scenario,  # noqa: E402
-                               run_method)
+from bench_calibration import (EXTERIOR_METHOD, EXTERIOR_OWNS, _det, bench_settings, changed_sentence,  # noqa: E402
+                               make_scenario, run_method)
 
-from robot_ct_ros.cli import add_settings_arguments, settings_from_args  # noqa: E402
+from robot_ct_ros.cli import add_settings_arguments  # noqa: E402
 from robot_ct_ros.ct import calibration  # noqa: E402
 from robot_ct_ros.ct.calibration.volume import truncation_level  # noqa: E402
 from robot_ct_ros.ct.metrics import reprojection_error, roi_points  # noqa: E402
@@ -43,8 +43,6 @@ REACH_STATED = {f"{m} (reach stated)": m for m in CORRECTING}
 """Each method with the mouse's reach stated (exterior_half_width_mm, the mouse's far side) and ``exterior`` at its
 default, auto: the object outside the ROI is modelled above the truncation level EXTERIOR_ABOVE."""
 METHODS = ("none", *CORRECTING, EXTERIOR_METHOD, *REACH_STATED)
-SWEEP_OWNS = (*BENCH_OWNS, "exterior", "exterior_half_width_mm")
-"""Settings the sweep sets itself: its rows are the method, with or without the mouse's reach stated."""
 
 
 def run(method: str, sc, iterations: int, base=None):
@@ -70,11 +68,9 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="out/bench_sweep")
     ap.add_argument("--keep", action="store_true",
                     help="keep the cells of the existing sweep.json in --out that this run does not compute")
-    add_settings_arguments(ap, skip=SWEEP_OWNS)
+    add_settings_arguments(ap, skip=EXTERIOR_OWNS)  # the rows: the method, with or without the reach stated
     args = ap.parse_args(argv)
-    default = calibration.CalibrationSettings()
-    base = settings_from_args(args, **{k: getattr(default, k) for k in SWEEP_OWNS})
-    changed = changed_settings(base)
+    base, changed = bench_settings(args, EXTERIOR_OWNS)
     run_methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     run_scales = [float(x) for x in args.scales.split(",")]
     os.makedirs(args.out, exist_ok=True)
@@ -121,8 +117,7 @@ def main(argv=None) -> int:
              "projection NCC, the guard's first test). Rows '(reach stated)': the method with the mouse's reach "
              "(exterior_half_width_mm, its far side) stated and exterior left at auto, which models the object "
              "outside the ROI above a truncation level of 0.3."
-             + ("" if not changed else " Settings changed from the defaults for every method: "
-                + ", ".join(f"`{k}` {v}" for k, v in changed.items()) + "."), "",
+             + ("" if not changed else " " + changed_sentence(changed, "every method")), "",
              "| method | " + " | ".join(f"{s:g}x (truncation {table[s]['truncation_level']:.3f})" for s in scales) + " |",
              "| --- | " + " | ".join("---" for _ in scales) + " |"]
     for m in methods:
