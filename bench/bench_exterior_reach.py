@@ -29,7 +29,7 @@ import time
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-from bench_calibration import EXTERIOR_OWNS, bench_settings, changed_sentence  # noqa: E402
+from bench_calibration import EXTERIOR_OWNS, _det, bench_settings, changed_sentence  # noqa: E402
 from bench_interior import make_scan  # noqa: E402
 
 from robot_ct_ros.cli import add_settings_arguments  # noqa: E402
@@ -43,7 +43,7 @@ def main(argv=None) -> int:
     ap.add_argument("--reaches", default="22,30,45,64,0",
                     help="exterior half-widths in mm, comma-separated (0: up to the sources)")
     ap.add_argument("--views", type=int, default=180)
-    ap.add_argument("--det", default="96x160", help="ROWSxCOLS binned pixels (110 um)")
+    ap.add_argument("--det", type=_det, default=(96, 160), help="ROWSxCOLS binned pixels (110 um)")
     ap.add_argument("--nxy", type=int, default=96, help="ROI grid voxels across")
     ap.add_argument("--iterations", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
@@ -59,7 +59,7 @@ def main(argv=None) -> int:
     def say(msg):
         print(msg, flush=True)
 
-    rows_det, cols_det = (int(x) for x in args.det.lower().split("x"))
+    rows_det, cols_det = args.det
     sc = make_scan(args.sigma, views=args.views, det=(rows_det, cols_det), axis="y", seed=args.seed, nxy=args.nxy,
                    say=say)
     pts = roi_points(sc.grid)
