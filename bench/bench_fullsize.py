@@ -52,13 +52,17 @@ from contextlib import contextmanager
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
+from bench_calibration import BENCH_OWNS, bench_settings  # noqa: E402
+
+from robot_ct_ros.cli import add_settings_arguments  # noqa: E402
 from robot_ct_ros.ct import calibration  # noqa: E402
 from robot_ct_ros.ct import simulation as sim  # noqa: E402
 from robot_ct_ros.ct.geometry import VolumeGrid  # noqa: E402
 from robot_ct_ros.ct.metrics import gauge_aligned_reprojection_error, roi_points  # noqa: E402
-from robot_ct_ros.ct.trajectory import SeedSystem, robotic_roi_scan, roi_scan_offset_mm  # noqa: E402
+from robot_ct_ros.ct.trajectory import SeedSystem, fov_radius_mm, robotic_roi_scan, roi_scan_offset_mm  # noqa: E402
 
 AXIS_Y = Rotation.from_rotvec([-np.pi / 2, 0.0, 0.0]).as_matrix()  # the scan's z axis becomes +y (RTK)
 PHOTONS_BEHIND_BODY = 4000.0
@@ -67,6 +71,9 @@ FOV_MM = 50.0
 TARGETS = {"calibrate_s": 600.0, "peak_rss_gb": 8.0}
 """The issue's targets: calibration within 10 minutes, peak resident memory within 8 GB."""
 GB = 1e9
+FULLSIZE_OWNS = (*BENCH_OWNS, "schedule")
+"""Settings this bench sets itself (--method, --iterations, --schedule, --seed; the prior is --sigma); every other
+field of CalibrationSettings has its command-line option (--exterior on --exterior-half-width-mm 80, ...)."""
 
 
 def rss_bytes(pid: str = "self") -> int:
@@ -122,6 +129,15 @@ class MemorySampler:
             f"(end {record['end_rss_gb']:.2f} GB, ru_maxrss {record['ru_maxrss_gb']:.2f} GB, load {record['loadavg_1min']:.1f})")
 
 
+def field_of_view_mm(args, system: SeedSystem, binning: int) -> float:
+    """The scan's field of view (mm): ``--fov``, or with ``--fov 0`` the centred detector's own (no offset; 98 % of
+    the circle its edges reach, as bench_calibration's scenarios)."""
+    if args.fov > 0:
+        return float(args.fov)
+    half_width_mm = 0.5 * (system.n_cols_raw // binning) * system.raw_pixel_mm * binning
+    return 0.98 * 2 * fov_radius_mm(half_width_mm, system.sod_mm, system.sdd_mm)
+
+
 def make_scan(args, say):
     """Nominal and true geometry, the simulated scan (line integrals, valid mask), the ROI grid."""
     system = SeedSystem()
@@ -129,12 +145,13 @@ def make_scan(args, say):
     if abs(binning * args.scale - system.binning) > 1e-9:
         raise ValueError("--scale must be 2/k for an integer k (0.5, 0.25, ...)")
     pitch = system.raw_pixel_mm * binning
-    nominal = robotic_roi_scan(system, fov_diameter_mm=FOV_MM, n_views=args.views, binning=binning).moved(AXIS_Y)
+    fov_mm = field_of_view_mm(args, system, binning)
+    nominal = robotic_roi_scan(system, fov_diameter_mm=fov_mm, n_views=args.views, binning=binning).moved(AXIS_Y)
     errors = sim.robot_coordination(args.sigma, args.sigma, seed=args.seed).sample(args.views)
     true = nominal.perturbed(errors)
     phantom = sim.interior_neck_phantom(args.seed, body_width_mm=args.body).moved(AXIS_Y)
     voxel = VOXEL_MM / args.scale
-    nxy = int(round(FOV_MM / voxel))
+    nxy = int(round(fov_mm / voxel))
     axial_mm = nominal.n_rows * pitch / system.magnification  # the detector's axial extent at the centre
     nz = int(math.floor(axial_mm / voxel))
     grid = VolumeGrid.centered((nz, nxy, nxy), voxel).moved(AXIS_Y)
@@ -153,10 +170,10 @@ def make_scan(args, say):
 
     scan = sim.simulate_scan(phantom, true, detector, projector=projector, rng=np.random.default_rng(args.seed + 12345),
                              chunk_views=8, keep_intermediates=False)
-    offset = roi_scan_offset_mm(FOV_MM, 0.5 * nominal.n_cols * pitch, system.sod_mm, system.sdd_mm)
+    offset = roi_scan_offset_mm(fov_mm, 0.5 * nominal.n_cols * pitch, system.sod_mm, system.sdd_mm)
     geo = {"views": args.views, "detector_rows": nominal.n_rows, "detector_cols": nominal.n_cols,
            "pixel_um": pitch * 1000, "raw_simulation_pixel_um": raw.col_pitch_mm * 1000,
-           "fov_mm": FOV_MM, "detector_offset_mm": offset, "body_mm": args.body, "voxel_um": voxel * 1000, "grid_xyz": [nxy, nxy, nz],
+           "fov_mm": fov_mm, "detector_offset_mm": offset, "body_mm": args.body, "voxel_um": voxel * 1000, "grid_xyz": [nxy, nxy, nz],
            "axial_mm": axial_mm, "stack_mb": scan.line_integrals.nbytes / 1e6,
            "volume_gb": 4.0 * nxy * nxy * nz / GB, "scan_binning": binning}
     return nominal, true, scan.line_integrals, scan.valid_mask, grid, geo
@@ -204,6 +221,7 @@ def report_markdown(out: dict) -> str:
     g, s = out["geometry"], {r["stage"]: r for r in out["stages"]}
     cut = out["cut_down"]
     rtk = out.get("rtk")
+    changed = out["calibration"].get("settings_changed") or {}
     title = ("# CUT-DOWN full-size scan benchmark (bench/bench_fullsize.py)" if cut
              else "# Full-size scan, end to end (bench/bench_fullsize.py)")
     lines = [title, ""]
@@ -214,12 +232,19 @@ def report_markdown(out: dict) -> str:
     lines += [
         f"The seed system's robotic ROI scan: {g['views']} views of {g['detector_cols']} x {g['detector_rows']} pixels "
         f"of {g['pixel_um']:.0f} um (simulated on {g['raw_simulation_pixel_um']:.0f} um raw pixels: exact "
-        f"ray-ellipsoid line integrals, photon counting, binned), offset detector for a {g['fov_mm']:.0f} mm field of "
-        f"view (detector offset {g['detector_offset_mm']:.1f} mm), rotation axis +y; interior_neck_phantom as a {g['body_mm']:.0f} mm neck "
+        f"ray-ellipsoid line integrals, photon counting, binned), "
+        + (f"offset detector for a {g['fov_mm']:.0f} mm field of view (detector offset {g['detector_offset_mm']:.1f} mm)"
+           if g["detector_offset_mm"] > 0 else f"centred detector, its own {g['fov_mm']:.1f} mm field of view")
+        + f", rotation axis +y; interior_neck_phantom as a {g['body_mm']:.0f} mm neck "
         f"({g['body_mm'] / g['fov_mm']:.1f} times the field of view); robot errors {out['settings']['sigma']:g} mm / "
         f"{out['settings']['sigma']:g} deg per view. Calibration: {out['calibration']['method']}, "
-        f"{out['calibration']['iterations']} iterations, schedule {out['calibration']['schedule']!r}, the other "
-        f"settings at their defaults. Full-resolution ROI grid {g['grid_xyz'][0]} x {g['grid_xyz'][1]} x "
+        f"{out['calibration']['iterations']} iterations, schedule {out['calibration']['schedule']!r}, the prior the "
+        f"robots' accuracy, "
+        + (f"the other settings at their defaults but: {', '.join(f'`{k}` {v}' for k, v in changed.items())}"
+           if changed else "the other settings at their defaults")
+        + (", **started at the true geometry** (how far the loop leaves it)" if out["calibration"].get("from_true")
+           else "")
+        + f". Full-resolution ROI grid {g['grid_xyz'][0]} x {g['grid_xyz'][1]} x "
         f"{g['grid_xyz'][2]} voxels of {g['voxel_um']:.0f} um ({g['volume_gb']:.2f} GB float32); projection stack "
         f"{g['stack_mb']:.0f} MB.", "",
         f"Machine: {out['machine']}, numba threads {out['numba_threads']}, {out['memory_total_gb']:.0f} GB; "
@@ -248,7 +273,10 @@ def report_markdown(out: dict) -> str:
     lines += ["", f"- Calibration: {c['wall_s']:.1f} s (target <= {TARGETS['calibrate_s']:.0f} s: "
               f"{'met' if c['wall_s'] <= TARGETS['calibrate_s'] else 'MISSED'}); gauge-aligned reprojection error of ROI "
               f"points {c['error_before_px']:.3f} px -> {c['error_after_px']:.3f} px mean (p95 {c['p95_before_px']:.3f} -> "
-              f"{c['p95_after_px']:.3f}); per iteration: "
+              f"{c['p95_after_px']:.3f})"
+              + (f", {c['unguarded_error_px']:.3f} px before the guard" if c.get("unguarded_error_px") is not None else "")
+              + (f"; model NCC {c['model_ncc']:.3f}" if c.get("model_ncc") is not None else "")
+              + "; per iteration: "
               + "; ".join(f"{h['iteration']}: NCC {h['projection_ncc']:.4f}, {h['wall_s']:.0f} s" for h in c["history"]),
               f"- Peak resident memory over all stages: {out['peak_rss_gb']:.2f} GB (target <= {TARGETS['peak_rss_gb']:g} "
               f"GB: {'met' if out['peak_rss_gb'] <= TARGETS['peak_rss_gb'] else 'MISSED'}); ru_maxrss at the end "
@@ -291,7 +319,17 @@ def main(argv=None) -> int:
     ap.add_argument("--volume-out", default="out/bench_fullsize", help="where the OME-TIFF goes")
     ap.add_argument("--render", default=None, metavar="JSON",
                     help="only rewrite fullsize.md (into --out) from a fullsize.json this bench wrote")
+    ap.add_argument("--fov", type=float, default=FOV_MM,
+                    help=f"field of view, mm (default {FOV_MM:g}: the offset detector; 0: the centred detector's own)")
+    ap.add_argument("--from-true", action="store_true",
+                    help="start the calibration at the true geometry: how far the loop leaves it (its floor)")
+    add_settings_arguments(ap, skip=FULLSIZE_OWNS)
     args = ap.parse_args(argv)
+    if args.prior_sigma is not None:
+        ap.error("--prior-sigma: the prior is the robots' accuracy (--sigma), as a user states it")
+    if args.fov < 0:
+        ap.error("--fov must be 0 (the centred detector's own) or a positive diameter in mm")
+    base, changed = bench_settings(args, FULLSIZE_OWNS)
     if args.render:
         with open(args.render) as f:
             out = json.load(f)
@@ -328,7 +366,9 @@ def main(argv=None) -> int:
     out["geometry"] = geo
     say(f"  {geo['views']} views {geo['detector_cols']} x {geo['detector_rows']} of {geo['pixel_um']:.0f} um; grid "
         f"{geo['grid_xyz']} of {geo['voxel_um']:.0f} um ({geo['volume_gb']:.2f} GB); stack {geo['stack_mb']:.0f} MB")
-    settings = calibration.CalibrationSettings(method=args.method, iterations=args.iterations, schedule=args.schedule)
+    settings = base.replace(method=args.method, iterations=args.iterations,
+                            schedule=args.schedule).with_prior(args.sigma, args.sigma)
+    start = true if args.from_true else nominal
     pts = roi_points(grid)
     log = []
 
@@ -338,14 +378,19 @@ def main(argv=None) -> int:
 
     t_cal = time.perf_counter()
     with mem.stage("calibrate", say):
-        res = calibration.calibrate(li, nominal, grid, settings, valid_mask=mask, final_volume=False,
+        res = calibration.calibrate(li, start, grid, settings, valid_mask=mask, final_volume=False,
                                     progress=progress)
-    e0 = gauge_aligned_reprojection_error(nominal, true, pts)
+    e0 = gauge_aligned_reprojection_error(start, true, pts)
     e1 = gauge_aligned_reprojection_error(res.geom, true, pts)
+    unguarded = (gauge_aligned_reprojection_error(start.perturbed(res.params_unguarded), true, pts)["mean_px"]
+                 if res.params_unguarded is not None else None)
     out["calibration"] = {"method": args.method, "iterations": args.iterations, "schedule": args.schedule,
-                          "settings": res.settings.to_dict(), "wall_s": mem.stages[-1]["wall_s"],
+                          "settings": res.settings.to_dict(), "settings_changed": changed,
+                          "from_true": bool(args.from_true), "wall_s": mem.stages[-1]["wall_s"],
                           "error_before_px": e0["mean_px"], "error_after_px": e1["mean_px"],
                           "p95_before_px": e0["p95_px"], "p95_after_px": e1["p95_px"],
+                          "unguarded_error_px": unguarded,
+                          "model_ncc": res.history[-1].projection_ncc if res.history else None,
                           "history": [vars(h) for h in res.history], "notes": list(res.notes), "log": log}
     say(f"  error {e0['mean_px']:.3f} -> {e1['mean_px']:.3f} px mean (gauge-aligned, ROI points)")
     with mem.stage("fdk", say):

@@ -3,13 +3,14 @@
 The guard (robot_ct_ros.ct.calibration.guard, docs/calibration.md section 11) keeps the nominal
 geometry where the data do not support a correction. It must refuse harmful corrections and keep
 helpful ones. This script runs no calibration: it reads what the benches already wrote into
-``--results`` (results.json, sweep.json, interior.json and exterior_reach.json, each also from every folder
-there that holds one: a run with a setting or the seed changed; realdata.json) and,
+``--results`` (results.json, sweep.json, interior.json, exterior_reach.json, realdata.json and fullsize.json, each
+also from every folder there that holds one: a run with a setting or the seed changed) and,
 for each method and scan, takes:
 
 * the nominal geometry's error and the final error (gauge-aligned reprojection error of ROI
   points, mean, px), and the error before the guard where the guard changed anything (the
-  benches write it into the notes, or as exterior_reach's ``unguarded_mean_px``);
+  benches write it into the notes, or as exterior_reach's ``unguarded_mean_px`` and fullsize's
+  ``unguarded_error_px``);
 * the guard's inputs from the notes: the model NCC, R (how far the correction moved the views
   against random errors of the stated accuracy), the limit applied;
 * the regime: the exterior modelled, strongly truncated without it, or not strongly truncated.
@@ -17,7 +18,8 @@ for each method and scan, takes:
 Each verdict is then one of: kept a helpful correction, refused a harmful one (right); applied a
 harmful one (a miss); refused a helpful one (lost); or, where undo_inconsistent undid the first
 iteration (its note says so), made no correction. Scans started at their true geometry (the
-real-data cases ``documented`` and ``twin-documented``) have nothing to correct and are left out.
+real-data cases ``documented`` and ``twin-documented``, bench_fullsize ``--from-true``) have nothing to correct
+and are left out.
 Cells whose bench predates a note (no regime or R in them) say so instead of guessing. Writes
 ``guard.md`` and ``guard.json`` into ``--out``.
 
@@ -146,6 +148,13 @@ def collect(results_dir: str) -> tuple[list, list]:
             out.append(record(name, f"neck {sigma:g} mm / {sigma:g} deg", f"ncc-lle-exact, exterior reach {reach}",
                               d["nominal_mean_px"], r["mean_px"], r.get("notes", ()) if isinstance(r.get("notes"), list)
                               else [r.get("notes", "")], r.get("model_ncc"), r.get("unguarded_mean_px")))
+    for name in with_variants("fullsize.json"):
+        d = load(name)
+        c, g = (d or {}).get("calibration"), (d or {}).get("geometry", {})
+        if c and not c.get("from_true") and c["error_before_px"] > 0:  # a run started at the truth has nothing to correct
+            out.append(record(name, f"seed system, {g.get('body_mm', 0):g} mm neck, {g.get('fov_mm', 0):.0f} mm field of "
+                                    f"view", c["method"], c["error_before_px"], c["error_after_px"], c.get("notes", ()),
+                              c.get("model_ncc"), c.get("unguarded_error_px")))
     for name in with_variants("realdata.json"):
         d = load(name)
         for ph, p in (d or {}).get("phantoms", {}).items():
