@@ -99,7 +99,7 @@ def make_scenario(key: str, views: int, det: tuple[int, int], vol: int, binning:
     system = SeedSystem()
     rows, cols = det
     pitch = system.raw_pixel_mm * binning
-    fov = 0.98 * 2 * fov_radius_mm(0.5 * cols * pitch, system.sod_mm, system.sdd_mm)
+    fov = centred_fov_mm(system, cols, pitch)
     if key == "a":
         phantom = sim.mouse_phantom(body_width_mm=9.0 * phantom_scale, length_mm=40.0 * phantom_scale, seed=seed)  # scaled with the detector
         center = np.array([0.0, 0.0, 0.0])  # thorax
@@ -292,6 +292,12 @@ every correcting method."""
 EXTERIOR_OWNS = (*BENCH_OWNS, "exterior", "exterior_half_width_mm")
 """What a bench whose rows set the exterior model and its reach themselves owns besides (bench_truncation_sweep.py,
 bench_exterior_reach.py)."""
+
+
+def centred_fov_mm(system: SeedSystem, cols: int, pitch_mm: float) -> float:
+    """The field of view (mm) the benches give a centred detector of ``cols`` pixels of ``pitch_mm``: 98 % of the
+    circle its edges reach (trajectory.fov_radius_mm), so that robotic_roi_scan needs no offset."""
+    return 0.98 * 2 * fov_radius_mm(0.5 * cols * pitch_mm, system.sod_mm, system.sdd_mm)
 
 
 def changed_settings(settings) -> dict:

@@ -55,14 +55,14 @@ from scipy.spatial.transform import Rotation
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-from bench_calibration import BENCH_OWNS, bench_settings  # noqa: E402
+from bench_calibration import BENCH_OWNS, bench_settings, centred_fov_mm, changed_sentence  # noqa: E402
 
 from robot_ct_ros.cli import add_settings_arguments  # noqa: E402
 from robot_ct_ros.ct import calibration  # noqa: E402
 from robot_ct_ros.ct import simulation as sim  # noqa: E402
 from robot_ct_ros.ct.geometry import VolumeGrid  # noqa: E402
 from robot_ct_ros.ct.metrics import gauge_aligned_reprojection_error, roi_points  # noqa: E402
-from robot_ct_ros.ct.trajectory import SeedSystem, fov_radius_mm, robotic_roi_scan, roi_scan_offset_mm  # noqa: E402
+from robot_ct_ros.ct.trajectory import SeedSystem, robotic_roi_scan, roi_scan_offset_mm  # noqa: E402
 
 AXIS_Y = Rotation.from_rotvec([-np.pi / 2, 0.0, 0.0]).as_matrix()  # the scan's z axis becomes +y (RTK)
 PHOTONS_BEHIND_BODY = 4000.0
@@ -130,12 +130,11 @@ class MemorySampler:
 
 
 def field_of_view_mm(args, system: SeedSystem, binning: int) -> float:
-    """The scan's field of view (mm): ``--fov``, or with ``--fov 0`` the centred detector's own (no offset; 98 % of
-    the circle its edges reach, as bench_calibration's scenarios)."""
+    """The scan's field of view (mm): ``--fov``, or with ``--fov 0`` the centred detector's own (no offset; as
+    bench_calibration's scenarios, centred_fov_mm)."""
     if args.fov > 0:
         return float(args.fov)
-    half_width_mm = 0.5 * (system.n_cols_raw // binning) * system.raw_pixel_mm * binning
-    return 0.98 * 2 * fov_radius_mm(half_width_mm, system.sod_mm, system.sdd_mm)
+    return centred_fov_mm(system, system.n_cols_raw // binning, system.raw_pixel_mm * binning)
 
 
 def make_scan(args, say):
@@ -239,12 +238,11 @@ def report_markdown(out: dict) -> str:
         f"({g['body_mm'] / g['fov_mm']:.1f} times the field of view); robot errors {out['settings']['sigma']:g} mm / "
         f"{out['settings']['sigma']:g} deg per view. Calibration: {out['calibration']['method']}, "
         f"{out['calibration']['iterations']} iterations, schedule {out['calibration']['schedule']!r}, the prior the "
-        f"robots' accuracy, "
-        + (f"the other settings at their defaults but: {', '.join(f'`{k}` {v}' for k, v in changed.items())}"
-           if changed else "the other settings at their defaults")
+        f"robots' accuracy"
         + (", **started at the true geometry** (how far the loop leaves it)" if out["calibration"].get("from_true")
            else "")
-        + f". Full-resolution ROI grid {g['grid_xyz'][0]} x {g['grid_xyz'][1]} x "
+        + ". " + (changed_sentence(changed) + " " if changed else "The other settings at their defaults. ")
+        + f"Full-resolution ROI grid {g['grid_xyz'][0]} x {g['grid_xyz'][1]} x "
         f"{g['grid_xyz'][2]} voxels of {g['voxel_um']:.0f} um ({g['volume_gb']:.2f} GB float32); projection stack "
         f"{g['stack_mb']:.0f} MB.", "",
         f"Machine: {out['machine']}, numba threads {out['numba_threads']}, {out['memory_total_gb']:.0f} GB; "

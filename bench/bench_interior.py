@@ -40,7 +40,7 @@ from scipy.spatial.transform import Rotation
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-from bench_calibration import BENCH_OWNS, bench_settings, changed_sentence  # noqa: E402
+from bench_calibration import BENCH_OWNS, bench_settings, centred_fov_mm, changed_sentence  # noqa: E402
 
 from robot_ct_ros.cli import add_settings_arguments  # noqa: E402
 from robot_ct_ros.ct import calibration  # noqa: E402
@@ -49,7 +49,7 @@ from robot_ct_ros.ct.geometry import VolumeGrid  # noqa: E402
 from robot_ct_ros.ct.metrics import reprojection_error, roi_points  # noqa: E402
 from robot_ct_ros.ct.reconstruction import fdk  # noqa: E402
 from robot_ct_ros.ct.rtk_bridge import rtk_ellipsoid_projections  # noqa: E402
-from robot_ct_ros.ct.trajectory import SeedSystem, fov_radius_mm, robotic_roi_scan  # noqa: E402
+from robot_ct_ros.ct.trajectory import SeedSystem, robotic_roi_scan  # noqa: E402
 from robot_ct_ros.jobs.figures import markdown_table, method_notes, write_report  # noqa: E402
 
 AXES = {"y": Rotation.from_rotvec([-np.pi / 2, 0.0, 0.0]),        # the scan's z axis becomes +y (RTK)
@@ -73,7 +73,7 @@ def make_scan(sigma: float, *, views: int, det: tuple, axis: str, seed: int, nxy
     rows, cols = det
     binning = 2
     pitch = system.raw_pixel_mm * binning
-    fov = 0.98 * 2 * fov_radius_mm(0.5 * cols * pitch, system.sod_mm, system.sdd_mm)
+    fov = centred_fov_mm(system, cols, pitch)
     R = AXES[axis].as_matrix()
     nominal_z = robotic_roi_scan(system, roi_center_mm=(0.0, 0.0, 0.0), fov_diameter_mm=fov, n_views=views,
                                  binning=binning, n_rows=rows, n_cols=cols)
