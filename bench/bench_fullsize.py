@@ -137,14 +137,30 @@ def field_of_view_mm(args, system: SeedSystem, binning: int) -> float:
     return centred_fov_mm(system, system.n_cols_raw // binning, system.raw_pixel_mm * binning)
 
 
+def scan_layout(args, system: SeedSystem) -> tuple[int, float]:
+    """(binning, field of view in mm) of the options; ValueError naming the option when the scale is not 2/k or the
+    field of view is not one the detector reaches (robotic_roi_scan's offset limit)."""
+    if not (args.scale > 0 and math.isfinite(args.scale)):
+        raise ValueError("--scale must be 2/k for an integer k (0.5, 0.25, ...)")
+    binning = int(round(system.binning / args.scale))
+    if binning < 1 or abs(binning * args.scale - system.binning) > 1e-9:
+        raise ValueError("--scale must be 2/k for an integer k (0.5, 0.25, ...)")
+    if not (args.fov >= 0 and math.isfinite(args.fov)):
+        raise ValueError("--fov must be 0 (the centred detector's own) or a positive diameter in mm")
+    fov_mm = field_of_view_mm(args, system, binning)
+    half_width_mm = 0.5 * (system.n_cols_raw // binning) * system.raw_pixel_mm * binning
+    try:
+        roi_scan_offset_mm(fov_mm, half_width_mm, system.sod_mm, system.sdd_mm)
+    except ValueError as exc:
+        raise ValueError(f"--fov: {exc}") from None
+    return binning, fov_mm
+
+
 def make_scan(args, say):
     """Nominal and true geometry, the simulated scan (line integrals, valid mask), the ROI grid."""
     system = SeedSystem()
-    binning = int(round(system.binning / args.scale))
-    if abs(binning * args.scale - system.binning) > 1e-9:
-        raise ValueError("--scale must be 2/k for an integer k (0.5, 0.25, ...)")
+    binning, fov_mm = scan_layout(args, system)
     pitch = system.raw_pixel_mm * binning
-    fov_mm = field_of_view_mm(args, system, binning)
     nominal = robotic_roi_scan(system, fov_diameter_mm=fov_mm, n_views=args.views, binning=binning).moved(AXIS_Y)
     errors = sim.robot_coordination(args.sigma, args.sigma, seed=args.seed).sample(args.views)
     true = nominal.perturbed(errors)
@@ -325,8 +341,10 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if args.prior_sigma is not None:
         ap.error("--prior-sigma: the prior is the robots' accuracy (--sigma), as a user states it")
-    if args.fov < 0:
-        ap.error("--fov must be 0 (the centred detector's own) or a positive diameter in mm")
+    try:  # a scale or field of view the seed detector cannot give: one line, before anything runs
+        scan_layout(args, SeedSystem())
+    except ValueError as exc:
+        ap.error(str(exc))
     base, changed = bench_settings(args, FULLSIZE_OWNS)
     if args.render:
         with open(args.render) as f:

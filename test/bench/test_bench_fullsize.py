@@ -32,7 +32,7 @@ def test_the_seed_systems_scan_takes_its_field_of_view_and_the_calibration_setti
     assert 0.0 < c["model_ncc"] <= 1.0
     md = (tmp_path / "centred" / "fullsize.md").read_text()
     assert "centred detector" in md and "`exterior` on" in md
-    for wrong in (["--prior-sigma", "1,1"], ["--fov", "-1"]):
+    for wrong in (["--prior-sigma", "1,1"], ["--fov", "-1"], ["--fov", "nan"], ["--fov", "200"], ["--scale", "0.3"]):
         with pytest.raises(SystemExit):
             bench.main([*wrong, "--out", str(tmp_path / "x")])
 
