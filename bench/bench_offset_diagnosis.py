@@ -5,8 +5,8 @@ counting, the rotation axis +y, independent robot errors per view), of a neck th
 view here (``--body``, default 15 mm), through fields of view from the centred detector's own (0) to the
 offset detector's 50 mm. The estimator is the loop's coarse level: ncc-lle-exact's coarse
 configuration on 2 x 2 binned data, the prior at the robots' accuracy, against FDK volumes on the
-loop's estimation grid kept to the field of view (what ``projections complete`` registers against; the
-object lies inside the field of view). Every figure is the mean gauge-aligned reprojection error of ROI
+loop's estimation grid, zero outside the field of view (``projections`` complete with ``fov_support``
+on; the object lies inside the field of view). Every figure is the mean gauge-aligned reprojection error of ROI
 points (px of the scan's detector) after one pass over all views unless a row says otherwise.
 
 FDK is a sum over views, so a view's own part of a volume (its "own term": its filtered projection
@@ -27,7 +27,7 @@ fold's own terms are one back-projection. The rows:
 
 Writes ``offset_diagnosis.md`` and ``.json`` into ``--out``.
 
-    .venv/bin/python bench/bench_offset_diagnosis.py --out docs/results     # about 20 min on 2 cores
+    .venv/bin/python bench/bench_offset_diagnosis.py --out docs/results     # about 10 min on 2 cores
 """
 
 from __future__ import annotations
