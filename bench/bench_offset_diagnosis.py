@@ -57,7 +57,6 @@ from robot_ct_ros.ct.metrics import reprojection_error, roi_points  # noqa: E402
 from robot_ct_ros.ct.projector import forward_project  # noqa: E402
 from robot_ct_ros.ct.reconstruction import fdk_backproject, fdk_filter_projections  # noqa: E402
 from robot_ct_ros.ct.trajectory import SeedSystem  # noqa: E402
-from robot_ct_ros.jobs.figures import markdown_table  # noqa: E402
 
 METHOD = "ncc-lle-exact"
 ROWS = (
@@ -69,9 +68,7 @@ ROWS = (
     ("left_out", "the true-geometry FDK without the view's own term, which is taken out of its data too"),
     ("left_out_loop", "each view's own term out of the volume and its data, from the nominal geometry"),
 )
-"""Row key and what the view is registered against."""
-PASSES_OF = {"loop", "left_out_loop"}
-"""Rows that run ``--passes`` passes (the others one)."""
+"""Row key and what the view is registered against ("loop" and "left_out_loop" run ``--passes`` passes, the others one)."""
 
 
 class Level:
