@@ -100,33 +100,25 @@ class Level:
             q, geom = q[views], geom.subset(views)
         return np.where(self.fov, fdk_backproject(q, geom, self.grid), np.float32(0.0)).astype(np.float32)
 
-    def estimate(self, params, volume, views=None, measured=None, support=None):
-        """One pass of the estimator over ``views`` (default all) against ``volume``; the whole scan's parameters.
-        ``support``: the whole scan's ROI support mask for ``params`` (computed here when not given)."""
-        if views is None:
-            return estimate_views(self.li, self.nom, params, volume, self.grid, self.config, self.mask)[0]
-        if support is None:
-            support = roi_support_mask(self.nom, params, self.grid, self.config.roi_support_fraction)
-        li = self.li[views] if measured is None else measured
-        out = params.copy()
-        out[views] = estimate_views(li, self.nom.subset(views), params[views], volume, self.grid, self.config,
-                                    self.mask[views] if self.mask.ndim == 3 else self.mask,
-                                    support_mask=support[views], view_ids=views)[0]
-        return out
+    def estimate(self, params, volume):
+        """One pass of the estimator over every view against ``volume``."""
+        return estimate_views(self.li, self.nom, params, volume, self.grid, self.config, self.mask)[0]
 
     def per_fold(self, params, volume_of_fold, take_out_of_data=None):
         """One pass, fold by fold, against ``volume_of_fold(views)``; ``take_out_of_data`` = (filtered, geometry):
         each view's own term, back-projected from ``filtered`` and reprojected through that geometry, is
-        subtracted from its data."""
+        subtracted from its data. The ROI support is the whole scan's, as one pass over all views would use."""
         out = params.copy()
         support = roi_support_mask(self.nom, params, self.grid, self.config.roi_support_fraction)
         for views in self.folds:
-            measured = None
+            measured = self.li[views]
             if take_out_of_data is not None:
                 filtered, geom = take_out_of_data
                 own = self.backproject(filtered, views)
-                measured = (self.li[views] - forward_project(own, self.grid, geom.subset(views))).astype(np.float32)
-            out[views] = self.estimate(params, volume_of_fold(views), views, measured, support)[views]
+                measured = (measured - forward_project(own, self.grid, geom.subset(views))).astype(np.float32)
+            out[views] = estimate_views(measured, self.nom.subset(views), params[views], volume_of_fold(views),
+                                        self.grid, self.config, self.mask[views] if self.mask.ndim == 3 else self.mask,
+                                        support_mask=support[views], view_ids=views)[0]
         return out
 
 
@@ -149,9 +141,10 @@ def run_scan(level: Level, passes: int, say) -> dict:
         return level.estimate(params, level.backproject(level.filtered(level.nom.perturbed(params))))
 
     def leave_out(params):
-        q = level.filtered(level.nom.perturbed(params))
+        geom = level.nom.perturbed(params)
+        q = level.filtered(geom)
         v = level.backproject(q)
-        return level.per_fold(params, lambda views: v - level.backproject(q, views), (q, level.nom.perturbed(params)))
+        return level.per_fold(params, lambda views: v - level.backproject(q, views), (q, geom))
 
     t0 = time.perf_counter()
     rows["loop"] = loop(alternation)
