@@ -22,5 +22,12 @@ def test_a_setting_given_to_the_bench_reaches_the_calibration_and_the_report(loa
     assert "`exterior_voxel_mm` 1.0" in (out / "interior.md").read_text()
     notes = report["scans"][0]["notes"]["ncc-lle-exact + exterior"]
     assert any("the object outside the ROI was modelled" in n for n in notes)
+    # the loop's error after each outer iteration: one iteration, the final row's error unless the guard reverted it
+    per_iteration = report["scans"][0]["error_per_iteration_px"]
+    assert list(per_iteration) == ["ncc-lle-exact + exterior"] and len(per_iteration["ncc-lle-exact + exterior"]) == 1
+    row = next(r for r in report["scans"][0]["rows"] if r["method"] == "ncc-lle-exact + exterior")
+    if not any("nominal geometry is kept" in n for n in notes):
+        assert per_iteration["ncc-lle-exact + exterior"][0] == pytest.approx(row["reproj_mean_px"], abs=1e-3)
+    assert "error after each outer iteration" in (out / "interior.md").read_text()
     with pytest.raises(SystemExit):
         bench.main(["--prior-sigma", "1,1", "--out", str(out)])
