@@ -141,7 +141,8 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
     magnification held at the nominal one, and optionally the drift model and the conjugate
     modes applied. The loop stops after ``iterations`` or after an iteration that moved the
     views less than ``stop_update_px``; with ``undo_inconsistent`` an iteration that lowers the
-    data consistency is undone and ends it. The returned volume is the full-size FDK with the
+    data consistency is undone and ends it, and with ``stop_ncc_gain`` one (from the second on) that
+    raises the estimation model's projection NCC by less than that. The returned volume is the full-size FDK with the
     final geometry (None with ``final_volume`` False).
 
     A one-row detector (fan beam) is calibrated as such: every level keeps one row
@@ -293,6 +294,17 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
         rec = IterationRecord(it + 1, rmse, corr, float(np.sqrt((step[:, :6] ** 2).mean())),
                               float(np.rad2deg(np.sqrt((step[:, 6:] ** 2).mean()))), time.perf_counter() - t0,
                               fractions[-1], moved)
+        gain = corr - history[-1].projection_ncc if history else float("inf")
+        if settings.stop_ncc_gain > 0 and gain < settings.stop_ncc_gain:
+            # the model explains the data hardly better than before: the iteration moved the views along
+            # geometries the data cannot tell apart (docs/calibration.md §7)
+            say(f"iteration {it + 1}/{n_iter}: the model's projection NCC rose by {gain:.2e} < stop_ncc_gain "
+                f"{settings.stop_ncc_gain:g}; undone, stopping")
+            undone_note = (f"stop_ncc_gain: iteration {it + 1} raised the estimation model's projection NCC by "
+                           f"{gain:.2e} only ({history[-1].projection_ncc:.5f} -> {corr:.5f}, less than "
+                           f"{settings.stop_ncc_gain:g}) and was undone; the geometry of iteration {it} stays")
+            params = start
+            break
         if undo_inconsistent and not exterior and not rec_next.fdk_ncc > rec_in.fdk_ncc:
             say(f"iteration {it + 1}/{n_iter}: data consistency fell ({rec_in.fdk_ncc:.5f} -> {rec_next.fdk_ncc:.5f}); "
                 f"undone, stopping")

@@ -150,6 +150,9 @@ class CalibrationSettings:
     coarse_tol_px: float = setting(0.1, "the coarse passes stop when one moves the views less than this", unit="px",
                                    minimum=0.0)
     undo_inconsistent: bool = setting(False, "undo an iteration that lowers the data consistency, and stop")
+    stop_ncc_gain: float = setting(0.0, "from the second iteration on, undo an iteration that raises the estimation "
+                                   "model's projection NCC by less than this, and stop (0: off)", minimum=0.0,
+                                   maximum=1.0)
     exterior: str = setting("auto", "model the object outside the ROI with a coarse grid reconstructed with it (strongly "
                             "truncated interior scans); auto: when the truncation level exceeds "
                             "calibration.volume.EXTERIOR_ABOVE and exterior_half_width_mm states the object's reach",

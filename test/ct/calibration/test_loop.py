@@ -132,6 +132,34 @@ def test_loop_stops_when_an_iteration_hardly_moves_the_views():
         calibrate(measured, nominal, grid, stop_update_px=-1.0)
 
 
+def test_stop_ncc_gain_undoes_an_iteration_that_hardly_raises_the_model_ncc():
+    """With ``stop_ncc_gain`` an iteration after the first whose estimation model explains the data
+    by less than that much better than the previous one's (projection NCC) is undone and ends the loop;
+    the first iteration has nothing to compare with and always counts. Off (0) by default."""
+    nominal, true, grid, measured = _small_scan()
+    seen = []
+    free = calibrate(measured, nominal, grid, method="ncc-lle-exact", iterations=3, stop_update_px=0.0,
+                     on_iteration=lambda rec, params: seen.append(params))
+    assert len(free.history) == 3 and not any("stop_ncc_gain" in n for n in free.notes)
+    gains = np.diff([rec.projection_ncc for rec in free.history])
+    said = []
+    # a threshold above iteration 2's gain: iteration 2 is undone, iteration 1's geometry stays
+    stopped = calibrate(measured, nominal, grid, method="ncc-lle-exact", iterations=3, stop_update_px=0.0,
+                        stop_ncc_gain=max(gains[0], 0.0) + 1e-3, progress=said.append)
+    assert len(stopped.history) == 1
+    np.testing.assert_allclose(stopped.params, seen[0], atol=1e-12)
+    assert any("undone, stopping" in line for line in said)
+    told = [n for n in stopped.notes if n.startswith("stop_ncc_gain: iteration 2 ")]
+    assert len(told) == 1 and "the geometry of iteration 1 stays" in told[0]
+    # a threshold below every gain leaves the loop as it was
+    if gains.min() > 0:
+        kept = calibrate(measured, nominal, grid, method="ncc-lle-exact", iterations=3, stop_update_px=0.0,
+                         stop_ncc_gain=0.5 * gains.min())
+        np.testing.assert_allclose(kept.params, free.params, atol=1e-12)
+    with pytest.raises(ValueError, match="stop_ncc_gain"):
+        calibrate(measured, nominal, grid, stop_ncc_gain=-1.0)
+
+
 def test_fit_drift_keeps_polynomials_and_outvotes_single_views():
     from robot_ct_ros.ct.calibration import fit_drift
 
