@@ -141,9 +141,9 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
     magnification held at the nominal one, and optionally the drift model and the conjugate
     modes applied. The loop stops after ``iterations`` or after an iteration that moved the
     views less than ``stop_update_px``; with ``undo_inconsistent`` an iteration that lowers the
-    data consistency is undone and ends it, and with ``stop_ncc_gain`` one (from the second on) that
-    raises the estimation model's projection NCC by less than that. The returned volume is the full-size FDK with the
-    final geometry (None with ``final_volume`` False).
+    data consistency is undone and ends it, and with ``stop_ncc_gain`` one (from the second on)
+    that raises the estimation model's projection NCC by less than that. The returned volume is
+    the full-size FDK with the final geometry (None with ``final_volume`` False).
 
     A one-row detector (fan beam) is calibrated as such: every level keeps one row
     (:meth:`~robot_ct_ros.ct.geometry.ConeGeometry.binned`), the grid may be one slice thick,
