@@ -285,19 +285,12 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
                 f"{focus['entropy_before']:.6f} -> {focus['entropy_after']:.6f}")
         moved = moved_px(nominal, params, start, points)
         last = it + 1 == n_iter or moved < stop_update_px
-        # the next iteration's coarse volume (and the consistency check): not after the last
-        rec_next = (rebuild(li_c, nom_c.perturbed(params), grid_c, mask_c, sirt_iterations, inner_c, fov_c)
-                    if undo_inconsistent or not last else None)
         rmse, corr = projection_consistency(vol, grid_f, nom_f.perturbed(params), li_f, mask_f)
-        step = params - start
-        fractions = fine_info.get("independent_fraction") or [float("nan")]
-        rec = IterationRecord(it + 1, rmse, corr, float(np.sqrt((step[:, :6] ** 2).mean())),
-                              float(np.rad2deg(np.sqrt((step[:, 6:] ** 2).mean()))), time.perf_counter() - t0,
-                              fractions[-1], moved)
         gain = corr - history[-1].projection_ncc if history else float("inf")
         if settings.stop_ncc_gain > 0 and gain < settings.stop_ncc_gain:
             # the model explains the data hardly better than before: the iteration moved the views along
-            # geometries the data cannot tell apart (docs/calibration.md §7)
+            # geometries the data cannot tell apart (docs/calibration.md §7). Checked before the next coarse
+            # volume is built, which an undone iteration would not use
             say(f"iteration {it + 1}/{n_iter}: the model's projection NCC rose by {gain:.2e} < stop_ncc_gain "
                 f"{settings.stop_ncc_gain:g}; undone, stopping")
             undone_note = (f"stop_ncc_gain: iteration {it + 1} raised the estimation model's projection NCC by "
@@ -305,6 +298,14 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
                            f"{settings.stop_ncc_gain:g}) and was undone; the geometry of iteration {it} stays")
             params = start
             break
+        # the next iteration's coarse volume (and the consistency check): not after the last
+        rec_next = (rebuild(li_c, nom_c.perturbed(params), grid_c, mask_c, sirt_iterations, inner_c, fov_c)
+                    if undo_inconsistent or not last else None)
+        step = params - start
+        fractions = fine_info.get("independent_fraction") or [float("nan")]
+        rec = IterationRecord(it + 1, rmse, corr, float(np.sqrt((step[:, :6] ** 2).mean())),
+                              float(np.rad2deg(np.sqrt((step[:, 6:] ** 2).mean()))), time.perf_counter() - t0,
+                              fractions[-1], moved)
         if undo_inconsistent and not exterior and not rec_next.fdk_ncc > rec_in.fdk_ncc:
             say(f"iteration {it + 1}/{n_iter}: data consistency fell ({rec_in.fdk_ncc:.5f} -> {rec_next.fdk_ncc:.5f}); "
                 f"undone, stopping")
