@@ -99,7 +99,8 @@ class CalibrationSettings:
     iterations: int = setting(2, "outer iterations at most (fewer when one moves the views less than stop_update_px)",
                               minimum=1, maximum=100)
     schedule: str = setting("accurate", "resolution schedule: accurate (2x binned, then full size with SIRT) or fast "
-                            "(4x then 2x binned, for large scans and the exterior model)", choices=_schedule_names)
+                            "(4x then 2x binned: large scans; with the exterior model, detectors of about 100 "
+                            "binned rows or more)", choices=_schedule_names)
     stop_update_px: float = setting(0.05, "stop after an iteration that moves the views less than this "
                                     "(gauge-aligned mean; 0: always run every iteration)", unit="px", minimum=0.0)
     prior_translation_mm: float = setting(DEFAULT_PRIOR_MM, "the robots' per-view translation error, prior of the "
