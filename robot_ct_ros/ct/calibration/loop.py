@@ -249,6 +249,8 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
     # for the coarse estimate, its FDK's NCC for undo_inconsistent, its SIRT correction for a
     # fine level without SIRT
     rec_c = rebuild(li_c, nom_c, grid_c, mask_c, sirt_iterations, inner_c, fov_c)
+    # undo_inconsistent compares FDK volumes, which the exterior model does not build
+    check_consistency = undo_inconsistent and not exterior
     for it in range(n_iter):
         t0 = time.perf_counter()
         start = params.copy()
@@ -300,13 +302,13 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
             break
         # the next iteration's coarse volume (and the consistency check): not after the last
         rec_next = (rebuild(li_c, nom_c.perturbed(params), grid_c, mask_c, sirt_iterations, inner_c, fov_c)
-                    if undo_inconsistent or not last else None)
+                    if check_consistency or not last else None)
         step = params - start
         fractions = fine_info.get("independent_fraction") or [float("nan")]
         rec = IterationRecord(it + 1, rmse, corr, float(np.sqrt((step[:, :6] ** 2).mean())),
                               float(np.rad2deg(np.sqrt((step[:, 6:] ** 2).mean()))), time.perf_counter() - t0,
                               fractions[-1], moved)
-        if undo_inconsistent and not exterior and not rec_next.fdk_ncc > rec_in.fdk_ncc:
+        if check_consistency and not rec_next.fdk_ncc > rec_in.fdk_ncc:
             say(f"iteration {it + 1}/{n_iter}: data consistency fell ({rec_in.fdk_ncc:.5f} -> {rec_next.fdk_ncc:.5f}); "
                 f"undone, stopping")
             undone_note = (f"undo_inconsistent: iteration {it + 1} lowered the FDK's data consistency (reprojection "
