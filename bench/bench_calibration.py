@@ -58,14 +58,18 @@ DRIFT_METHOD = "ncc-lle-exact + drift(3)"
 (calibrate(drift_order=3)) and without the robots' per-view prior, which the drift model
 replaces (with it: 0.79 against 0.69 px on (b)). Only where the errors are a drift."""
 DRIFT_SCENARIOS = ("b",)
-EXTERIOR_METHOD = "ncc-lle-exact + exterior"
+EXTERIOR_SUFFIX = " + exterior"
+EXTERIOR_METHOD = "ncc-lle-exact" + EXTERIOR_SUFFIX
 """ncc-lle-exact registering the views against the ROI and a coarse model of the object around it
 (calibrate(exterior="on"), reaching from the ROI centre to the object's far side). In the
 results table only on the strongly truncated scenario (c); the truncation sweep runs it at
-every width."""
+every width. Any other correcting method takes the same suffix (``--methods "gdc + exterior"``),
+run only where this one is."""
 EXTERIOR_SCENARIOS = ("c",)
 ALL_METHODS = ("none", "l2-lle", "ncc-lle", "ncc-lle-exact", "gdc", "gdc-log", DRIFT_METHOD, EXTERIOR_METHOD,
                "true geometry")
+EXTERIOR_METHODS = tuple(m + EXTERIOR_SUFFIX for m in ("l2-lle", "ncc-lle", "ncc-lle-exact", "gdc", "gdc-log"))
+"""Every correcting method with the exterior model (the ``--methods`` names; EXTERIOR_METHOD is the default's)."""
 SCENARIOS = {
     "a": "mouse (9 mm body) thorax, independent 9-DOF robot errors (0.3 mm, 0.3 deg)",
     "b": "battery (5 mm radius), slow detector drift (0.6 mm, 0.15 deg over the scan)",
@@ -215,8 +219,8 @@ def run_method(method: str, sc, iterations: int, say, seed: int = 0, base=None):
         settings = base.replace(method="ncc-lle-exact", iterations=iterations, drift_order=3, seed=seed).without_prior()
         return calibration.calibrate(sc.li, sc.nominal, sc.grid, settings, valid_mask=sc.mask,
                                      progress=prog), "calibration.calibrate(drift_order=3, no prior)"
-    if method == EXTERIOR_METHOD:
-        settings = base.replace(method="ncc-lle-exact", iterations=iterations, seed=seed, exterior="on",
+    if method in EXTERIOR_METHODS:
+        settings = base.replace(method=method[:-len(EXTERIOR_SUFFIX)], iterations=iterations, seed=seed, exterior="on",
                                 exterior_half_width_mm=sc.exterior_half_width_mm)
         return calibration.calibrate(sc.li, sc.nominal, sc.grid, settings, valid_mask=sc.mask,
                                      progress=prog), (f"calibration.calibrate(exterior=on, half-width "
@@ -334,7 +338,9 @@ def main(argv=None) -> int:
     ap.add_argument("--vol", type=int, default=64, help="ROI grid voxels across (default 64; axial from the cone)")
     ap.add_argument("--iterations", type=int, default=3, help="outer iterations per method at most (default 3)")
     ap.add_argument("--scenarios", default="abc", help="subset of 'abc' (default abc)")
-    ap.add_argument("--methods", default=",".join(ALL_METHODS), help="comma-separated subset of " + ", ".join(ALL_METHODS))
+    ap.add_argument("--methods", default=",".join(ALL_METHODS), help="comma-separated subset of " + ", ".join(ALL_METHODS)
+                    + "; any other correcting method with the exterior model: "
+                    + ", ".join(m for m in EXTERIOR_METHODS if m != EXTERIOR_METHOD))
     ap.add_argument("--seed", type=int, default=0, help="scenario seed: phantom, errors, noise (default 0)")
     ap.add_argument("--repeats", type=int, default=1,
                     help="run each sampling method (LLE) with this many sampling seeds on the same scan and "
@@ -346,7 +352,7 @@ def main(argv=None) -> int:
     base, changed = bench_settings(args)  # --iterations, --seed: the bench's
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     for m in methods:
-        if m not in ALL_METHODS:
+        if m not in ALL_METHODS and m not in EXTERIOR_METHODS:
             ap.error(f"unknown method {m!r}")
     for s in args.scenarios:
         if s not in SCENARIOS:
@@ -373,7 +379,7 @@ def main(argv=None) -> int:
         for m in methods:
             if m == DRIFT_METHOD and key not in DRIFT_SCENARIOS:
                 continue  # a drift model for independent per-view errors would be the wrong model
-            if m == EXTERIOR_METHOD and key not in EXTERIOR_SCENARIOS:
+            if m in EXTERIOR_METHODS and key not in EXTERIOR_SCENARIOS:
                 continue  # the exterior model is for objects much wider than the field of view
             res, via[m] = run_method(m, sc, args.iterations, say, base=base)
             results[m] = res

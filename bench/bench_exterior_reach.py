@@ -45,7 +45,8 @@ def main(argv=None) -> int:
     ap.add_argument("--views", type=int, default=180)
     ap.add_argument("--det", type=_det, default=(96, 160), help="ROWSxCOLS binned pixels (110 um)")
     ap.add_argument("--nxy", type=int, default=96, help="ROI grid voxels across")
-    ap.add_argument("--iterations", type=int, default=2)
+    ap.add_argument("--iterations", type=int, default=None,
+                    help="outer iterations at most (default: the calibration's, its schedule's)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="out/bench_exterior_reach")
     add_settings_arguments(ap, skip=EXTERIOR_OWNS)  # each row: the exterior model with its reach
@@ -63,7 +64,8 @@ def main(argv=None) -> int:
     sc = make_scan(args.sigma, views=args.views, det=(rows_det, cols_det), axis="y", seed=args.seed, nxy=args.nxy,
                    say=say)
     pts = roi_points(sc.grid)
-    settings = base.replace(iterations=args.iterations).with_prior(args.sigma, args.sigma)
+    settings = (base if args.iterations is None else base.replace(iterations=args.iterations)).with_prior(
+        args.sigma, args.sigma)
     nominal = reprojection_error(sc.nominal, sc.true, pts)
     rows = []
     for reach in (float(x) for x in args.reaches.split(",")):
@@ -92,7 +94,8 @@ def main(argv=None) -> int:
              f"field of view {sc.fov_mm:.2f} mm, {args.views} views, {rows_det} x {cols_det} detector, axis +y), "
              f"robot errors {args.sigma:g} mm / "
              f"{args.sigma:g} deg, seed {args.seed}; ncc-lle-exact with the exterior model reaching the given "
-             f"half-width from the ROI centre (0: up to the sources), {args.iterations} iterations, the prior and the "
+             f"half-width from the ROI centre (0: up to the sources), at most {settings.iterations_text()} "
+             f"iterations, the prior and the "
              f"guard at the robots' accuracy. The nominal geometry: {nominal['mean_px']:.3f} px mean, "
              f"{nominal['p95_px']:.3f} px p95 (gauge-aligned, ROI points)."
              + ("" if not changed else " " + changed_sentence(changed)), "",

@@ -166,7 +166,9 @@ def main(argv=None) -> int:
     ap.add_argument("--det", default="96x160", help="ROWSxCOLS binned pixels (110 um)")
     ap.add_argument("--nxy", type=int, default=96, help="ROI grid voxels across")
     ap.add_argument("--axis", choices=tuple(AXES), default="y")
-    ap.add_argument("--iterations", type=int, default=2)
+    ap.add_argument("--iterations", type=int, default=None,
+                    help="outer iterations at most (default: the calibration's, its schedule's: 2, and 8 under the "
+                         "exterior schedule that the '+ exterior' rows run)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--oracle", action="store_true",
                     help="also estimate the views against the true object (ROI alone, and with the outside on 1, "
@@ -177,7 +179,8 @@ def main(argv=None) -> int:
     if args.prior_sigma is not None:
         ap.error("--prior-sigma: the prior is each scan's robot error (--sigmas), as a user states it")
     settings, changed = bench_settings(args)
-    settings = settings.replace(iterations=args.iterations)
+    if args.iterations is not None:
+        settings = settings.replace(iterations=args.iterations)
     rows, cols = (int(x) for x in args.det.lower().split("x"))
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     os.makedirs(args.out, exist_ok=True)
@@ -194,7 +197,7 @@ def main(argv=None) -> int:
              f"seed system's robotic ROI trajectory, {args.views} views, {rows} x {cols} detector of 110 um; "
              f"exact line integrals by RTK (rtk_bridge.rtk_ellipsoid_projections), photon counting "
              f"({PHOTONS_BEHIND_BODY:.0f} counts behind the body), rotation axis along {args.axis}. Every method "
-             f"through calibration.calibrate, {args.iterations} iterations, the prior (and the guard's reference) "
+             f"through calibration.calibrate, at most {settings.iterations_text()} iterations, the prior (and the guard's reference) "
              f"set to the robots' accuracy, default settings otherwise (exterior auto); the '+ exterior' rows state the "
              f"object's reach, exterior_half_width_mm {REACH_MM:g} mm, so that the object outside the ROI is modelled. "
              "Reprojection error: ROI points, gauge removed, px of the 110 um detector; SSIM against the FDK "

@@ -314,7 +314,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--phantom", choices=PHANTOMS, default=None, help=f"simulated object (default {DEMO['phantom']})")
     p.add_argument("--method", choices=method_names(), default=None,
                    help=f"calibration method (default {DEMO['method']}; none: no correction)")
-    p.add_argument("--iterations", type=whole, default=None, help="outer calibration iterations (default 2)")
+    p.add_argument("--iterations", type=whole, default=None,
+                   help="outer calibration iterations (default: the calibration's, 2, or 8 with the exterior model)")
     p.add_argument("--truncated", action="store_true",
                    help="interior scan of the whole phantom (truncated projections) instead of an object inside "
                         "the field of view")

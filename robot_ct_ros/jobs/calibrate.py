@@ -131,7 +131,7 @@ def correct_scan(scan: ScanData, settings: CalibrationSettings | None = None, gr
     li, mask = scan.to_line_integrals()
     say(f"{scan.n_views} views, detector {scan.geom.n_rows}x{scan.geom.n_cols}, grid {grid.shape_zyx[::-1]} of "
         f"{grid.voxel_size_mm[0] * 1000:.1f} um; method {settings.method}"
-        + ("" if settings.method == "none" else f", at most {settings.iterations} iteration(s), schedule "
+        + ("" if settings.method == "none" else f", at most {settings.iterations_text()} iteration(s), schedule "
                                                  f"{settings.schedule}"))
     times = drift_times(scan) if settings.drift_order is not None else None
     result = calibrate(li, scan.geom, grid, settings, valid_mask=mask, drift_times=times, progress=say)

@@ -52,7 +52,7 @@ def report_bag(bag, out, methods=REPORT_METHODS, settings: CalibrationSettings |
     grid = scan_grid(scan, voxel_mm, shape_xyz)
     times = drift_times(scan) if settings.drift_order is not None else None
     say(f"{scan.n_views} views, detector {scan.geom.n_rows}x{scan.geom.n_cols}, grid {grid.shape_zyx[::-1]} of "
-        f"{grid.voxel_size_mm[0] * 1000:.1f} um; methods {', '.join(methods)}; at most {settings.iterations} "
+        f"{grid.voxel_size_mm[0] * 1000:.1f} um; methods {', '.join(methods)}; at most {settings.iterations_text()} "
         f"iteration(s), schedule {settings.schedule}")
 
     def reconstruct(geom):

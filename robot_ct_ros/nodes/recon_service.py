@@ -86,7 +86,7 @@ class ReconServiceNode(Node):
             threads=self.service.stream_threads, voxel_mm=self.service.voxel_mm, shape_xyz=self.service.shape_xyz)
         self.create_timer(0.05, self._tick)
         self.create_timer(1.0, self._publish_diagnostics)
-        self.get_logger().info(f"recon_service: method {self.settings.method}, {self.settings.iterations} "
+        self.get_logger().info(f"recon_service: method {self.settings.method}, {self.settings.iterations_text()} "
                                f"iteration(s), output {self.output_dir}/, auto_run {self.service.auto_run}")
 
     @property
@@ -257,7 +257,7 @@ class ReconServiceNode(Node):
 
     # -- health -------------------------------------------------------------------------------------
     def _publish_diagnostics(self) -> None:
-        values = [("state", self.state), ("method", self.method), ("iterations", self.settings.iterations),
+        values = [("state", self.state), ("method", self.method), ("iterations", self.settings.iterations_text()),
                   ("frames", self.scan.n_frames), ("paired", self.n_paired), ("runs", self.runs),
                   ("output_dir", self.output_dir), ("last_error", self.error),
                   ("report", (self.report or {}).get("paths", {}).get("report_json", ""))]

@@ -29,7 +29,7 @@ from robot_ct_ros.hardware.detector import make_phantom
 
 __all__ = ["DEFAULTS", "MOUSE_SPINE_Y_M", "QUICK", "demo_settings", "demo_setup", "recon_parameters", "run_demo"]
 
-DEFAULTS = {"views": 120, "rows": 64, "cols": 128, "phantom": "mouse", "method": "ncc-lle-exact", "iterations": 2,
+DEFAULTS = {"views": 120, "rows": 64, "cols": 128, "phantom": "mouse", "method": "ncc-lle-exact", "iterations": None,
             "exposure_s": 0.1, "sigma_mm": 0.1, "sigma_deg": 0.05}
 MOUSE_SPINE_Y_M = 0.0066  # the vertebral bodies lie 6.6 mm dorsal (-y) of the mouse phantom's centre
 QUICK = {"views": 12, "rows": 32, "cols": 64, "iterations": 1, "exposure_s": 0.02}
@@ -94,13 +94,15 @@ def recon_parameters(s: dict) -> dict:
 
     hand_eye = HandEye.from_dict(_config_hand_eye())
     rot_rad = math.radians(s["sigma_deg"])
-    params = {"method": s["method"], "iterations": s["iterations"],
+    params = {"method": s["method"],
               "prior_sigma_translation_m": s["sigma_mm"] * 1e-3,
               "prior_sigma_source_m": float(device_position_sigma_mm(hand_eye.source, s["sigma_mm"], rot_rad).max())
               * 1e-3,
               "prior_sigma_detector_m": float(device_position_sigma_mm(hand_eye.detector, s["sigma_mm"], rot_rad).max())
               * 1e-3,
               "prior_sigma_rotation_rad": rot_rad}
+    if s["iterations"] is not None:  # else the calibration's own: its schedule's (docs/calibration.md §3)
+        params["iterations"] = s["iterations"]
     if s["truncated"]:
         # the whole phantom lies around the ROI: model it (docs/calibration.md, "The exterior model"),
         # out to its far side across the scan axis (z), as a user who knows the object would
@@ -131,7 +133,8 @@ def run_demo(out="out/demo", *, quick: bool = False, **given) -> int:
     say(f"{s['phantom']} phantom{' (whole, truncated projections)' if s['truncated'] else ' inside the field of view'}"
         f", {s['views']} views, detector {s['rows']}x{s['cols']} binned pixels of 110 um, robot errors "
         f"{s['sigma_mm']} mm / {s['sigma_deg']} deg per move and axis; correction {s['method']}, "
-        f"{s['iterations']} iteration(s), with the arms' accuracy as its prior")
+        + (f"{s['iterations']} iteration(s)" if s["iterations"] else "its schedule's iterations")
+        + ", with the arms' accuracy as its prior")
     try:
         r = run_scan_graph(out, protocol, grabber=grabber,
                            arm_errors={"sim_sigma_mm": s["sigma_mm"], "sim_sigma_deg": s["sigma_deg"]},

@@ -159,10 +159,6 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
     fdk = executor.fdk
 
     method = get_method(settings.method)
-    plan = settings.plan()
-    coarse_binning, fine_binning = int(plan["coarse_binning"]), int(plan["fine_binning"])
-    fine_volume, coarse_passes = plan["fine_volume"], int(plan["coarse_passes"])
-    n_iter, stop_update_px, coarse_tol_px = settings.iterations, settings.stop_update_px, settings.coarse_tol_px
     drift_order, undo_inconsistent = settings.drift_order, settings.undo_inconsistent
     if drift_order is not None:
         fit_drift(np.zeros((nominal.n_views, 9)), drift_order, drift_times)  # validates order and times
@@ -175,7 +171,7 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
     if method.estimate is None:  # no correction: the nominal geometry
         volume = fdk(li, nominal, grid, valid_mask=mask, **(fdk_kwargs or {})) if final_volume else None
         return CalibrationResult(method.name, np.zeros((nominal.n_views, 9)), nominal, volume, (),
-                                 time.perf_counter() - t_start, settings=settings)
+                                 time.perf_counter() - t_start, settings=settings.resolved())
     # how much object the detector's edges see: decides the volumes (projections auto) and the exterior model
     level = truncation_level(li, mask) if settings.projections == "auto" or settings.exterior != "on" else None
     truncated = settings.projections == "truncated"
@@ -183,8 +179,6 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
         truncated = level > TRUNCATED_ABOVE
         say(f"truncation level {level:.4f}: {'truncated, FDK + SIRT' if truncated else 'not truncated, FDK'} volumes")
     sirt_iterations = settings.sirt_iterations if truncated else 0  # else every volume is an FDK
-    estimate, narrowed = method.estimate, method.narrow
-    coarse_cfg, fine_cfg = configs if configs is not None else method.configs(settings)
     fdk_kwargs = dict(fdk_kwargs or {})
     exterior = settings.exterior == "on"
     reach_stated = settings.exterior_half_width_mm > 0
@@ -206,6 +200,17 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
                 "centre (exterior_half_width_mm)"))
         if settings.exterior == "auto":
             say(f"truncation level {level:.3f}: {'the object outside the ROI is modelled' if exterior else 'ROI model'}")
+    # the schedule (auto: exterior with the exterior model, else accurate) and the fields it sets; the result records them
+    settings = settings.resolved(exterior)
+    if exterior and settings.schedule == "exterior":
+        say(f"schedule exterior: {settings.iterations} iteration(s) at most, stop_ncc_gain {settings.stop_ncc_gain:g}, "
+            f"{settings.exterior_iterations} SIRT passes of the ROI and exterior model")
+    plan = settings.plan()
+    coarse_binning, fine_binning = int(plan["coarse_binning"]), int(plan["fine_binning"])
+    fine_volume, coarse_passes = plan["fine_volume"], int(plan["coarse_passes"])
+    n_iter, stop_update_px, coarse_tol_px = settings.iterations, settings.stop_update_px, settings.coarse_tol_px
+    estimate, narrowed = method.estimate, method.narrow
+    coarse_cfg, fine_cfg = configs if configs is not None else method.configs(settings)
     if exterior:  # every ray is modelled: no ROI support mask
         coarse_cfg, fine_cfg = (replace(c, roi_support_fraction=None) for c in (coarse_cfg, fine_cfg))
 

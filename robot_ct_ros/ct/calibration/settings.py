@@ -15,8 +15,8 @@ from dataclasses import dataclass, replace
 from robot_ct_ros.ct.calibration.lle.estimator import DRAWS
 from robot_ct_ros.parameters import setting, to_dict, validate
 
-__all__ = ["CalibrationSettings", "SCHEDULES", "FINE_VOLUMES", "PROJECTION_KINDS", "EXTERIOR_MODES", "DEFAULT_PADDING",
-           "DEFAULT_PRIOR_MM", "DEFAULT_PRIOR_DEG", "DEFAULT_PRIOR_SIGMA", "prior_sigma_from"]
+__all__ = ["CalibrationSettings", "SCHEDULES", "AUTO_SCHEDULE", "SCHEDULE_FIELDS", "FINE_VOLUMES", "PROJECTION_KINDS",
+           "EXTERIOR_MODES", "DEFAULT_PADDING", "DEFAULT_PRIOR_MM", "DEFAULT_PRIOR_DEG", "DEFAULT_PRIOR_SIGMA", "prior_sigma_from"]
 
 
 def prior_sigma_from(translation_mm: float, rotation_deg: float):
@@ -34,19 +34,32 @@ prior of the MAP estimate. Set it to the robots' measured accuracy."""
 DEFAULT_PRIOR_SIGMA = prior_sigma_from(DEFAULT_PRIOR_MM, DEFAULT_PRIOR_DEG)
 
 
+_LOOP = {"iterations": 2, "stop_ncc_gain": 0.0, "exterior_iterations": 15}
+_FAST = {"coarse_binning": 4, "fine_binning": 2, "fine_volume": "fdk", "fine_source": "fixed", "fine_samples": 96,
+         "fine_draws": 1, "coarse_passes": 1, **_LOOP}
 SCHEDULES = {
     "accurate": {"coarse_binning": 2, "fine_binning": 1, "fine_volume": "sirt", "fine_source": "star",
-                 "fine_samples": 192, "fine_draws": DRAWS, "coarse_passes": 3},
-    "fast": {"coarse_binning": 4, "fine_binning": 2, "fine_volume": "fdk", "fine_source": "fixed",
-             "fine_samples": 96, "fine_draws": 1, "coarse_passes": 1},
+                 "fine_samples": 192, "fine_draws": DRAWS, "coarse_passes": 3, **_LOOP},
+    "fast": _FAST,
+    "exterior": {**_FAST, "iterations": 8, "stop_ncc_gain": 1e-4, "exterior_iterations": 30},
 }
-"""Resolution schedules. ``accurate``: estimate on 2x2 binned data, then at full size against
-a full-size FDK + SIRT volume. ``fast`` (large scans): 4x4 binned (FDK + SIRT), then 2x2 binned
-against the FDK alone, the source held at the coarse estimate on the finer level (one ray-cast
-per view and level) with 96 samples and one sample set there. The final volume is the
-full-size FDK in both. On the interior neck with the exterior model (a 96 x 160 binned
-detector), ``fast`` corrected as far as ``accurate`` in a sixth of the time; on a 64 x 96 one,
-less far. Evidence: docs/calibration.md, "Schedules"."""
+"""Resolution schedules, and how long the loop runs under each. ``accurate``: estimate on 2x2
+binned data, then at full size against a full-size FDK + SIRT volume. ``fast`` (large scans):
+4x4 binned (FDK + SIRT), then 2x2 binned against the FDK alone, the source held at the coarse
+estimate on the finer level (one ray-cast per view and level) with 96 samples and one sample set
+there. ``exterior`` (the exterior model): ``fast``'s levels, 30 SIRT passes of the ROI and
+exterior model, and up to 8 outer iterations, each kept only while it raises the model's
+projection NCC by ``stop_ncc_gain`` 1e-4 or more. The final volume is the full-size FDK in all
+three. The default, ``auto`` (:data:`AUTO_SCHEDULE`), is ``exterior`` where the exterior model
+is used and ``accurate`` elsewhere: with the exterior model, ``exterior`` ended below ``accurate``
+on the interior neck and on most of the truncation sweep, and close to it on the other strongly
+truncated scans measured, in a fraction of its time. Evidence: docs/calibration.md, "Schedules"."""
+
+AUTO_SCHEDULE = "auto"
+"""The schedule setting that picks ``exterior`` with the exterior model and ``accurate`` without."""
+SCHEDULE_FIELDS = ("coarse_binning", "fine_binning", "fine_volume", "coarse_passes", "iterations", "stop_ncc_gain",
+                   "exterior_iterations")
+"""The settings that take the schedule's value when left at None."""
 
 FINE_VOLUMES = ("sirt", "fdk+coarse-sirt", "fdk")
 """The volume the finer level registers against on a truncated scan: its own FDK + SIRT, its
@@ -73,7 +86,7 @@ def _method_names():
 
 
 def _schedule_names():
-    return tuple(SCHEDULES)
+    return (AUTO_SCHEDULE, *SCHEDULES)
 
 
 @dataclass(frozen=True)
@@ -85,8 +98,9 @@ class CalibrationSettings:
     standard deviation on every translation and on every rotation; 0 for either turns it off.
     ``prior_source_mm`` / ``prior_detector_mm`` state one arm's translation error where the two
     arms differ (the source's three translations, the detector's three). Fields left at
-    None (``coarse_binning``, ``fine_binning``, ``fine_volume``, ``coarse_passes``) take the
-    schedule's value.
+    None (:data:`SCHEDULE_FIELDS`: ``coarse_binning``, ``fine_binning``, ``fine_volume``,
+    ``coarse_passes``, ``iterations``, ``stop_ncc_gain``, ``exterior_iterations``) take the
+    schedule's value; :meth:`resolved` fills them in.
 
     Raises
     ------
@@ -96,11 +110,13 @@ class CalibrationSettings:
 
     method: str = setting("ncc-lle-exact", "calibration method, or none for the nominal geometry",
                           choices=_method_names)
-    iterations: int = setting(2, "outer iterations at most (fewer when one moves the views less than stop_update_px)",
-                              minimum=1, maximum=100)
-    schedule: str = setting("accurate", "resolution schedule: accurate (2x binned, then full size with SIRT) or fast "
-                            "(4x then 2x binned: large scans; with the exterior model, detectors of about 100 "
-                            "binned rows or more)", choices=_schedule_names)
+    iterations: int | None = setting(None, "outer iterations at most (fewer when one moves the views less than "
+                                     "stop_update_px; off: the schedule's, 2, or 8 under exterior)", minimum=1,
+                                     maximum=100, ros_none=0, kind=int)
+    schedule: str = setting(AUTO_SCHEDULE, "resolution schedule: accurate (2x binned, then full size with SIRT), fast "
+                            "(4x then 2x binned: large scans) or exterior (fast's levels, more SIRT passes and "
+                            "iterations: the exterior model); auto: exterior where the exterior model is used, "
+                            "else accurate", choices=_schedule_names)
     stop_update_px: float = setting(0.05, "stop after an iteration that moves the views less than this "
                                     "(gauge-aligned mean; 0: always run every iteration)", unit="px", minimum=0.0)
     prior_translation_mm: float = setting(DEFAULT_PRIOR_MM, "the robots' per-view translation error, prior of the "
@@ -153,9 +169,10 @@ class CalibrationSettings:
     coarse_tol_px: float = setting(0.1, "the coarse passes stop when one moves the views less than this", unit="px",
                                    minimum=0.0)
     undo_inconsistent: bool = setting(False, "undo an iteration that lowers the data consistency, and stop")
-    stop_ncc_gain: float = setting(0.0, "from the second iteration on, undo an iteration that raises the estimation "
-                                   "model's projection NCC by less than this, and stop (0: off)", minimum=0.0,
-                                   maximum=1.0)
+    stop_ncc_gain: float | None = setting(None, "from the second iteration on, undo an iteration that raises the "
+                                          "estimation model's projection NCC by less than this, and stop (0: never; "
+                                          "off: the schedule's, 1e-4 under exterior, else 0)", minimum=0.0,
+                                          maximum=1.0, ros_none=-1.0, kind=float)
     exterior: str = setting("auto", "model the object outside the ROI with a coarse grid reconstructed with it (strongly "
                             "truncated interior scans); auto: when the truncation level exceeds "
                             "calibration.volume.EXTERIOR_ABOVE and exterior_half_width_mm states the object's reach",
@@ -164,8 +181,9 @@ class CalibrationSettings:
     exterior_half_width_mm: float = setting(0.0, "how far the object reaches from the ROI centre across the scan axis, "
                                             "the exterior grid's reach (0: not stated; exterior on then reaches up to "
                                             "the sources, auto keeps the ROI model)", unit="mm", minimum=0.0)
-    exterior_iterations: int = setting(15, "ordered-subsets SIRT passes of the ROI and exterior model", minimum=1,
-                                       maximum=1000)
+    exterior_iterations: int | None = setting(None, "ordered-subsets SIRT passes of the ROI and exterior model (off: "
+                                              "the schedule's, 30 under exterior, else 15)", minimum=1, maximum=1000,
+                                              ros_none=0, kind=int)
     exterior_subsets: int = setting(10, "ordered subsets of that SIRT", minimum=1, maximum=1000)
     guard: bool = setting(True, "keep the nominal geometry where the correction moves the views further than the "
                           "robots' stated accuracy (the prior) explains")
@@ -213,14 +231,36 @@ class CalibrationSettings:
         det = self.prior_translation_mm if self.prior_detector_mm is None else float(self.prior_detector_mm)
         return (src,) * 3 + (det,) * 3 + sigma[6:]
 
-    def plan(self) -> dict:
-        """The schedule's values with this object's overrides: coarse_binning, fine_binning,
-        fine_volume, coarse_passes, fine_source, fine_samples, fine_draws."""
-        p = dict(SCHEDULES[self.schedule])
-        for k in ("coarse_binning", "fine_binning", "fine_volume", "coarse_passes"):
+    def schedule_for(self, exterior: bool = False) -> str:
+        """The schedule that runs: ``schedule``, or for ``auto`` ``exterior`` when the exterior
+        model is used (``exterior`` True) and ``accurate`` when not."""
+        if self.schedule != AUTO_SCHEDULE:
+            return self.schedule
+        return "exterior" if exterior else "accurate"
+
+    def plan(self, exterior: bool = False) -> dict:
+        """The schedule's values (:meth:`schedule_for`) with this object's overrides: coarse_binning,
+        fine_binning, fine_volume, coarse_passes, iterations, stop_ncc_gain, exterior_iterations,
+        fine_source, fine_samples, fine_draws."""
+        p = dict(SCHEDULES[self.schedule_for(exterior)])
+        for k in SCHEDULE_FIELDS:
             if getattr(self, k) is not None:
                 p[k] = getattr(self, k)
         return p
+
+    def resolved(self, exterior: bool = False) -> "CalibrationSettings":
+        """A copy with the schedule named and every field it sets filled in (:meth:`plan`): what
+        a run with or without the exterior model uses, and what its result records."""
+        p = self.plan(exterior)
+        return replace(self, schedule=self.schedule_for(exterior), **{k: p[k] for k in SCHEDULE_FIELDS})
+
+    def iterations_text(self) -> str:
+        """The outer iterations for a progress line: the number, or the schedule's rule."""
+        if self.iterations is not None:
+            return str(self.iterations)
+        plans = {SCHEDULES[self.schedule_for(e)]["iterations"] for e in (False, True)}
+        return str(plans.pop()) if len(plans) == 1 else (f"{SCHEDULES['accurate']['iterations']} "
+                                                          f"({SCHEDULES['exterior']['iterations']} with the exterior model)")
 
     def replace(self, **changes) -> "CalibrationSettings":
         """A copy with ``changes`` (validated)."""

@@ -562,6 +562,23 @@ def test_exterior_auto_models_a_strongly_truncated_scan_only_when_the_objects_re
     assert modelled in to_sources and any("up to the sources" in n for n in to_sources)
 
 
+def test_the_default_schedule_is_exterior_with_the_exterior_model_and_accurate_without_and_the_result_says_which():
+    """schedule auto: the loop decides the model first, then runs that model's schedule, and its result records
+    the schedule and the values it filled in (iterations, stop_ncc_gain, exterior passes); values given win."""
+    nominal, _, grid, wider = _small_scan(n_views=8, body_width_mm=40.0, length_mm=30.0)
+    kw = dict(method="ncc-lle-exact", exterior_voxel_mm=2.0, final_volume=False)
+    said = []
+    modelled = calibrate(wider, nominal, grid, exterior_half_width_mm=20.0, iterations=2, progress=said.append, **kw)
+    used = modelled.settings
+    assert (used.schedule, used.iterations, used.stop_ncc_gain, used.exterior_iterations) == ("exterior", 2, 1e-4, 30)
+    assert any(m.startswith("schedule exterior: 2 iteration(s) at most") for m in said), said
+    assert 1 <= len(modelled.history) <= 2
+    roi = calibrate(wider, nominal, grid, iterations=1, **kw).settings  # no reach stated: the ROI model
+    assert (roi.schedule, roi.iterations, roi.stop_ncc_gain, roi.exterior_iterations) == ("accurate", 1, 0.0, 15)
+    named = calibrate(wider, nominal, grid, exterior_half_width_mm=20.0, iterations=1, schedule="fast", **kw).settings
+    assert (named.schedule, named.stop_ncc_gain, named.exterior_iterations) == ("fast", 0.0, 15)
+
+
 def test_the_guard_is_stricter_on_a_strongly_truncated_scan_whose_exterior_was_not_modelled():
     """There the ROI model's data term is biased: the scan-level limit on R is guard_max_ratio_unmodelled
     (1), whether exterior is auto without a stated reach or off; a modelled or untruncated scan keeps

@@ -4,7 +4,8 @@ import math
 
 import pytest
 
-from robot_ct_ros.ct.calibration import METHODS, NO_CORRECTION, CalibrationSettings, get_method, method_names
+from robot_ct_ros.ct.calibration import (METHODS, NO_CORRECTION, SCHEDULES, CalibrationSettings, get_method,
+                                         method_names)
 from robot_ct_ros.parameters import from_ros_values, ros_defaults, specs, to_dict
 
 
@@ -23,7 +24,7 @@ def test_every_field_is_described_and_the_defaults_are_valid():
     ({"iterations": 2.5}, "iterations must be a whole number"),
     ({"padding": 0.9}, "padding must be >= 1"),
     ({"stop_update_px": float("nan")}, "stop_update_px must be finite"),
-    ({"schedule": "fastest"}, "schedule must be one of accurate, fast"),
+    ({"schedule": "fastest"}, "schedule must be one of auto, accurate, fast, exterior"),
     ({"prior_translation_mm": -0.1}, "prior_translation_mm must be >= 0"),
     ({"ensemble": 0}, "ensemble must be >= 1"),
     ({"drift_order": -2}, "drift_order must be >= 0"),
@@ -51,6 +52,26 @@ def test_ros_parameters_are_si_and_round_trip():
     assert from_ros_values(CalibrationSettings, {"prior_sigma_translation_m": 0.0}).prior_sigma is None
     with pytest.raises(ValueError, match="whole number"):
         from_ros_values(CalibrationSettings, {"iterations": 1.5})
+
+
+def test_the_auto_schedule_runs_exterior_with_the_exterior_model_and_accurate_without():
+    s = CalibrationSettings()
+    assert s.schedule == "auto" and s.iterations is None and s.stop_ncc_gain is None and s.exterior_iterations is None
+    roi, ext = s.resolved(exterior=False), s.resolved(exterior=True)
+    assert (roi.schedule, roi.iterations, roi.stop_ncc_gain, roi.exterior_iterations) == ("accurate", 2, 0.0, 15)
+    assert (ext.schedule, ext.iterations, ext.stop_ncc_gain, ext.exterior_iterations) == ("exterior", 8, 1e-4, 30)
+    assert ext.plan() == SCHEDULES["exterior"] and ext.plan()["fine_binning"] == SCHEDULES["fast"]["fine_binning"]
+    # a value the user gives wins over the schedule's, and a named schedule does not change with the model
+    given = s.replace(iterations=3, stop_ncc_gain=0.0, exterior_iterations=20).resolved(exterior=True)
+    assert (given.schedule, given.iterations, given.stop_ncc_gain, given.exterior_iterations) == ("exterior", 3, 0.0, 20)
+    assert s.replace(schedule="fast").resolved(exterior=True).schedule == "fast"
+    assert s.replace(schedule="fast").resolved(exterior=True).iterations == 2
+    assert s.iterations_text() == "2 (8 with the exterior model)" and s.replace(iterations=4).iterations_text() == "4"
+    # on ROS, unset is 0 (iterations, exterior_iterations) and -1 (stop_ncc_gain, where 0 turns the rule off)
+    ros = ros_defaults(CalibrationSettings)
+    assert ros["iterations"] == 0 and ros["exterior_iterations"] == 0 and ros["stop_ncc_gain"] == -1.0
+    back = from_ros_values(CalibrationSettings, {"stop_ncc_gain": 0.0, "iterations": 0})
+    assert back.stop_ncc_gain == 0.0 and back.iterations is None
 
 
 def test_the_registry_names_every_method_once_and_none_is_no_correction():
