@@ -220,8 +220,8 @@ def run_method(method: str, sc, iterations: int, say, seed: int = 0, base=None):
         return calibration.calibrate(sc.li, sc.nominal, sc.grid, settings, valid_mask=sc.mask,
                                      progress=prog), "calibration.calibrate(drift_order=3, no prior)"
     if method in EXTERIOR_METHODS:
-        settings = base.replace(method=method[:-len(EXTERIOR_SUFFIX)], iterations=iterations, seed=seed, exterior="on",
-                                exterior_half_width_mm=sc.exterior_half_width_mm)
+        settings = base.replace(method=method[:-len(EXTERIOR_SUFFIX)], iterations=iterations, seed=seed,
+                                exterior="on", exterior_half_width_mm=sc.exterior_half_width_mm)
         return calibration.calibrate(sc.li, sc.nominal, sc.grid, settings, valid_mask=sc.mask,
                                      progress=prog), (f"calibration.calibrate(exterior=on, half-width "
                                                       f"{sc.exterior_half_width_mm:.0f} mm)")
@@ -338,8 +338,8 @@ def main(argv=None) -> int:
     ap.add_argument("--vol", type=int, default=64, help="ROI grid voxels across (default 64; axial from the cone)")
     ap.add_argument("--iterations", type=int, default=3, help="outer iterations per method at most (default 3)")
     ap.add_argument("--scenarios", default="abc", help="subset of 'abc' (default abc)")
-    ap.add_argument("--methods", default=",".join(ALL_METHODS), help="comma-separated subset of " + ", ".join(ALL_METHODS)
-                    + "; any other correcting method with the exterior model: "
+    ap.add_argument("--methods", default=",".join(ALL_METHODS),
+                    help="comma-separated subset of " + ", ".join(ALL_METHODS) + "; any other correcting method with the exterior model: "
                     + ", ".join(m for m in EXTERIOR_METHODS if m != EXTERIOR_METHOD))
     ap.add_argument("--seed", type=int, default=0, help="scenario seed: phantom, errors, noise (default 0)")
     ap.add_argument("--repeats", type=int, default=1,
