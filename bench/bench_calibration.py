@@ -68,7 +68,7 @@ run only where this one is."""
 EXTERIOR_SCENARIOS = ("c",)
 ALL_METHODS = ("none", "l2-lle", "ncc-lle", "ncc-lle-exact", "gdc", "gdc-log", DRIFT_METHOD, EXTERIOR_METHOD,
                "true geometry")
-EXTERIOR_METHODS = tuple(m + EXTERIOR_SUFFIX for m in ("l2-lle", "ncc-lle", "ncc-lle-exact", "gdc", "gdc-log"))
+EXTERIOR_METHODS = tuple(m + EXTERIOR_SUFFIX for m in calibration.method_names() if m != calibration.NO_CORRECTION)
 """Every correcting method with the exterior model (the ``--methods`` names; EXTERIOR_METHOD is the default's)."""
 SCENARIOS = {
     "a": "mouse (9 mm body) thorax, independent 9-DOF robot errors (0.3 mm, 0.3 deg)",

@@ -622,11 +622,9 @@ def main(argv=None) -> int:
         print(msg, flush=True)
 
     sc = make_scan(args.sigma, views=args.views, det=(rows_, cols_), axis="y", seed=args.seed, nxy=args.nxy, say=say)
-    # the tables were measured under accurate, the default before the exterior schedule: its 15 SIRT passes of the
-    # exterior model (the loops of tables 5, 9 and 10 name their schedule)
-    settings = calibration.CalibrationSettings(
-        schedule="accurate", exterior_iterations=calibration.SCHEDULES["accurate"]["exterior_iterations"]
-    ).with_prior(args.sigma, args.sigma)
+    # the tables were measured under accurate, the default before the exterior schedule (its 15 SIRT passes of the
+    # exterior model: Study.exterior_iterations); the loops of tables 5 and 10 name their own schedule
+    settings = calibration.CalibrationSettings(schedule="accurate").with_prior(args.sigma, args.sigma)
     st = Study(sc, settings)
     wanted = [k.strip() for k in args.tables.split(",") if k.strip()]
     unknown = set(wanted) - set(TABLES)

@@ -16,7 +16,8 @@ from robot_ct_ros.ct.calibration.lle.estimator import DRAWS
 from robot_ct_ros.parameters import setting, to_dict, validate
 
 __all__ = ["CalibrationSettings", "SCHEDULES", "AUTO_SCHEDULE", "SCHEDULE_FIELDS", "FINE_VOLUMES", "PROJECTION_KINDS",
-           "EXTERIOR_MODES", "DEFAULT_PADDING", "DEFAULT_PRIOR_MM", "DEFAULT_PRIOR_DEG", "DEFAULT_PRIOR_SIGMA", "prior_sigma_from"]
+           "EXTERIOR_MODES", "DEFAULT_PADDING", "DEFAULT_PRIOR_MM", "DEFAULT_PRIOR_DEG", "DEFAULT_PRIOR_SIGMA",
+           "prior_sigma_from"]
 
 
 def prior_sigma_from(translation_mm: float, rotation_deg: float):
@@ -255,12 +256,10 @@ class CalibrationSettings:
         return replace(self, schedule=self.schedule_for(exterior), **{k: p[k] for k in SCHEDULE_FIELDS})
 
     def iterations_text(self) -> str:
-        """The outer iterations for a progress line: the number, or the schedule's rule."""
-        if self.iterations is not None:
-            return str(self.iterations)
-        plans = {SCHEDULES[self.schedule_for(e)]["iterations"] for e in (False, True)}
-        return str(plans.pop()) if len(plans) == 1 else (f"{SCHEDULES['accurate']['iterations']} "
-                                                          f"({SCHEDULES['exterior']['iterations']} with the exterior model)")
+        """The outer iterations for a progress line, before the model is known: one number, or the
+        ROI model's and the exterior model's where they differ."""
+        roi, ext = (self.plan(exterior)["iterations"] for exterior in (False, True))
+        return str(roi) if roi == ext else f"{roi} ({ext} with the exterior model)"
 
     def replace(self, **changes) -> "CalibrationSettings":
         """A copy with ``changes`` (validated)."""
