@@ -22,11 +22,15 @@ import yaml
 
 from robot_ct_ros.hardware.detector import warm_up_projector
 
-__all__ = ["CONFIG_DIR", "ROLES", "GraphError", "GraphResult", "run_scan_graph"]
+__all__ = ["ARM_REPORT_TIMEOUT_S", "CONFIG_DIR", "ROLES", "GraphError", "GraphResult", "run_scan_graph"]
 
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "config"
 ROLES = ("source", "detector")
 _domains = itertools.count()
+ARM_REPORT_TIMEOUT_S = 10.0
+"""scan_orchestrator's ``arm_report_timeout_s`` in this harness (the node's own default is 1 s). Every node here
+shares one thread, so a slow callback of another node (a simulated exposure on a loaded machine) holds back the
+arms' reports for its whole duration; on the robot each node has its own process. ``orchestrator`` overrides it."""
 
 
 class GraphError(RuntimeError):
@@ -80,6 +84,7 @@ def _load_protocol(protocol, out_dir: Path) -> tuple[Path, object]:
 
 def run_scan_graph(out_dir, protocol="quick", *, grabber: dict | None = None, arms: dict | None = None,
                    arm_errors: dict | None = None, recon: dict | None = None, recorder: dict | None = None,
+                   orchestrator: dict | None = None,
                    scan_timeout_s: float | None = None, recon_timeout_s: float = 600.0, startup_timeout_s: float = 60.0,
                    say=print, progress_period_s: float = 5.0, quiet: bool = False) -> GraphResult:
     """Run one scan on the simulated graph; see the module docstring.
@@ -89,7 +94,8 @@ def run_scan_graph(out_dir, protocol="quick", *, grabber: dict | None = None, ar
     exposure plus ``grabber`` (its ``sim_*`` parameters: phantom, voxel sizes, photons ...);
     ``arm_errors`` go to both arm drivers (default 0.1 mm / 0.05 deg per move), ``arms``
     per role on top; ``recon``: recon_service parameters (method, iterations, ...);
-    ``recorder``: recorder parameters. Bags go to ``out_dir/bags``, the correction to
+    ``recorder``: recorder parameters; ``orchestrator``: scan_orchestrator parameters on top of the protocol
+    file and :data:`ARM_REPORT_TIMEOUT_S`. Bags go to ``out_dir/bags``, the correction to
     ``out_dir/recon``. ``quiet``: the nodes log warnings and errors only (progress still goes
     to ``say``). Raises :class:`GraphError` when a step does not complete.
     """
@@ -129,6 +135,8 @@ def run_scan_graph(out_dir, protocol="quick", *, grabber: dict | None = None, ar
     recon_params.update(recon or {})
     recorder_params = {"output_dir": str(out_dir / "bags"), "bag_prefix": "scan"}
     recorder_params.update(recorder or {})
+    orchestrator_params = {"arm_report_timeout_s": ARM_REPORT_TIMEOUT_S}
+    orchestrator_params.update(orchestrator or {})
     if scan_timeout_s is None:
         scan_timeout_s = 60.0 + n * (2.0 + proto.exposure_s + proto.settle_s)
 
@@ -182,8 +190,9 @@ def run_scan_graph(out_dir, protocol="quick", *, grabber: dict | None = None, ar
         grab = add(PcdGrabberNode(context=context, cli_args=he_args, parameter_overrides=_params(grabber_params)))
         timings["detector_setup_s"] = time.monotonic() - t0
         add(GeometryPublisherNode(context=context, cli_args=he_args))
+        orchestrator_params["protocol_file"] = str(proto_path)
         orch = add(ScanOrchestratorNode(context=context, cli_args=he_args,
-                                        parameter_overrides=_params({"protocol_file": str(proto_path)})))
+                                        parameter_overrides=_params(orchestrator_params)))
         rec = add(RecorderNode(context=context, parameter_overrides=_params(recorder_params)))
         recon_node = add(ReconServiceNode(context=context, parameter_overrides=_params(recon_params)))
 
