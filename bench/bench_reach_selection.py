@@ -15,7 +15,8 @@ For each reach, the exterior model (ROI + exterior, 30 SIRT passes, 10 subsets, 
 reconstructed with the nominal geometry from 9 in 10 views (two interleaved folds), and scored by
 
 * *held-out NCC*: the mean projection NCC of its reprojection into the views it did not see;
-* *fit NCC*: the same on views it was built from (every tenth of them), the figure the guard reads.
+* *fit NCC*: the same on views it was built from (every tenth of them), the kind of figure the guard's
+  first test reads (the estimation model's projection NCC).
 
 Then ncc-lle-exact calibrates the scan (default settings: the ``exterior`` schedule; the neck with the prior
 at the robots' accuracy, as bench_interior.py) with the reach each figure picks, the stated reach, and
