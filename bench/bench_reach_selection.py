@@ -11,7 +11,8 @@ the two consistency figures at hand, on two strongly truncated scans whose reach
 * ``mouse``: the truncation sweep's mouse at 3 times scenario (a)'s width (bench_truncation_sweep.py; far
   side 13.5 mm, as the sweep states it; 90 views, robot errors 0.3 mm / 0.3 deg), its data binned 2 x 2.
 
-For each reach, the exterior model (ROI + exterior, 30 SIRT passes, 10 subsets, 0.5 mm voxels) is
+For each reach, the exterior model (ROI + exterior with the default settings' voxels, subsets and the
+``exterior`` schedule's SIRT passes: 0.5 mm, 10, 30) is
 reconstructed with the nominal geometry from 9 in 10 views (two interleaved folds), and scored by
 
 * *held-out NCC*: the mean projection NCC of its reprojection into the views it did not see;
@@ -70,16 +71,19 @@ def scan(case: str, sigma: float, seed: int, say):
 
 def scores(sc, binning: int, reach_mm: float) -> tuple[float, float]:
     """(held-out NCC, fit NCC) of the exterior model reaching ``reach_mm``, built with the nominal geometry."""
+    s = calibration.CalibrationSettings()
+    passes = s.plan(exterior=True)["exterior_iterations"]  # the default exterior schedule's (30)
     li, mask = bin_masked(sc.li, sc.mask, binning)
     nom = sc.nominal.binned(binning)
-    grid = estimation_grid(sc.grid, calibration.CalibrationSettings().padding).binned(binning)
+    grid = estimation_grid(sc.grid, s.padding).binned(binning)
     n = nom.n_views
     held, fit = [], []
     for f in HELD_OUT:
         test = np.arange(f, n, FOLDS)
         train = np.setdiff1d(np.arange(n), test)
-        parts = reconstruct_with_exterior(li[train], nom.subset(train), grid, mask[train], voxel_mm=0.5,
-                                          half_width_mm=reach_mm, iterations=30, subsets=10)
+        parts = reconstruct_with_exterior(li[train], nom.subset(train), grid, mask[train],
+                                          voxel_mm=s.exterior_voxel_mm, half_width_mm=reach_mm, iterations=passes,
+                                          subsets=s.exterior_subsets)
         held.append(projection_consistency(parts, grid, nom.subset(test), li[test], mask[test])[1])
         seen = train[::FOLDS]
         fit.append(projection_consistency(parts, grid, nom.subset(seen), li[seen], mask[seen])[1])
@@ -97,6 +101,9 @@ def main(argv=None) -> int:
         ap.add_argument(f"--{case}-also", default=c["also"], help=f"{case}: reaches calibrated besides the picks, mm")
     ap.add_argument("--out", default="out/bench_reach_selection")
     args = ap.parse_args(argv)
+    unknown = [c for c in args.cases.split(",") if c.strip() and c.strip() not in CASES]
+    if unknown:
+        ap.error(f"--cases: unknown {', '.join(unknown)} (known: {', '.join(CASES)})")
     os.makedirs(args.out, exist_ok=True)
     t_all = time.perf_counter()
 
@@ -105,8 +112,11 @@ def main(argv=None) -> int:
 
     report = {"bench": "bench/bench_reach_selection.py", "argv": sys.argv[1:] if argv is None else list(argv),
               "machine": f"{platform.machine()}, {os.cpu_count()} cores", "cases": {}}
+    d = calibration.CalibrationSettings()  # the exterior model's defaults, as scores() uses them
     lines = ["# Can the data tell the object's reach? (bench/bench_reach_selection.py)", "",
-             "The exterior model (ROI + exterior on 0.5 mm voxels, 30 SIRT passes, 10 subsets) reconstructed with the "
+             f"The exterior model (ROI + exterior on {d.exterior_voxel_mm:g} mm voxels, "
+             f"{d.plan(exterior=True)['exterior_iterations']} SIRT passes, {d.exterior_subsets} subsets) "
+             "reconstructed with the "
              "nominal geometry from 9 in 10 views, for each reach: *held-out NCC*, the mean projection NCC in the "
              "views it did not see (two interleaved folds), and *fit NCC*, the same in views it was built from. "
              "Then ncc-lle-exact (default settings, the `exterior` schedule) with the reach each figure picks, the "
