@@ -53,6 +53,10 @@ CASES = {
     "neck": {"binning": 4, "reaches": "8,12,16,20,25,30,40,60,0", "also": "20"},
     "mouse": {"binning": 2, "reaches": "3,4,5,6,8,10,12,15,20", "also": "9"},
 }
+DEFAULTS = calibration.CalibrationSettings()
+"""The exterior model's voxels, subsets and padding, as a user gets them."""
+EXTERIOR_PASSES = DEFAULTS.plan(exterior=True)["exterior_iterations"]
+"""The default ``exterior`` schedule's SIRT passes of the exterior model (30)."""
 FOLDS = 10
 HELD_OUT = (0, 5)
 """The interleaved folds held out in turn: views f, f + 10, f + 20, ..."""
@@ -64,30 +68,33 @@ def scan(case: str, sigma: float, seed: int, say):
         sc = make_scan(sigma, views=180, det=(96, 160), axis="y", seed=seed, nxy=96, say=say)
         # the reach its user states (bench_interior's REACH_MM; the far side lies 29.5 mm away); the prior at the
         # robots' accuracy
-        return sc, REACH_MM, calibration.CalibrationSettings(method="ncc-lle-exact").with_prior(sigma, sigma)
+        return sc, REACH_MM, DEFAULTS.replace(method="ncc-lle-exact").with_prior(sigma, sigma)
     sc = make_scenario("a", 90, (64, 96), 64, 4, seed, say, phantom_scale=3.0)
-    return sc, float(sc.exterior_half_width_mm), calibration.CalibrationSettings(method="ncc-lle-exact", seed=0)
+    return sc, float(sc.exterior_half_width_mm), DEFAULTS.replace(method="ncc-lle-exact", seed=0)
 
 
 def scores(sc, binning: int, reach_mm: float) -> tuple[float, float]:
     """(held-out NCC, fit NCC) of the exterior model reaching ``reach_mm``, built with the nominal geometry."""
-    s = calibration.CalibrationSettings()
-    passes = s.plan(exterior=True)["exterior_iterations"]  # the default exterior schedule's (30)
     li, mask = bin_masked(sc.li, sc.mask, binning)
     nom = sc.nominal.binned(binning)
-    grid = estimation_grid(sc.grid, s.padding).binned(binning)
+    grid = estimation_grid(sc.grid, DEFAULTS.padding).binned(binning)
     n = nom.n_views
     held, fit = [], []
     for f in HELD_OUT:
         test = np.arange(f, n, FOLDS)
         train = np.setdiff1d(np.arange(n), test)
         parts = reconstruct_with_exterior(li[train], nom.subset(train), grid, mask[train],
-                                          voxel_mm=s.exterior_voxel_mm, half_width_mm=reach_mm, iterations=passes,
-                                          subsets=s.exterior_subsets)
+                                          voxel_mm=DEFAULTS.exterior_voxel_mm, half_width_mm=reach_mm,
+                                          iterations=EXTERIOR_PASSES, subsets=DEFAULTS.exterior_subsets)
         held.append(projection_consistency(parts, grid, nom.subset(test), li[test], mask[test])[1])
         seen = train[::FOLDS]
         fit.append(projection_consistency(parts, grid, nom.subset(seen), li[seen], mask[seen])[1])
     return float(np.mean(held)), float(np.mean(fit))
+
+
+def f5(x) -> str:
+    """A score for the table, "-" where the reach was only calibrated."""
+    return "-" if x is None else f"{x:.5f}"
 
 
 def main(argv=None) -> int:
@@ -112,10 +119,9 @@ def main(argv=None) -> int:
 
     report = {"bench": "bench/bench_reach_selection.py", "argv": sys.argv[1:] if argv is None else list(argv),
               "machine": f"{platform.machine()}, {os.cpu_count()} cores", "cases": {}}
-    d = calibration.CalibrationSettings()  # the exterior model's defaults, as scores() uses them
     lines = ["# Can the data tell the object's reach? (bench/bench_reach_selection.py)", "",
-             f"The exterior model (ROI + exterior on {d.exterior_voxel_mm:g} mm voxels, "
-             f"{d.plan(exterior=True)['exterior_iterations']} SIRT passes, {d.exterior_subsets} subsets) "
+             f"The exterior model (ROI + exterior on {DEFAULTS.exterior_voxel_mm:g} mm voxels, "
+             f"{EXTERIOR_PASSES} SIRT passes, {DEFAULTS.exterior_subsets} subsets) "
              "reconstructed with the "
              "nominal geometry from 9 in 10 views, for each reach: *held-out NCC*, the mean projection NCC in the "
              "views it did not see (two interleaved folds), and *fit NCC*, the same in views it was built from. "
@@ -168,8 +174,6 @@ def main(argv=None) -> int:
                   "| wall time (s) |",
                   "| --- | --- | --- | --- | --- | --- | --- |"]
         for r in report["cases"][case]["rows"]:
-            def f5(x):
-                return "-" if x is None else f"{x:.5f}"
             err = "-" if "error_px" not in r else (f"{r['error_px']:.3f}" + (
                 f" ({r['unguarded_px']:.3f}, guard)" if r["kept_nominal"] else ""))
             lines.append(f"| {'up to the sources' if r['reach_mm'] == 0 else format(r['reach_mm'], 'g')} "
