@@ -92,6 +92,17 @@ def scores(sc, binning: int, reach_mm: float) -> tuple[float, float]:
     return float(np.mean(held)), float(np.mean(fit))
 
 
+def mm_list(text: str) -> list[float]:
+    """``--*-reaches`` / ``--*-also``: comma-separated reaches, mm, none negative (0: up to the sources)."""
+    try:
+        values = [float(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a comma-separated list of mm: {text!r}") from None
+    if any(not v >= 0 for v in values):
+        raise argparse.ArgumentTypeError(f"a reach is a distance from the ROI centre, 0 or more mm: {text!r}")
+    return values
+
+
 def f5(x) -> str:
     """A score for the table, "-" where the reach was only calibrated."""
     return "-" if x is None else f"{x:.5f}"
@@ -103,9 +114,10 @@ def main(argv=None) -> int:
     ap.add_argument("--sigma", type=float, default=0.1, help="the neck's robot errors, mm and deg")
     ap.add_argument("--seed", type=int, default=0)
     for case, c in CASES.items():
-        ap.add_argument(f"--{case}-reaches", default=c["reaches"], help=f"{case}: the reaches scored, mm (0: up to "
-                        "the sources)")
-        ap.add_argument(f"--{case}-also", default=c["also"], help=f"{case}: reaches calibrated besides the picks, mm")
+        ap.add_argument(f"--{case}-reaches", type=mm_list, default=c["reaches"],
+                        help=f"{case}: the reaches scored, mm (0: up to the sources)")
+        ap.add_argument(f"--{case}-also", type=mm_list, default=c["also"],
+                        help=f"{case}: reaches calibrated besides the picks, mm")
     ap.add_argument("--out", default="out/bench_reach_selection")
     args = ap.parse_args(argv)
     unknown = [c for c in args.cases.split(",") if c.strip() and c.strip() not in CASES]
@@ -135,7 +147,7 @@ def main(argv=None) -> int:
         pts = roi_points(sc.grid)
         nominal_px = reprojection_error(sc.nominal, sc.true, pts)["mean_px"]
         rows = {}
-        for reach in (float(x) for x in getattr(args, f"{case}_reaches").split(",")):
+        for reach in getattr(args, f"{case}_reaches"):
             t0 = time.perf_counter()
             held, fit = scores(sc, cfg["binning"], reach)
             rows[reach] = {"reach_mm": reach, "held_out_ncc": held, "fit_ncc": fit,
@@ -144,7 +156,7 @@ def main(argv=None) -> int:
         by_held = max(rows, key=lambda r: rows[r]["held_out_ncc"])
         by_fit = max(rows, key=lambda r: rows[r]["fit_ncc"])
         picks = {"held-out NCC": by_held, "fit NCC": by_fit, "stated": stated_mm}
-        calibrate_at = {float(x): [] for x in getattr(args, f"{case}_also").split(",") if x}
+        calibrate_at = {r: [] for r in getattr(args, f"{case}_also")}
         for why, r in picks.items():
             calibrate_at.setdefault(r, []).append(why)
         for reach, why in sorted(calibrate_at.items()):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pytest
+
 
 def test_the_fit_prefers_a_wider_model_and_held_out_views_a_narrower_one(load_bench):
     """A tiny wide mouse (30 views, a 16 x 24 detector): widening the exterior model from a third of the way to
@@ -15,3 +17,11 @@ def test_the_fit_prefers_a_wider_model_and_held_out_views_a_narrower_one(load_be
     assert all(-1.0 <= x <= 1.0 for x in (held_short, fit_short, held_wide, fit_wide))
     assert fit_wide > fit_short
     assert held_wide < held_short
+
+
+@pytest.mark.parametrize("argv", [["--cases", "leg"], ["--neck-reaches", "16,abc"], ["--mouse-also", "-3"]])
+def test_a_bad_case_or_reach_is_a_usage_error_before_any_work(load_bench, argv, tmp_path):
+    with pytest.raises(SystemExit) as stop:
+        load_bench("bench_reach_selection").main([*argv, "--out", str(tmp_path / "out")])
+    assert stop.value.code == 2
+    assert not (tmp_path / "out").exists()
