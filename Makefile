@@ -7,7 +7,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 export PYTHONPATH := $(CURDIR)$(if $(PYTHONPATH),:$(PYTHONPATH))
 
-.PHONY: venv demo test bench bench-calibration bench-calibration-speed bench-interior bench-exterior-reach bench-reach-selection bench-interior-diagnosis bench-offset-diagnosis bench-realdata bench-realdata-halves bench-realdata-consistency bench-embedding bench-sweep bench-guard bench-dask bench-fullsize bench-streaming clean
+.PHONY: venv demo test bench bench-calibration bench-calibration-speed bench-interior bench-exterior-reach bench-reach-selection bench-reach-guess bench-interior-diagnosis bench-offset-diagnosis bench-realdata bench-realdata-halves bench-realdata-consistency bench-embedding bench-sweep bench-guard bench-dask bench-fullsize bench-streaming clean
 
 venv: $(STAMP)
 
@@ -41,6 +41,9 @@ bench-exterior-reach: $(STAMP)
 
 bench-reach-selection: $(STAMP)
 	$(PY) bench/bench_reach_selection.py --out docs/results
+
+bench-reach-guess: $(STAMP)
+	$(PY) bench/bench_reach_guess.py --out docs/results
 
 bench-interior-diagnosis: $(STAMP)
 	$(PY) bench/bench_interior_diagnosis.py --out docs/results

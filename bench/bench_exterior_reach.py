@@ -36,6 +36,9 @@ from robot_ct_ros.cli import add_settings_arguments  # noqa: E402
 from robot_ct_ros.ct import calibration  # noqa: E402
 from robot_ct_ros.ct.metrics import reprojection_error, roi_points  # noqa: E402
 
+OWNS = (*EXTERIOR_OWNS, "exterior_reach_guess")
+"""Each row states its reach (0: up to the sources, never a guess)."""
+
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -49,11 +52,11 @@ def main(argv=None) -> int:
                     help="outer iterations at most (default: the calibration's, its schedule's)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="out/bench_exterior_reach")
-    add_settings_arguments(ap, skip=EXTERIOR_OWNS)  # each row: the exterior model with its reach
+    add_settings_arguments(ap, skip=OWNS)  # each row: the exterior model with its reach
     args = ap.parse_args(argv)
     if args.prior_sigma is not None:
         ap.error("--prior-sigma: the prior is the robots' accuracy (--sigma), as a user states it")
-    base, changed = bench_settings(args, EXTERIOR_OWNS)
+    base, changed = bench_settings(args, OWNS)
     os.makedirs(args.out, exist_ok=True)
     t_all = time.perf_counter()
 
@@ -73,7 +76,8 @@ def main(argv=None) -> int:
         t0 = time.perf_counter()
         result = calibration.calibrate(sc.li, sc.nominal, sc.grid,
                                        settings.replace(method="ncc-lle-exact", exterior="on",
-                                                        exterior_half_width_mm=reach),
+                                                        exterior_half_width_mm=reach,
+                                                        exterior_reach_guess=False),  # 0: up to the sources
                                        valid_mask=sc.mask, progress=lambda m: say(f"    {m}"))
         err = reprojection_error(result.geom, sc.true, pts)
         unguarded = (reprojection_error(sc.nominal.perturbed(result.params_unguarded), sc.true, pts)

@@ -3,14 +3,14 @@
 The guard (robot_ct_ros.ct.calibration.guard, docs/calibration.md section 11) keeps the nominal
 geometry where the data do not support a correction. It must refuse harmful corrections and keep
 helpful ones. This script runs no calibration: it reads what the benches already wrote into
-``--results`` (results.json, sweep.json, interior.json, exterior_reach.json, realdata.json and fullsize.json, each
-also from every folder there that holds one: a run with a setting or the seed changed) and,
+``--results`` (results.json, sweep.json, interior.json, exterior_reach.json, reach_guess.json, realdata.json
+and fullsize.json, each also from every folder there that holds one: a run with a setting or the seed changed) and,
 for each method and scan, takes:
 
 * the nominal geometry's error and the final error (gauge-aligned reprojection error of ROI
   points, mean, px), and the error before the guard where the guard changed anything (the
-  benches write it into the notes, or as exterior_reach's ``unguarded_mean_px`` and fullsize's
-  ``unguarded_error_px``);
+  benches write it into the notes, or as exterior_reach's ``unguarded_mean_px``, reach_guess's
+  ``unguarded_px`` and fullsize's ``unguarded_error_px``);
 * the guard's inputs from the notes: the model NCC, R (how far the correction moved the views
   against random errors of the stated accuracy), the limit applied;
 * the regime: the exterior modelled, strongly truncated without it, or not strongly truncated.
@@ -148,6 +148,11 @@ def collect(results_dir: str) -> tuple[list, list]:
             out.append(record(name, f"neck {sigma:g} mm / {sigma:g} deg", f"ncc-lle-exact, exterior reach {reach}",
                               d["nominal_mean_px"], r["mean_px"], r.get("notes", ()) if isinstance(r.get("notes"), list)
                               else [r.get("notes", "")], r.get("model_ncc"), r.get("unguarded_mean_px")))
+    for name in with_variants("reach_guess.json"):
+        for r in (load(name) or {}).get("rows", []):
+            out.append(record(name, r["title"], f"ncc-lle-exact, reach guessed ({r['guessed_reach_mm']:.1f} mm)",
+                              r["nominal_px"], r["error_px"], r.get("notes", ()), r.get("model_ncc"),
+                              r.get("unguarded_px")))
     for name in with_variants("fullsize.json"):
         d = load(name)
         c, g = (d or {}).get("calibration"), (d or {}).get("geometry", {})

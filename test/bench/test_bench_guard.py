@@ -96,3 +96,23 @@ def test_runs_with_another_seed_are_read_from_their_folders(tmp_path, load_bench
     assert by_source["interior.json"]["after_px"] == 1.4
     assert by_source["interior_seed_1/interior.json"]["after_px"] == 1.6
     assert by_source["sweep_seed_1/sweep.json"]["outcome"] == "kept a helpful correction"
+
+
+def test_a_guessed_reach_is_read_as_an_exterior_modelled_calibration(tmp_path, load_bench):
+    """reach_guess.json: one row per scan, its error before the guard as ``unguarded_px``."""
+    bench = load_bench("bench_guard")
+    refused = ("guard: the correction moved the views 1.60 times as far as the robots' stated accuracy explains "
+               "(limit 1.5); the data do not support it and the nominal geometry is kept")
+    rows = [{"title": "the interior neck", "guessed_reach_mm": 15.337, "nominal_px": 2.2, "error_px": 1.8,
+             "unguarded_px": 1.8, "model_ncc": 0.95,
+             "notes": ["the object outside the ROI was modelled (exterior model)",
+                       "guard: the correction is 0.90 times the robots' stated accuracy (limit 1.5)"]},
+            {"title": "(c)", "guessed_reach_mm": 36.8, "nominal_px": 3.4, "error_px": 3.4, "unguarded_px": 4.0,
+             "notes": ["the object outside the ROI was modelled (exterior model)", refused]}]
+    (tmp_path / "reach_guess.json").write_text(json.dumps({"rows": rows}))
+    records, read = bench.collect(str(tmp_path))
+    assert read == ["reach_guess.json"]
+    neck, c = records
+    assert neck["method"] == "ncc-lle-exact, reach guessed (15.3 mm)" and neck["regime"] == "exterior modelled"
+    assert neck["outcome"] == "kept a helpful correction" and neck["model_ncc"] == 0.95
+    assert c["outcome"] == "refused a harmful correction" and c["before_px"] == 4.0 and c["ratio"] == 1.6

@@ -16,7 +16,7 @@ import numpy as np
 from robot_ct_ros.ct.calibration.constraints import fit_drift, focus_conjugate_modes, hold_magnification, moved_px
 from robot_ct_ros.ct.calibration.distributed import InProcess, executor_for
 from robot_ct_ros.ct.calibration.ensemble import average_estimates, member_seeds
-from robot_ct_ros.ct.calibration.exterior import reconstruct_with_exterior
+from robot_ct_ros.ct.calibration.exterior import choose_reach, reconstruct_with_exterior
 from robot_ct_ros.ct.calibration.guard import plausibility_guard
 from robot_ct_ros.ct.calibration.kernels import blas_single_threaded
 from robot_ct_ros.ct.calibration.masks import bin_masked, usable_data
@@ -31,6 +31,30 @@ from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid, observable_params
 from robot_ct_ros.ct.metrics import remove_gauge, roi_points
 
 __all__ = ["calibrate", "settings_with"]
+
+
+def _guess_reach(li, mask, nominal, grid, settings, notes: list, say):
+    """The exterior model's reach where none is stated: :func:`choose_reach` on the exterior schedule's
+    coarse level, with the nominal geometry. Returns (settings with the reach, whether the exterior is
+    modelled, whether the scan is strongly truncated and unmodelled). Where no reach can be scored (too
+    few views, no room between the ROI and the sources), auto keeps the ROI model and on reaches up to
+    the sources, and ``notes`` says why."""
+    plan = settings.resolved(True).plan()
+    binning = int(plan["coarse_binning"])
+    li_c, mask_c, nom_c, grid_c = _level(li, mask, nominal, estimation_grid(grid, settings.padding), binning)
+    try:
+        choice = choose_reach(li_c, nom_c, grid_c, mask_c, voxel_mm=settings.exterior_voxel_mm,
+                              iterations=int(plan["exterior_iterations"]), subsets=settings.exterior_subsets)
+    except ValueError as e:
+        on = settings.exterior == "on"
+        notes.append(f"the object's reach was not stated and could not be guessed ({e}): " + (
+            "the exterior model reached up to the sources" if on else
+            "the object outside the ROI of this strongly truncated scan was not modelled; state its reach "
+            "(exterior_half_width_mm)"))
+        return settings, on, not on
+    notes.append(choice.note())
+    say(choice.note())
+    return settings.replace(exterior_half_width_mm=choice.reach_mm), True, False
 
 
 def _level(li, mask, nominal, grid, factor):
@@ -182,24 +206,28 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
     fdk_kwargs = dict(fdk_kwargs or {})
     exterior = settings.exterior == "on"
     reach_stated = settings.exterior_half_width_mm > 0
+    guess_reach = not reach_stated and settings.exterior_reach_guess  # chosen by held-out prediction, below
     exterior_notes = []
-    if exterior and not reach_stated:
+    if exterior and not reach_stated and not guess_reach:
         exterior_notes.append("the exterior model reached up to the sources: the object's reach "
                               "(exterior_half_width_mm) was not stated, and reaching past the object costs accuracy")
     unmodelled = False  # strongly truncated, the object outside the ROI not modelled: the guard is stricter
     if settings.exterior != "on":
-        # auto models the object outside the ROI on a strongly truncated scan, and only with its reach stated: one
+        # auto models the object outside the ROI on a strongly truncated scan, with its reach stated or guessed: one
         # reaching far past the object does worse than none (docs/calibration.md, "The exterior model")
         strong = level > EXTERIOR_ABOVE
-        exterior = settings.exterior == "auto" and strong and reach_stated
+        exterior = settings.exterior == "auto" and strong and (reach_stated or guess_reach)
         unmodelled = strong and not exterior
         if unmodelled:
             exterior_notes.append(f"strongly truncated (truncation level {level:.3f} > {EXTERIOR_ABOVE:g}), " + (
                 "and the object outside the ROI was not modelled (exterior off)" if settings.exterior == "off" else
                 "yet the object outside the ROI was not modelled: state how far the object reaches from the ROI "
-                "centre (exterior_half_width_mm)"))
+                "centre (exterior_half_width_mm), or let it be guessed (exterior_reach_guess)"))
         if settings.exterior == "auto":
             say(f"truncation level {level:.3f}: {'the object outside the ROI is modelled' if exterior else 'ROI model'}")
+    if exterior and guess_reach:
+        settings, exterior, unmodelled = _guess_reach(li, mask, nominal, grid, settings, exterior_notes, say)
+    reach_mm = settings.exterior_half_width_mm
     # the schedule (auto: exterior with the exterior model, else accurate) and the fields it sets; the result records them
     settings = settings.resolved(exterior)
     if exterior and settings.schedule == "exterior":
@@ -218,7 +246,7 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
         """The volume a level registers against: the ROI with the exterior, or FDK (+ SIRT) of the ROI."""
         if exterior:
             parts = reconstruct_with_exterior(li_l, geom_l, grid_l, mask_l, voxel_mm=settings.exterior_voxel_mm,
-                                              half_width_mm=settings.exterior_half_width_mm,
+                                              half_width_mm=reach_mm,
                                               iterations=settings.exterior_iterations,
                                               subsets=settings.exterior_subsets)
             return EstimationVolume(parts, float("nan"), None)

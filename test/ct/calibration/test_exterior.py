@@ -1,6 +1,7 @@
 """The exterior model: the object outside the ROI, reconstructed with it."""
 
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 from robot_ct_ros.ct.calibration.exterior import exterior_grid, exterior_support, joint_sirt
@@ -66,3 +67,29 @@ def test_after_pass_runs_between_passes_on_the_parts_in_place():
     assert len(seen) == 3 and all(n == 1 and moved > 0 for n, moved in seen)
     np.testing.assert_array_equal(x_hooked, 0.0)
     assert x_plain.max() > 0
+
+
+def test_choose_reach_scores_each_candidate_on_held_out_views_and_picks_the_best_in_any_frame():
+    """The candidates are REACH_FACTORS times the grid's half-width across its axis, short of the sources;
+    the pick is the best held-out NCC; a rotated world gives the same reach and scores. On a 40 mm body
+    through a 9 mm grid the pick lies short of the body's far side (20 mm), as on the scans measured."""
+    from robot_ct_ros.ct.calibration.exterior import REACH_FACTORS, choose_reach
+
+    geom = circular_scan(20, 60.0, 150.0, 16, 24, 0.8, 0.8)
+    fine = VolumeGrid.centered((40, 170, 170), 0.25)
+    data = forward_project(voxelize(mouse_phantom(body_width_mm=40.0, length_mm=20.0), fine), fine, geom)
+    roi = VolumeGrid.centered((12, 30, 30), 0.3)  # 9 mm across: half-width 4.5 mm
+    kw = dict(voxel_mm=2.0, iterations=10, subsets=5)
+    choice = choose_reach(data, geom, roi, None, **kw)
+    reaches = [r for r, _ in choice.scores]
+    np.testing.assert_allclose(reaches, [4.5 * f for f in REACH_FACTORS if 4.5 * f < 60.0])
+    assert choice.reach_mm == max(choice.scores, key=lambda rs: rs[1])[0]
+    assert len({round(s, 4) for _, s in choice.scores}) > 1  # the candidates differ
+    assert choice.reach_mm < 20.0, choice.scores
+    assert f"{choice.reach_mm:.1f} mm" in choice.note()
+    R = Rotation.from_rotvec([0.3, -1.0, 0.4]).as_matrix()
+    moved = choose_reach(data, geom.moved(R), roi.moved(R), None, **kw)
+    assert moved.reach_mm == choice.reach_mm
+    np.testing.assert_allclose([s for _, s in moved.scores], [s for _, s in choice.scores], atol=2e-3)
+    with pytest.raises(ValueError, match="20 views"):
+        choose_reach(data[:12], geom.subset(np.arange(12)), roi, None, **kw)

@@ -76,9 +76,10 @@ def test_a_model_that_explains_little_of_the_data_keeps_the_nominal_geometry():
     fine = VolumeGrid.centered((40, 120, 120), 0.25)
     data = forward_project(voxelize(mouse_phantom(body_width_mm=24.0, length_mm=20.0), fine), fine, true)
     roi = VolumeGrid.centered((12, 24, 24), 0.3)
-    free = calibrate(data, nominal, roi, iterations=1, guard=False)
+    roi_model = dict(iterations=1, exterior_reach_guess=False)  # no reach stated or guessed: the ROI model
+    free = calibrate(data, nominal, roi, guard=False, **roi_model)
     assert free.history[-1].projection_ncc < 0.5 and np.abs(free.params).max() > 1e-3
-    guarded = calibrate(data, nominal, roi, iterations=1)
+    guarded = calibrate(data, nominal, roi, **roi_model)
     np.testing.assert_array_equal(guarded.params, 0.0)
     np.testing.assert_allclose(guarded.params_unguarded, free.params)
     assert any("explains the data poorly" in note for note in guarded.notes), guarded.notes

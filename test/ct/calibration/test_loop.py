@@ -543,23 +543,56 @@ def test_calibrate_leaves_the_callers_data_as_they_were():
         np.testing.assert_array_equal(measured, before)
 
 
-def test_exterior_auto_models_a_strongly_truncated_scan_only_when_the_objects_reach_is_stated():
+def test_exterior_auto_models_a_strongly_truncated_scan_only_when_the_objects_reach_is_stated_or_guessed():
     """An exterior reaching far past the object costs more than it gains (docs/results/exterior_reach.md):
     ``auto`` models the object outside the ROI only on a strongly truncated scan and only with its
-    reach stated, and says so either way; ``on`` without a reach says that it reached the sources."""
+    reach stated or guessed, and says so either way; without the guess (exterior_reach_guess off) ``on``
+    says that it reached the sources. A scan too short to guess on (8 views) keeps the ROI model and
+    says why."""
     _, _, _, inside = _small_scan(n_views=8, body_width_mm=9.0, length_mm=30.0)
     nominal, _, grid, wider = _small_scan(n_views=8, body_width_mm=40.0, length_mm=30.0)
     kw = dict(method="ncc-lle-exact", iterations=1, schedule="fast", exterior_voxel_mm=2.0, final_volume=False)
     modelled = "the object outside the ROI was modelled (exterior model)"
     stated = calibrate(wider, nominal, grid, exterior="auto", exterior_half_width_mm=20.0, **kw).notes
     assert modelled in stated and not any("not stated" in n or "not modelled" in n for n in stated)
-    unstated = calibrate(wider, nominal, grid, **kw).notes  # auto is the default
+    unstated = calibrate(wider, nominal, grid, exterior_reach_guess=False, **kw).notes  # auto is the default
     assert modelled not in unstated
     assert any("strongly truncated" in n and "exterior_half_width_mm" in n for n in unstated)
+    too_few = calibrate(wider, nominal, grid, **kw).notes  # the guess needs 20 views
+    assert modelled not in too_few
+    assert any("could not be guessed" in n and "20 views" in n and "not modelled" in n for n in too_few), too_few
     small = calibrate(inside, nominal, grid, exterior_half_width_mm=20.0, **kw).notes
     assert modelled not in small and not any("strongly truncated" in n for n in small)
-    to_sources = calibrate(wider, nominal, grid, exterior="on", **kw).notes
+    to_sources = calibrate(wider, nominal, grid, exterior="on", exterior_reach_guess=False, **kw).notes
     assert modelled in to_sources and any("up to the sources" in n for n in to_sources)
+
+
+def test_an_unstated_reach_is_guessed_by_held_out_prediction_and_the_result_says_which():
+    """auto (and on) without exterior_half_width_mm: the exterior model reaches the candidate that best
+    predicted the views its model was not built from; the result's settings hold that reach, its notes
+    the candidates' scores. The guess runs on the schedule's coarse level with the nominal geometry, so
+    choose_reach there gives the same reach."""
+    from robot_ct_ros.ct.calibration.exterior import choose_reach
+    from robot_ct_ros.ct.calibration.masks import bin_masked
+    from robot_ct_ros.ct.calibration.volume import estimation_grid
+
+    nominal, _, grid, wider = _small_scan(n_views=20, n_det=32, body_width_mm=40.0, length_mm=30.0)
+    kw = dict(method="ncc-lle-exact", iterations=1, exterior_voxel_mm=2.0, final_volume=False)
+    said = []
+    guessed = calibrate(wider, nominal, grid, progress=said.append, **kw)
+    reach = guessed.settings.exterior_half_width_mm
+    assert "the object outside the ROI was modelled (exterior model)" in guessed.notes
+    assert guessed.settings.schedule == "exterior" and reach > 0
+    note = [n for n in guessed.notes if "was not stated" in n]
+    assert len(note) == 1 and f"reaches {reach:.1f} mm" in note[0] and "held-out NCC" in note[0], guessed.notes
+    li, mask = bin_masked(wider, np.ones(wider.shape, bool), 4)
+    direct = choose_reach(li, nominal.binned(4), estimation_grid(grid, guessed.settings.padding).binned(4), mask,
+                          voxel_mm=2.0, iterations=30, subsets=guessed.settings.exterior_subsets)
+    assert direct.reach_mm == reach
+    on = calibrate(wider, nominal, grid, exterior="on", **kw)
+    assert on.settings.exterior_half_width_mm == reach and not any("up to the sources" in n for n in on.notes)
+    kept = calibrate(wider, nominal, grid, exterior_reach_guess=False, **kw)
+    assert kept.settings.exterior_half_width_mm == 0 and kept.settings.schedule == "accurate"
 
 
 def test_the_default_schedule_is_exterior_with_the_exterior_model_and_accurate_without_and_the_result_says_which():
@@ -573,7 +606,7 @@ def test_the_default_schedule_is_exterior_with_the_exterior_model_and_accurate_w
     assert (used.schedule, used.iterations, used.stop_ncc_gain, used.exterior_iterations) == ("exterior", 2, 1e-4, 30)
     assert any(m.startswith("schedule exterior: 2 iteration(s) at most") for m in said), said
     assert 1 <= len(modelled.history) <= 2
-    roi = calibrate(wider, nominal, grid, iterations=1, **kw).settings  # no reach stated: the ROI model
+    roi = calibrate(wider, nominal, grid, iterations=1, exterior_reach_guess=False, **kw).settings  # the ROI model
     assert (roi.schedule, roi.iterations, roi.stop_ncc_gain, roi.exterior_iterations) == ("accurate", 1, 0.0, 15)
     named = calibrate(wider, nominal, grid, exterior_half_width_mm=20.0, iterations=1, schedule="fast", **kw).settings
     assert (named.schedule, named.stop_ncc_gain, named.exterior_iterations) == ("fast", 0.0, 15)
@@ -581,7 +614,7 @@ def test_the_default_schedule_is_exterior_with_the_exterior_model_and_accurate_w
 
 def test_the_guard_is_stricter_on_a_strongly_truncated_scan_whose_exterior_was_not_modelled():
     """There the ROI model's data term is biased: the scan-level limit on R is guard_max_ratio_unmodelled
-    (1), whether exterior is auto without a stated reach or off; a modelled or untruncated scan keeps
+    (1), whether exterior is auto without a stated or guessed reach or off; a modelled or untruncated scan keeps
     guard_max_ratio (1.5). The limit decides: just below the correction's own R, the scan keeps its
     nominal geometry."""
     import re
@@ -590,7 +623,7 @@ def test_the_guard_is_stricter_on_a_strongly_truncated_scan_whose_exterior_was_n
     nominal, _, grid, wider = _small_scan(n_views=8, body_width_mm=40.0, length_mm=30.0)
     # the model-NCC floors 0: the ROI model's poor fit of the wide body must not decide first
     kw = dict(method="ncc-lle-exact", iterations=1, schedule="fast", exterior_voxel_mm=2.0, final_volume=False,
-              guard_min_ncc=0.0, guard_min_ncc_unmodelled=0.0)
+              guard_min_ncc=0.0, guard_min_ncc_unmodelled=0.0, exterior_reach_guess=False)
 
     def limit(notes):
         found = [re.search(r"times the robots' stated accuracy \(limit ([\d.]+)\)", n) for n in notes]
@@ -614,7 +647,7 @@ def test_a_strongly_truncated_scan_whose_exterior_was_not_modelled_needs_a_model
     whose exterior was modelled keeps guard_min_ncc. Each floor decides at the correction's own NCC."""
     nominal, _, grid, wider = _small_scan(n_views=8, body_width_mm=40.0, length_mm=30.0)
     kw = dict(method="ncc-lle-exact", iterations=1, schedule="fast", exterior_voxel_mm=2.0, final_volume=False,
-              guard_min_ncc=0.0, guard_max_ratio=100.0, guard_max_ratio_unmodelled=100.0)
+              guard_min_ncc=0.0, guard_max_ratio=100.0, guard_max_ratio_unmodelled=100.0, exterior_reach_guess=False)
     free = calibrate(wider, nominal, grid, guard_min_ncc_unmodelled=0.0, **kw)
     ncc = free.history[-1].projection_ncc
     assert 0.0 < ncc < 1.0 and np.abs(free.params).max() > 0
