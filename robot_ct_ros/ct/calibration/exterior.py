@@ -144,7 +144,8 @@ def reconstruct_with_exterior(line_integrals, geom: ConeGeometry, grid: VolumeGr
 
 
 REACH_FACTORS = (1.5, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 8.0, 10.0)
-"""The reaches :func:`choose_reach` scores, as multiples of the ROI grid's half-width across the axis."""
+"""The reaches :func:`choose_reach` scores, as multiples of its grid's half-width across the axis (the loop
+passes the estimation grid, the ROI grid widened by ``padding``)."""
 
 
 @dataclass(frozen=True)
