@@ -35,8 +35,6 @@ import platform
 import sys
 import time
 
-import numpy as np
-
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
@@ -44,9 +42,9 @@ from bench_calibration import make_scenario  # noqa: E402
 from bench_interior import REACH_MM, make_scan  # noqa: E402
 
 from robot_ct_ros.ct import calibration  # noqa: E402
-from robot_ct_ros.ct.calibration.exterior import reconstruct_with_exterior  # noqa: E402
+from robot_ct_ros.ct.calibration.exterior import held_out_ncc  # noqa: E402
 from robot_ct_ros.ct.calibration.masks import bin_masked  # noqa: E402
-from robot_ct_ros.ct.calibration.volume import estimation_grid, projection_consistency  # noqa: E402
+from robot_ct_ros.ct.calibration.volume import estimation_grid  # noqa: E402
 from robot_ct_ros.ct.metrics import reprojection_error, roi_points  # noqa: E402
 
 CASES = {
@@ -74,22 +72,13 @@ def scan(case: str, sigma: float, seed: int, say):
 
 
 def scores(sc, binning: int, reach_mm: float) -> tuple[float, float]:
-    """(held-out NCC, fit NCC) of the exterior model reaching ``reach_mm``, built with the nominal geometry."""
+    """(held-out NCC, fit NCC) of the exterior model reaching ``reach_mm``, built with the nominal geometry
+    (exterior.held_out_ncc, the score the loop's reach guess uses)."""
     li, mask = bin_masked(sc.li, sc.mask, binning)
-    nom = sc.nominal.binned(binning)
     grid = estimation_grid(sc.grid, DEFAULTS.padding).binned(binning)
-    n = nom.n_views
-    held, fit = [], []
-    for f in HELD_OUT:
-        test = np.arange(f, n, FOLDS)
-        train = np.setdiff1d(np.arange(n), test)
-        parts = reconstruct_with_exterior(li[train], nom.subset(train), grid, mask[train],
-                                          voxel_mm=DEFAULTS.exterior_voxel_mm, half_width_mm=reach_mm,
-                                          iterations=EXTERIOR_PASSES, subsets=DEFAULTS.exterior_subsets)
-        held.append(projection_consistency(parts, grid, nom.subset(test), li[test], mask[test])[1])
-        seen = train[::FOLDS]
-        fit.append(projection_consistency(parts, grid, nom.subset(seen), li[seen], mask[seen])[1])
-    return float(np.mean(held)), float(np.mean(fit))
+    return held_out_ncc(li, sc.nominal.binned(binning), grid, mask, reach_mm, voxel_mm=DEFAULTS.exterior_voxel_mm,
+                        iterations=EXTERIOR_PASSES, subsets=DEFAULTS.exterior_subsets, folds=FOLDS,
+                        held_out=HELD_OUT, with_fit=True)
 
 
 def mm_list(text: str) -> list[float]:

@@ -20,8 +20,8 @@ from robot_ct_ros.ct.calibration.masks import as_view_mask
 from robot_ct_ros.ct.calibration.model import VolumeParts
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
 
-__all__ = ["REACH_FACTORS", "ReachChoice", "choose_reach", "exterior_grid", "exterior_support", "joint_sirt",
-           "reconstruct_with_exterior"]
+__all__ = ["REACH_FACTORS", "ReachChoice", "choose_reach", "exterior_grid", "exterior_support", "held_out_ncc",
+           "joint_sirt", "reconstruct_with_exterior"]
 
 
 def exterior_grid(roi: VolumeGrid, geom: ConeGeometry, voxel_mm: float, half_width_mm: float = 0.0) -> VolumeGrid:
@@ -178,8 +178,6 @@ def choose_reach(line_integrals, geom: ConeGeometry, grid: VolumeGrid, mask, *, 
     on the interior neck and more on the sweep's wider mice and the full neck (docs/calibration.md,
     "The exterior model"). Raises ValueError with fewer than ``2 * folds`` views or no candidate.
     """
-    from robot_ct_ros.ct.calibration.volume import projection_consistency
-
     li = np.asarray(line_integrals, np.float32)
     mk = as_view_mask(mask, li.shape)
     local, R = grid.in_own_frame()
@@ -190,18 +188,33 @@ def choose_reach(line_integrals, geom: ConeGeometry, grid: VolumeGrid, mask, *, 
     reaches = [f * half_roi for f in factors if f * half_roi < to_source]
     if not reaches:
         raise ValueError("no candidate reach lies between the ROI and the sources")
-    n = geom.n_views
-    if n < 2 * folds:
-        raise ValueError(f"choosing the reach needs at least {2 * folds} views, got {n}")
-    scores = []
-    for reach in reaches:
-        held = []
-        for f in held_out:
-            test = np.arange(f, n, folds)
-            train = np.setdiff1d(np.arange(n), test)
-            parts = reconstruct_with_exterior(li[train], geom.subset(train), grid, mk[train], voxel_mm=voxel_mm,
-                                              half_width_mm=reach, iterations=iterations, subsets=subsets)
-            held.append(projection_consistency(parts, grid, geom.subset(test), li[test], mk[test])[1])
-        scores.append((float(reach), float(np.mean(held))))
+    if geom.n_views < 2 * folds:
+        raise ValueError(f"choosing the reach needs at least {2 * folds} views, got {geom.n_views}")
+    scores = [(float(reach), held_out_ncc(li, geom, grid, mk, reach, voxel_mm=voxel_mm, iterations=iterations,
+                                          subsets=subsets, folds=folds, held_out=held_out)[0]) for reach in reaches]
     best = max(scores, key=lambda rs: rs[1])[0]
     return ReachChoice(best, tuple(scores))
+
+
+def held_out_ncc(line_integrals, geom: ConeGeometry, grid: VolumeGrid, mask, reach_mm: float, *, voxel_mm: float,
+                 iterations: int, subsets: int, folds: int = 10, held_out=(0, 5), with_fit: bool = False):
+    """(held-out NCC, fit NCC or None) of the ROI and exterior model reaching ``reach_mm`` (0: up to the
+    sources), reconstructed with ``geom`` from all views but the interleaved fold f (views f, f + folds,
+    ...), f in ``held_out`` in turn: the mean projection NCC of its reprojection into the held-out views,
+    and with ``with_fit`` the same in every ``folds``-th view it was built from."""
+    from robot_ct_ros.ct.calibration.volume import projection_consistency
+
+    li = np.asarray(line_integrals, np.float32)
+    mk = as_view_mask(mask, li.shape)
+    n = geom.n_views
+    held, fit = [], []
+    for f in held_out:
+        test = np.arange(f, n, folds)
+        train = np.setdiff1d(np.arange(n), test)
+        parts = reconstruct_with_exterior(li[train], geom.subset(train), grid, mk[train], voxel_mm=voxel_mm,
+                                          half_width_mm=reach_mm, iterations=iterations, subsets=subsets)
+        held.append(projection_consistency(parts, grid, geom.subset(test), li[test], mk[test])[1])
+        if with_fit:
+            seen = train[::folds]
+            fit.append(projection_consistency(parts, grid, geom.subset(seen), li[seen], mk[seen])[1])
+    return float(np.mean(held)), (float(np.mean(fit)) if with_fit else None)
