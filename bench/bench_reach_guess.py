@@ -63,6 +63,16 @@ def scan(case: str, seed: int, say):
     return sc, float(sc.exterior_half_width_mm), DEFAULTS.replace(iterations=SWEEP_ITERATIONS, seed=0)
 
 
+def outcome(res, sc, pts) -> dict:
+    """A calibration's error (gauge-aligned, mean px over ``pts``), its error before the guard, whether the
+    guard kept the nominal geometry, and its outer iterations."""
+    err = reprojection_error(res.geom, sc.true, pts)["mean_px"]
+    unguarded = (reprojection_error(sc.nominal.perturbed(res.params_unguarded), sc.true, pts)["mean_px"]
+                 if res.params_unguarded is not None else err)
+    return {"error_px": err, "unguarded_px": unguarded,
+            "kept_nominal": any("nominal geometry is kept" in n for n in res.notes), "iterations": len(res.history)}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--cases", default=",".join(CASES), help=f"comma-separated, of {', '.join(CASES)}")
@@ -91,26 +101,19 @@ def main(argv=None) -> int:
                                     final_volume=False)
         wall = time.perf_counter() - t0
         guess_s = next((t for t, m in said if "was not stated" in m), float("nan"))
-        err = reprojection_error(res.geom, sc.true, pts)["mean_px"]
-        unguarded = (reprojection_error(sc.nominal.perturbed(res.params_unguarded), sc.true, pts)["mean_px"]
-                     if res.params_unguarded is not None else err)
-        guard = next((n for n in res.notes if n.startswith("guard:")), "")
         row = {"case": case, "title": CASES[case], "stated_reach_mm": stated_mm,
                "guessed_reach_mm": res.settings.exterior_half_width_mm,
                "modelled": "the object outside the ROI was modelled (exterior model)" in res.notes,
-               "nominal_px": reprojection_error(sc.nominal, sc.true, pts)["mean_px"], "error_px": err,
-               "unguarded_px": unguarded, "kept_nominal": "nominal geometry is kept" in guard,
+               "nominal_px": reprojection_error(sc.nominal, sc.true, pts)["mean_px"], **outcome(res, sc, pts),
                "model_ncc": float(res.history[-1].projection_ncc) if res.history else None,
-               "iterations": len(res.history), "guess_s": guess_s, "wall_s": wall, "notes": list(res.notes)}
+               "guess_s": guess_s, "wall_s": wall, "notes": list(res.notes)}
         t0 = time.perf_counter()  # the same scan and settings with the reach its bench states
         res = calibration.calibrate(sc.li, sc.nominal, sc.grid, settings.replace(exterior_half_width_mm=stated_mm),
                                     valid_mask=sc.mask, final_volume=False)
-        row["stated"] = {"error_px": reprojection_error(res.geom, sc.true, pts)["mean_px"],
-                         "kept_nominal": any("nominal geometry is kept" in n for n in res.notes),
-                         "iterations": len(res.history), "wall_s": time.perf_counter() - t0}
+        row["stated"] = {**outcome(res, sc, pts), "wall_s": time.perf_counter() - t0}
         report["rows"].append(row)
-        say(f"{case}: reach {row['guessed_reach_mm']:.1f} mm guessed: {row['nominal_px']:.3f} -> {err:.3f} px "
-            f"(before the guard {unguarded:.3f}), {wall:.0f} s; stated {stated_mm:.1f} mm: "
+        say(f"{case}: reach {row['guessed_reach_mm']:.1f} mm guessed: {row['nominal_px']:.3f} -> {row['error_px']:.3f} px "
+            f"(before the guard {row['unguarded_px']:.3f}), {wall:.0f} s; stated {stated_mm:.1f} mm: "
             f"{row['stated']['error_px']:.3f} px, {row['stated']['wall_s']:.0f} s")
     report["wall_s"] = time.perf_counter() - t_all
     lines = ["# The exterior's reach guessed where nobody states it (bench/bench_reach_guess.py)", "",

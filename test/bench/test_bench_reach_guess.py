@@ -21,3 +21,29 @@ def test_each_scan_states_the_reach_its_own_bench_states(load_bench):
     assert stated == pytest.approx(float(sc.exterior_half_width_mm)) and stated > 10.0
     assert settings.iterations == 3 and settings.method == "ncc-lle-exact" and settings.exterior_half_width_mm == 0
     assert settings.exterior_reach_guess
+
+
+def test_a_calibrations_outcome_reads_the_error_before_the_guard_and_its_verdict(load_bench):
+    """One outcome for both rows of a scan: the final error, the error the estimate had before the guard
+    (the final one where the guard changed nothing), and whether the guard kept the nominal geometry."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from robot_ct_ros.ct.trajectory import circular_scan
+
+    bench = load_bench("bench_reach_guess")
+    nominal = circular_scan(12, 60.0, 150.0, 8, 8, 1.0, 1.0)
+    moved = np.zeros((12, 9))
+    moved[:, 3] = 0.5  # the detector 0.5 mm along u: half a pixel
+    sc = SimpleNamespace(nominal=nominal, true=nominal.perturbed(moved))
+    pts = np.zeros((1, 3))
+    refused = SimpleNamespace(geom=nominal, params_unguarded=np.zeros((12, 9)), history=(1, 2),
+                              notes=("guard: ...; the data do not support it and the nominal geometry is kept",))
+    out = bench.outcome(refused, sc, pts)
+    assert out["kept_nominal"] and out["iterations"] == 2
+    assert out["error_px"] == pytest.approx(out["unguarded_px"]) and out["error_px"] > 0.1
+    applied = SimpleNamespace(geom=sc.true, params_unguarded=None, history=(1,),
+                              notes=("guard: the correction is 0.50 times the robots' stated accuracy (limit 1.5)",))
+    out = bench.outcome(applied, sc, pts)
+    assert not out["kept_nominal"] and out["error_px"] == out["unguarded_px"] == pytest.approx(0.0, abs=1e-9)
