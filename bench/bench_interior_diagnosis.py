@@ -16,8 +16,9 @@ can do from what the reconstruction feeds it:
 3. held-out volumes (views estimated against a volume their own data did not build, in k folds);
 4. the exterior grid's voxel and SIRT passes;
 5. the whole loop (calibration.calibrate, exterior on) over more outer iterations;
-6. candidates against the volume's pull: a total-variation exterior, the pixels the exterior's
-   edges dominate left out, the update extrapolated;
+6. candidates against the volume's pull: total variation lowered in the exterior, the ROI or both
+   (an edge-keeping object prior), the pixels the exterior's edges dominate left out, the update
+   extrapolated;
 7. held-out volumes as in 3, but reconstructed with the true geometry: what the other views'
    data, placed exactly, tell about a view;
 8. the same scan with 360 and 720 views;
@@ -254,10 +255,11 @@ def table_exterior_settings(st: Study, say) -> list:
     return rows
 
 
-def tv_step(weight: float, steps: int = 20):
-    """An ``after_pass`` (calibration.exterior.joint_sirt) that lowers the exterior part's isotropic
-    total variation by ``steps`` normalised gradient steps, each ``weight`` times as long as the pass
-    changed that part (the ASD-POCS rule), keeping it non-negative and within its support."""
+def tv_step(weight: float, steps: int = 20, parts=(1,)):
+    """An ``after_pass`` (calibration.exterior.joint_sirt) that lowers the isotropic total variation of
+    the model's ``parts`` (0: the ROI, 1: the exterior) by ``steps`` normalised gradient steps each,
+    each step ``weight`` times as long as the pass changed that part (the ASD-POCS rule), keeping it
+    non-negative and within its support."""
 
     def grad(x):
         g = [np.diff(x, axis=a, append=np.take(x, [-1], axis=a)) for a in range(3)]
@@ -270,10 +272,9 @@ def tv_step(weight: float, steps: int = 20):
             div[tuple(idx)] += np.roll(c, 1, axis=a)[tuple(idx)]
         return -div
 
-    def after_pass(xs, before):
-        x = xs[1]
-        support = (x > 0) | (before[1] > 0)
-        length = float(np.linalg.norm(x - before[1]))
+    def lower(x, before):
+        support = (x > 0) | (before > 0)
+        length = float(np.linalg.norm(x - before))
         for _ in range(steps):
             g = grad(x) * support
             n = float(np.linalg.norm(g))
@@ -282,13 +283,18 @@ def tv_step(weight: float, steps: int = 20):
             x -= np.float32(weight * length / n) * g
             np.maximum(x, 0.0, out=x)
 
+    def after_pass(xs, before):
+        for part in parts:
+            lower(xs[part], before[part])
+
     return after_pass
 
 
 def table_candidates(st: Study, say) -> list:
     """6: ways to keep the data term from following the volume's geometry, against the volumes from the
-    true and from the nominal geometry (coarse level): a total-variation exterior, pixels the exterior's
-    edges dominate left out, and the update extrapolated (the estimate moves a fraction of the way)."""
+    true and from the nominal geometry (coarse level): total variation lowered in the exterior, the ROI or
+    both, pixels the exterior's edges dominate left out, and the update extrapolated (the estimate moves a
+    fraction of the way)."""
     zero = np.zeros((st.n, 9))
     geoms = {"true": st.true_p, "nominal": zero}
     plain = {k: st.volume("coarse", p) for k, p in geoms.items()}
@@ -300,10 +306,13 @@ def table_candidates(st: Study, say) -> list:
         say(f"  6. {rows[-1]}")
 
     row("as the loop does (baseline)", {k: st.error_px(st.estimate("coarse", zero, v)) for k, v in plain.items()})
-    for w in (0.1, 0.2, 0.5):
-        row(f"exterior with total variation lowered after each SIRT pass (weight {w:g}, 20 steps)",
-            {k: st.error_px(st.estimate("coarse", zero, st.volume("coarse", p, after_pass=tv_step(w))))
-             for k, p in geoms.items()})
+    # the exterior alone (an object prior that should not follow each view), then the ROI, where the
+    # phantom's edges are sharp and piecewise constant, and both: total variation as the edge-keeping prior
+    for parts, name in (((1,), "exterior"), ((0,), "ROI"), ((0, 1), "ROI and exterior")):
+        for w in (0.1, 0.2, 0.5):
+            row(f"{name} with total variation lowered after each SIRT pass (weight {w:g}, 20 steps)",
+                {k: st.error_px(st.estimate("coarse", zero, st.volume("coarse", p, after_pass=tv_step(w, parts=parts))))
+                 for k, p in geoms.items()})
     from robot_ct_ros.ct.projector import forward_project
 
     base = np.ones(st.li_c.shape, bool) if st.mask_c is None else np.asarray(st.mask_c, bool)
