@@ -179,10 +179,11 @@ def summary(records: list) -> list:
         row = {"regime": reg, "calibrations": len(rs)}
         for o in OUTCOMES + (NO_CORRECTION,):
             row[o] = sum(r["outcome"] == o for r in rs)
-        for label, good in (("R of helpful corrections", True), ("R of harmful corrections", False)):
-            vals = [r["ratio"] for r in rs if r["ratio"] is not None and r["before_px"] is not None
-                    and (r["before_px"] < r["nominal_px"]) == good]
-            row[label] = f"{min(vals):.2f}-{max(vals):.2f}" if vals else "-"
+        for key, name, fmt in (("ratio", "R", "{:.2f}"), ("model_ncc", "model NCC", "{:.3f}")):
+            for label, good in ((f"{name} of helpful corrections", True), (f"{name} of harmful corrections", False)):
+                vals = [r[key] for r in rs if r[key] is not None and r["before_px"] is not None
+                        and (r["before_px"] < r["nominal_px"]) == good]
+                row[label] = f"{fmt.format(min(vals))}-{fmt.format(max(vals))}" if vals else "-"
         rows.append(row)
     return rows
 

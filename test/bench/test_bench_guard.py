@@ -50,6 +50,9 @@ def test_every_outcome_is_told_from_the_errors_and_the_notes(tmp_path, load_benc
     summary = {s["regime"]: s for s in bench.summary(records)}
     assert summary["strongly truncated, not modelled"]["refused a harmful correction"] == 2
     assert summary["strongly truncated, not modelled"]["R of harmful corrections"] == "0.95-1.09"
+    # the model NCC the floors read, over the harmful corrections (before the guard) of that regime
+    assert summary["strongly truncated, not modelled"]["model NCC of harmful corrections"] == "0.300-0.900"
+    assert summary["ROI model, not strongly truncated"]["model NCC of helpful corrections"] == "0.900-0.900"
     assert summary["ROI model, not strongly truncated"]["made no correction"] == 1
     out = tmp_path / "out"
     assert bench.main(["--results", str(tmp_path), "--out", str(out)]) == 0

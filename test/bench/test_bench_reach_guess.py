@@ -47,3 +47,16 @@ def test_a_calibrations_outcome_reads_the_error_before_the_guard_and_its_verdict
                               notes=("guard: the correction is 0.50 times the robots' stated accuracy (limit 1.5)",))
     out = bench.outcome(applied, sc, pts)
     assert not out["kept_nominal"] and out["error_px"] == out["unguarded_px"] == pytest.approx(0.0, abs=1e-9)
+
+
+def test_a_bag_case_is_the_users_simulated_carotid_scan_read_back_with_the_neck_s_far_side(load_bench):
+    """bag48: a robot-ct simulate carotid bag of 90 views of 48 x 64, read back with its true geometry, the
+    default grid and settings; the stated reach is the 13 cm neck's far side from the ROI centre (83 mm)."""
+    import numpy as np
+
+    bench = load_bench("bench_reach_guess")
+    sc, stated, settings = bench.scan("bag48", 0, lambda m: None)
+    assert sc.li.shape == (90, 48, 64) and sc.mask.shape == sc.li.shape
+    assert sc.true is not None and np.abs(sc.true.params_relative_to(sc.nominal)).max() > 0
+    assert stated == pytest.approx(83.0, abs=0.5)
+    assert settings == bench.DEFAULTS and settings.exterior_half_width_mm == 0 and settings.exterior_reach_guess

@@ -372,15 +372,24 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
         notes.append(undone_note)
     unguarded = None
     explained = history[-1].projection_ncc if history else float("nan")
-    # a strongly truncated scan whose exterior was not modelled needs a model that explains more (docs/calibration.md §11)
-    min_ncc = max(settings.guard_min_ncc, settings.guard_min_ncc_unmodelled) if unmodelled else settings.guard_min_ncc
+    # a strongly truncated scan needs a model that explains more, with the exterior modelled or not
+    # (docs/calibration.md §11)
+    min_ncc = settings.guard_min_ncc
+    if unmodelled:
+        min_ncc = max(min_ncc, settings.guard_min_ncc_unmodelled)
+    elif exterior:
+        min_ncc = max(min_ncc, settings.guard_min_ncc_exterior)
     if settings.guard and explained < min_ncc:
         # the data term is dominated by what the model lacks (the object outside the ROI): its optimum is not the
         # geometry's, and no consistency figure can vouch for it
         unguarded, params = params, np.zeros_like(params)
+        hint = ("the exterior model does not explain this scan well enough; where the object's reach was guessed, "
+                "state it: exterior_half_width_mm" if exterior else
+                "for an interior scan of a wide object, state how far it reaches from the ROI centre: "
+                "exterior_half_width_mm")
         notes.append(f"guard: the estimation model explains the data poorly (projection NCC {explained:.3f} < "
                      f"{min_ncc:g}); the data do not support the correction and the nominal geometry is "
-                     f"kept (for an interior scan of a wide object, state how far it reaches from the ROI centre: exterior_half_width_mm)")
+                     f"kept ({hint})")
     elif settings.guard and accuracy is not None:
         # where the ROI model's data term is biased (strong truncation, no exterior) the correction may not move the
         # views further than the robots' errors do: its helpful corrections there are partial (docs/calibration.md §11)

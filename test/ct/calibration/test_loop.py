@@ -647,7 +647,8 @@ def test_a_strongly_truncated_scan_whose_exterior_was_not_modelled_needs_a_model
     whose exterior was modelled keeps guard_min_ncc. Each floor decides at the correction's own NCC."""
     nominal, _, grid, wider = _small_scan(n_views=8, body_width_mm=40.0, length_mm=30.0)
     kw = dict(method="ncc-lle-exact", iterations=1, schedule="fast", exterior_voxel_mm=2.0, final_volume=False,
-              guard_min_ncc=0.0, guard_max_ratio=100.0, guard_max_ratio_unmodelled=100.0, exterior_reach_guess=False)
+              guard_min_ncc=0.0, guard_max_ratio=100.0, guard_max_ratio_unmodelled=100.0, exterior_reach_guess=False,
+              guard_min_ncc_exterior=0.0)
     free = calibrate(wider, nominal, grid, guard_min_ncc_unmodelled=0.0, **kw)
     ncc = free.history[-1].projection_ncc
     assert 0.0 < ncc < 1.0 and np.abs(free.params).max() > 0
@@ -660,3 +661,31 @@ def test_a_strongly_truncated_scan_whose_exterior_was_not_modelled_needs_a_model
     # the exterior modelled (its reach stated): the unmodelled floor does not apply
     modelled = calibrate(wider, nominal, grid, exterior_half_width_mm=20.0, guard_min_ncc_unmodelled=1.0, **kw)
     assert not any("explains the data poorly" in n for n in modelled.notes), modelled.notes
+
+
+def test_a_scan_whose_exterior_was_modelled_needs_a_model_that_explains_it_well():
+    """guard_min_ncc_exterior is the model-NCC floor where the exterior was modelled (the stricter of it and
+    guard_min_ncc), decided at the correction's own NCC; the note says to state a guessed reach. Without
+    the exterior model the floor does not apply."""
+    nominal, _, grid, wider = _small_scan(n_views=8, body_width_mm=40.0, length_mm=30.0)
+    kw = dict(method="ncc-lle-exact", iterations=1, schedule="fast", exterior_voxel_mm=2.0, final_volume=False,
+              guard_min_ncc=0.0, guard_min_ncc_unmodelled=0.0, guard_max_ratio=100.0,
+              guard_max_ratio_unmodelled=100.0, exterior_reach_guess=False, exterior_half_width_mm=20.0)
+    free = calibrate(wider, nominal, grid, guard_min_ncc_exterior=0.0, **kw)
+    assert "the object outside the ROI was modelled (exterior model)" in free.notes
+    ncc = free.history[-1].projection_ncc
+    assert 0.0 < ncc < 1.0 and np.abs(free.params).max() > 0
+    refused = calibrate(wider, nominal, grid, guard_min_ncc_exterior=min(1.0, ncc + 0.01), **kw)
+    np.testing.assert_array_equal(refused.params, 0.0)
+    np.testing.assert_array_equal(refused.params_unguarded, free.params)
+    note = next(n for n in refused.notes if "explains the data poorly" in n)
+    assert f"< {min(1.0, ncc + 0.01):g}" in note and "exterior_half_width_mm" in note, note
+    kept = calibrate(wider, nominal, grid, guard_min_ncc_exterior=max(0.0, ncc - 0.01), **kw)
+    np.testing.assert_array_equal(kept.params, free.params)
+    # the stricter floor decides: guard_min_ncc above the exterior's refuses too
+    stricter = calibrate(wider, nominal, grid, **(kw | dict(guard_min_ncc=min(1.0, ncc + 0.01))),
+                         guard_min_ncc_exterior=0.0)
+    np.testing.assert_array_equal(stricter.params, 0.0)
+    # the ROI model (exterior off): the exterior floor does not apply
+    roi = calibrate(wider, nominal, grid, exterior="off", guard_min_ncc_exterior=1.0, **kw)
+    assert not any("explains the data poorly" in n for n in roi.notes), roi.notes
