@@ -11,17 +11,19 @@ otherwise, each as its own bench runs it:
 * ``b``, ``c``: bench_calibration.py's battery and full neck (90 views, 3 iterations);
 * ``neck0.1``, ``neck0.3``: bench_interior.py's interior neck (180 views, axis +y, the prior at the robots'
   accuracy, robot errors 0.1 mm / 0.1 deg and 0.3 mm / 0.3 deg);
-* ``bag48``, ``bag64``: what a user makes with ``robot-ct simulate --phantom carotid`` (robot_ct_ros.jobs.simulate:
-  a scan bag of photon counts with dead pixels, robot errors 0.1 mm / 0.1 deg) on a small centred detector, read
-  back as ``robot-ct calibrate`` reads it (its default grid and settings): 90 views of 48 x 64 and 180 views of
-  64 x 96 pixels of 110 um, fields of view of 2.6 and 3.9 mm in the 13 cm neck (far side 83 mm).
+* ``bag48``, ``bag64`` and the other ``bag-*`` cases: what a user makes with ``robot-ct simulate`` on small
+  centred detectors (robot_ct_ros.jobs.simulate: a scan bag of photon counts with dead pixels; the options in
+  each case's title), read back as ``robot-ct calibrate`` reads it (its default grid and settings). ``bag48``
+  and ``bag64`` are the carotid in its 13 cm neck through 90 views of 48 x 64 and 180 views of 64 x 96 pixels of
+  110 um (fields of view of 2.6 and 3.9 mm, far side 83 mm); the others vary the phantom, the detector, the
+  robot errors, a drift and the field of view. The stated reach is the phantom's far side from the ROI centre.
 
 Each scan is calibrated again with the reach its bench states, with the same settings. The same scans
 without a reach before the guess (``exterior_reach_guess`` off) are in those benches' own results
 (``sweep.md``, ``results.md``, ``interior.md``; docs/calibration.md, "The exterior model"). Writes
 ``reach_guess.md`` and ``reach_guess.json`` into ``--out``.
 
-    .venv/bin/python bench/bench_reach_guess.py --out docs/results      # about 17 min on 2 cores
+    .venv/bin/python bench/bench_reach_guess.py --out docs/results      # about 25 min on 2 cores
 """
 
 from __future__ import annotations
@@ -51,11 +53,29 @@ CASES = {
     "c": "(c), the carotid plaque in a full neck",
     "neck0.1": "the interior neck, robot errors 0.1 mm / 0.1 deg",
     "neck0.3": "the interior neck, robot errors 0.3 mm / 0.3 deg",
-    "bag48": "robot-ct simulate --phantom carotid, 90 views of 48 x 64",
-    "bag64": "robot-ct simulate --phantom carotid, 180 views of 64 x 96",
 }
-BAG_SCANS = {"bag48": (90, 48, 64), "bag64": (180, 64, 96)}
-"""views, rows, columns of the ``robot-ct simulate`` cases."""
+BAG_SCANS = {
+    "bag48": {"phantom": "carotid", "views": 90, "rows": 48, "cols": 64},
+    "bag64": {"phantom": "carotid", "views": 180, "rows": 64, "cols": 96},
+    "bag-carotid-thin": {"phantom": "carotid", "views": 120, "rows": 32, "cols": 128},
+    "bag-carotid-0.3": {"phantom": "carotid", "views": 90, "rows": 48, "cols": 64, "sigma_mm": 0.3, "sigma_deg": 0.3},
+    "bag-carotid-drift": {"phantom": "carotid", "views": 90, "rows": 48, "cols": 64, "drift_mm": 0.3},
+    "bag-carotid-fov1.5": {"phantom": "carotid", "views": 90, "rows": 64, "cols": 64, "fov_mm": 1.5},
+    "bag-mouse": {"phantom": "mouse", "views": 90, "rows": 32, "cols": 48},
+    "bag-mouse-0.3": {"phantom": "mouse", "views": 120, "rows": 48, "cols": 96, "sigma_mm": 0.3, "sigma_deg": 0.3},
+    "bag-battery": {"phantom": "battery", "views": 120, "rows": 48, "cols": 96},
+    "bag-battery-0.3": {"phantom": "battery", "views": 90, "rows": 32, "cols": 64, "sigma_mm": 0.3, "sigma_deg": 0.3},
+}
+"""The ``robot-ct simulate`` cases: robot_ct_ros.jobs.simulate.simulate_bag's options (robot errors 0.1 mm / 0.1 deg
+where not given)."""
+
+
+def bag_title(case: str) -> str:
+    """The command line that makes ``case``'s bag (its seed aside)."""
+    return "robot-ct simulate " + " ".join(f"--{k.replace('_', '-')} {v}" for k, v in BAG_SCANS[case].items())
+
+
+CASES.update({case: bag_title(case) for case in BAG_SCANS})
 SWEEP_ITERATIONS = 3
 """bench_truncation_sweep.py's and bench_calibration.py's outer iterations; the interior neck runs the defaults."""
 
@@ -74,28 +94,26 @@ def scan(case: str, seed: int, say):
 
 
 def bag_scan(case: str, seed: int, say):
-    """A ``robot-ct simulate --phantom carotid`` bag of ``case``'s size (BAG_SCANS), written to a temporary folder and
-    read back as ``robot-ct calibrate`` reads it: (scan with li, mask, nominal, true, grid; the neck's far side from
-    the ROI centre, mm; default settings)."""
+    """A ``robot-ct simulate`` bag with ``case``'s options (BAG_SCANS), written to a temporary folder and read back as
+    ``robot-ct calibrate`` reads it: (scan with li, mask, nominal, true, grid; the phantom's far side from the ROI
+    centre, mm; default settings)."""
     import tempfile
     from types import SimpleNamespace
 
     import numpy as np
 
     from robot_ct_ros.bag import read_scan
-    from robot_ct_ros.ct.simulation import carotid_plaque_phantom
     from robot_ct_ros.jobs.calibrate import scan_grid
-    from robot_ct_ros.jobs.simulate import simulate_bag
+    from robot_ct_ros.jobs.simulate import make_phantom, simulate_bag
 
-    views, rows, cols = BAG_SCANS[case]
+    options = BAG_SCANS[case]
     with tempfile.TemporaryDirectory() as tmp:
-        bag = simulate_bag(os.path.join(tmp, "scan"), phantom="carotid", views=views, rows=rows, cols=cols, seed=seed,
-                           progress=False, say=say)
+        bag = simulate_bag(os.path.join(tmp, "scan"), seed=seed, progress=False, say=say, **options)
         scan = read_scan(bag)
     li, mask = scan.to_line_integrals()
     grid = scan_grid(scan)
-    # the ROI is centred on the carotid (the phantom's centre): the neck's far side from it
-    lo, hi = (np.asarray(b, float) for b in carotid_plaque_phantom(seed=seed).bounds_mm())
+    # the phantom's far side from the ROI centre
+    lo, hi = (np.asarray(b, float) for b in make_phantom(options["phantom"], seed).bounds_mm())
     c = np.asarray(grid.center_mm, float)
     far_mm = float(np.max(np.maximum(c[:2] - lo[:2], hi[:2] - c[:2])))
     sc = SimpleNamespace(li=li, mask=mask, nominal=scan.geom, true=scan.geom_true, grid=grid)

@@ -9,10 +9,21 @@ import numpy as np
 
 from robot_ct_ros.jobs.output import say as _say
 
-__all__ = ["simulate_bag", "PHANTOMS"]
+__all__ = ["simulate_bag", "make_phantom", "PHANTOMS"]
 
 PHANTOMS = ("mouse", "battery", "carotid")
 """The phantoms ``robot-ct simulate`` offers (robot_ct_ros.ct.simulation)."""
+
+
+def make_phantom(name: str, seed: int = 0):
+    """The phantom ``name`` (one of :data:`PHANTOMS`) that :func:`simulate_bag` scans, in its world frame (mm):
+    the ROI it centres on is the origin."""
+    from robot_ct_ros.ct import simulation as sim
+
+    factories = {"mouse": sim.mouse_phantom, "battery": sim.battery_phantom, "carotid": sim.carotid_plaque_phantom}
+    if name not in factories:
+        raise ValueError(f"unknown phantom {name!r}; choose from {', '.join(PHANTOMS)}")
+    return factories[name](seed=seed)
 
 
 def simulate_bag(out, *, phantom: str = "carotid", views: int = 360, rows: int = 272, cols: int = 636,
@@ -48,8 +59,7 @@ def simulate_bag(out, *, phantom: str = "carotid", views: int = 360, rows: int =
         model = model + sim.detector_drift(drift_mm / max(views - 1, 1), drift_deg / max(views - 1, 1), kind="linear")
     errors = model.sample(views)
     true = nominal.perturbed(errors)
-    factories = {"mouse": sim.mouse_phantom, "battery": sim.battery_phantom, "carotid": sim.carotid_plaque_phantom}
-    ph = factories[phantom](seed=seed)
+    ph = make_phantom(phantom, seed)
     det = (sim.DetectorModel.from_transmitted(4000.0, 130.0, binning=binning, seed=seed) if photons is None
            else sim.DetectorModel(photons_per_pixel=photons, binning=binning, seed=seed))
     voxel = pitch / system.magnification

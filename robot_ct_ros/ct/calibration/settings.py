@@ -206,9 +206,9 @@ class CalibrationSettings:
                                               "the ROI was not modelled: there corrections whose model explained the "
                                               "data at about 0.5 have made the geometry worse", minimum=0.0, maximum=1.0)
     guard_min_ncc_exterior: float = setting(0.85, "the same floor for a scan whose object outside the ROI was "
-                                            "modelled (exterior model): corrections whose exterior model explained "
-                                            "the data at 0.76 to 0.82 have made small interior scans worse, helpful "
-                                            "ones ran at 0.88 or more", minimum=0.0, maximum=1.0)
+                                            "modelled (exterior model): on small interior scans of wide objects, "
+                                            "corrections whose model explained the data at 0.64 to 0.82 made the "
+                                            "geometry worse", minimum=0.0, maximum=1.0)
     guard_view_quantile: float = setting(0.999, "a view moved beyond guard_max_ratio times this quantile of the "
                                          "stated accuracy's displacements keeps its nominal geometry", minimum=0.5,
                                          maximum=1.0)
