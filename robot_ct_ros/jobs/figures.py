@@ -29,13 +29,14 @@ from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
 from robot_ct_ros.jobs.output import write_json
 from robot_ct_ros.ct.metrics import cap_thickness_mm, edge_sharpness, remove_gauge, reprojection_error, roi_points, ssim
 
-__all__ = ["COLUMNS", "summarize", "markdown_table", "method_notes", "plot_slices", "plot_cap_slabs", "plot_rmse",
+__all__ = ["COLUMNS", "summarize", "markdown_table", "method_notes", "unguarded_error", "plot_slices", "plot_cap_slabs", "plot_rmse",
            "gauge_aligned_param_error", "plot_param_error", "write_report"]
 
 COLUMNS = (
     ("method", "method", "{}"),
     ("reproj_mean_px", "reproj. error mean (px)", "{:.3f}"),
     ("reproj_p95_px", "reproj. error p95 (px)", "{:.3f}"),
+    ("unguarded_mean_px", "before the guard, mean (px)", "{:.3f}"),
     ("ssim", "SSIM vs true-geom. recon", "{:.4f}"),
     ("sharpness", "edge sharpness", "{:.4f}"),
     ("cap_um", "cap thickness (um)", "{:.1f}"),
@@ -73,7 +74,7 @@ def _finite_or_none(x):
 
 
 def summarize(results: dict, grid: VolumeGrid, truth=None, points_mm=None, reconstruct=None,
-              reconstruct_cap=None) -> list[dict]:
+              reconstruct_cap=None, nominal: ConeGeometry | None = None) -> list[dict]:
     """One row per method: the metrics of the table (None where a metric does not apply).
 
     ``truth`` = (true geometry, volume reconstructed with it, phantom or None); without it only
@@ -90,6 +91,10 @@ def summarize(results: dict, grid: VolumeGrid, truth=None, points_mm=None, recon
     from the gauge-aligned geometry (``method``: the row's key in ``results``, for a caller that
     keeps the volumes): typically a fine grid around the cap from the unbinned
     detector, as a cap thinner than the calibration's binned pixels needs.
+
+    With ``truth`` and the ``nominal`` geometry the calibrations started from, a result whose guard
+    changed anything (``params_unguarded``) also gets the mean reprojection error its estimate had
+    before the guard (``unguarded_mean_px``): what the guard refused.
     """
     true_geom, true_vol, phantom = (tuple(truth) + (None,) * 3)[:3] if truth is not None else (None, None, None)
     pts = roi_points(grid) if points_mm is None else np.asarray(points_mm, float)
@@ -98,13 +103,15 @@ def summarize(results: dict, grid: VolumeGrid, truth=None, points_mm=None, recon
     for method, result in results.items():
         geom, volume, history, wall = _unpack(result)
         row = {"method": str(method), "reproj_mean_px": None, "reproj_p95_px": None, "ssim": None,
-               "sharpness": _finite_or_none(edge_sharpness(volume)), "cap_um": None,
+               "unguarded_mean_px": None, "sharpness": _finite_or_none(edge_sharpness(volume)), "cap_um": None,
                "iterations": len(history), "wall_s": _finite_or_none(wall),
                "projection_rmse": _history(history), "projection_ncc": _history(history, "projection_ncc"),
                "model_ncc": _finite_or_none(_history(history, "projection_ncc")[-1]) if history else None}
         if true_geom is not None:
             err = reprojection_error(geom, true_geom, pts)
             row["reproj_mean_px"], row["reproj_p95_px"] = err["mean_px"], err["p95_px"]
+            before = unguarded_error(result, nominal, true_geom, pts) if nominal is not None else None
+            row["unguarded_mean_px"] = None if before is None else before["mean_px"]
         aligned_geom, aligned = geom, volume
         if true_geom is not None and not geom.allclose(true_geom, atol=1e-9):
             # (the true geometry itself needs no move, and no second reconstruction)
@@ -134,6 +141,13 @@ def markdown_table(rows: list[dict], columns=COLUMNS) -> str:
 
 
 # ----------------------------------------------------------------------------- figures
+def unguarded_error(result, nominal: ConeGeometry, true_geom: ConeGeometry, points_mm) -> dict | None:
+    """The reprojection error (metrics.reprojection_error) of a calibration's estimate before its guard
+    changed anything (``params_unguarded`` relative to ``nominal``), or None where the guard changed nothing."""
+    unguarded = getattr(result, "params_unguarded", None)
+    return None if unguarded is None else reprojection_error(nominal.perturbed(unguarded), true_geom, points_mm)
+
+
 def method_notes(results: dict, nominal: ConeGeometry, true_geom: ConeGeometry, points_mm) -> dict:
     """Each calibrated method's notes (the guard's verdict, skipped views, models used), and where the
     guard kept views at their nominal geometry, the error of the estimate before it, against
@@ -141,9 +155,8 @@ def method_notes(results: dict, nominal: ConeGeometry, true_geom: ConeGeometry, 
     notes = {}
     for method, result in results.items():
         lines = list(getattr(result, "notes", ()))
-        unguarded = getattr(result, "params_unguarded", None)
-        if unguarded is not None:
-            e = reprojection_error(nominal.perturbed(unguarded), true_geom, points_mm)
+        e = unguarded_error(result, nominal, true_geom, points_mm)
+        if e is not None:
             lines.append(f"before the guard {e['mean_px']:.3f} px mean, {e['p95_px']:.3f} px p95")
         if lines:
             notes[method] = lines
@@ -304,7 +317,7 @@ def write_report(out_dir, results: dict, grid: VolumeGrid, truth=None, nominal: 
     or a ``(geom, volume, history[, wall_s])`` tuple, in the column order of the figures.
     ``truth`` = (true geometry, reconstruction with it, phantom or None). ``nominal``: if
     given and no "none" entry exists, the nominal geometry is added to the parameter-error
-    plot as "none". ``initial_rmse`` is plotted at iteration 0. ``notes`` go into the JSON.
+    plot as "none"; with ``truth`` the table also gives the error before the guard (:func:`summarize`). ``initial_rmse`` is plotted at iteration 0. ``notes`` go into the JSON.
     ``reconstruct``, ``reconstruct_cap``: see :func:`summarize`. ``figures`` False: the table alone.
     Returned dict: paths under keys "slices", "rmse", "param_error" (truth known; with figures),
     "markdown", "json", and the table "rows".
@@ -312,7 +325,8 @@ def write_report(out_dir, results: dict, grid: VolumeGrid, truth=None, nominal: 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     pts = roi_points(grid) if points_mm is None else np.asarray(points_mm, float)
-    rows = summarize(results, grid, truth, pts, reconstruct=reconstruct, reconstruct_cap=reconstruct_cap)
+    rows = summarize(results, grid, truth, pts, reconstruct=reconstruct, reconstruct_cap=reconstruct_cap,
+                     nominal=nominal)
     true_geom, true_vol = (truth[0], truth[1]) if truth is not None else (None, None)
     paths = {"rows": rows}
     if figures:

@@ -186,3 +186,27 @@ def test_method_notes_carry_the_guard_verdict_and_the_error_of_the_estimate_befo
     assert set(notes) == {"m2"}  # nothing to say for the others
     e = reprojection_error(nominal.perturbed(m1.params), true, roi_points(grid))
     assert notes["m2"] == ["guard: kept", f"before the guard {e['mean_px']:.3f} px mean, {e['p95_px']:.3f} px p95"]
+
+
+def test_the_table_gives_the_error_before_the_guard_where_the_guard_changed_anything(tmp_path, inputs):
+    """A result the guard kept at its nominal geometry shows, with the truth and the nominal geometry, the
+    error its estimate had before the guard (as method_notes computes it); the others show none, and a
+    table where the guard changed nothing has no such column."""
+    from robot_ct_ros.jobs.figures import summarize
+
+    _, grid, truth_vol, nominal, true, results = inputs
+    m1 = results["m1"]
+    kept = CalibrationResult("m2", np.zeros_like(m1.params), nominal, m1.volume, m1.history, 1.0,
+                             notes=("guard: kept",), params_unguarded=m1.params)
+    truth = (true, truth_vol, None)
+    rows = {r["method"]: r for r in summarize({**results, "m2": kept}, grid, truth, nominal=nominal)}
+    e = reprojection_error(nominal.perturbed(m1.params), true, roi_points(grid))["mean_px"]
+    assert rows["m2"]["unguarded_mean_px"] == pytest.approx(e)
+    assert rows["m2"]["reproj_mean_px"] == pytest.approx(reprojection_error(nominal, true, roi_points(grid))["mean_px"])
+    assert all(rows[k]["unguarded_mean_px"] is None for k in results)
+    # without the nominal geometry the error before the guard cannot be told
+    assert summarize({"m2": kept}, grid, truth)[0]["unguarded_mean_px"] is None
+    paths = write_report(tmp_path / "g", {**results, "m2": kept}, grid, truth, nominal, figures=False)
+    assert "before the guard, mean (px)" in paths["markdown"].read_text()
+    paths = write_report(tmp_path / "n", results, grid, truth, nominal, figures=False)
+    assert "before the guard" not in paths["markdown"].read_text()
