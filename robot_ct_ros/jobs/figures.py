@@ -29,8 +29,8 @@ from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
 from robot_ct_ros.jobs.output import write_json
 from robot_ct_ros.ct.metrics import cap_thickness_mm, edge_sharpness, remove_gauge, reprojection_error, roi_points, ssim
 
-__all__ = ["COLUMNS", "summarize", "markdown_table", "method_notes", "unguarded_error", "plot_slices", "plot_cap_slabs", "plot_rmse",
-           "gauge_aligned_param_error", "plot_param_error", "write_report"]
+__all__ = ["COLUMNS", "summarize", "markdown_table", "method_notes", "unguarded_error", "plot_slices", "plot_cap_slabs",
+           "plot_rmse", "gauge_aligned_param_error", "plot_param_error", "write_report"]
 
 COLUMNS = (
     ("method", "method", "{}"),
