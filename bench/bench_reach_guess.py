@@ -199,7 +199,8 @@ def main(argv=None) -> int:
         verdict = "kept nominal" if r["kept_nominal"] else "applied"
         st = r["stated"]
         lines.append(f"| {r['title']} | {r['nominal_px']:.3f} | {r['guessed_reach_mm']:.1f} | {r['error_px']:.3f} "
-                     f"| {r['unguarded_px']:.3f} | {verdict} | {ncc3(r['model_ncc'])} | {r['iterations']} | {r['guess_s']:.0f} "
+                     f"| {r['unguarded_px']:.3f} | {verdict} | {ncc3(r['model_ncc'])} | {r['iterations']} "
+                     f"| {r['guess_s']:.0f} "
                      f"| {r['wall_s']:.0f} | {r['stated_reach_mm']:.1f} "
                      f"| {st['error_px']:.3f}{' (guard: nominal kept)' if st['kept_nominal'] else ''} "
                      f"| {st['wall_s']:.0f} |")

@@ -317,7 +317,8 @@ def write_report(out_dir, results: dict, grid: VolumeGrid, truth=None, nominal: 
     or a ``(geom, volume, history[, wall_s])`` tuple, in the column order of the figures.
     ``truth`` = (true geometry, reconstruction with it, phantom or None). ``nominal``: if
     given and no "none" entry exists, the nominal geometry is added to the parameter-error
-    plot as "none"; with ``truth`` the table also gives the error before the guard (:func:`summarize`). ``initial_rmse`` is plotted at iteration 0. ``notes`` go into the JSON.
+    plot as "none"; with ``truth`` the table also gives the error before the guard
+    (:func:`summarize`). ``initial_rmse`` is plotted at iteration 0. ``notes`` go into the JSON.
     ``reconstruct``, ``reconstruct_cap``: see :func:`summarize`. ``figures`` False: the table alone.
     Returned dict: paths under keys "slices", "rmse", "param_error" (truth known; with figures),
     "markdown", "json", and the table "rows".
