@@ -33,19 +33,28 @@ from robot_ct_ros.ct.metrics import remove_gauge, roi_points
 __all__ = ["calibrate", "settings_with"]
 
 
-def _guess_reach(li, mask, nominal, grid, settings, notes: list, say):
+def _guess_reach(li, mask, nominal, grid, settings, notes: list, say, memo: dict | None = None):
     """The exterior model's reach where none is stated: :func:`choose_reach` on the exterior schedule's
     coarse level, with the nominal geometry. Returns (settings with the reach, whether the exterior is
     modelled, whether the scan is strongly truncated and unmodelled). Where no reach can be scored (too
     few views, no room between the ROI and the sources), auto keeps the ROI model and on reaches up to
-    the sources, and ``notes`` says why."""
-    plan = settings.resolved(True).plan()
-    binning = int(plan["coarse_binning"])
-    li_c, mask_c, nom_c, grid_c = _level(li, mask, nominal, estimation_grid(grid, settings.padding), binning)
-    try:
-        choice = choose_reach(li_c, nom_c, grid_c, mask_c, voxel_mm=settings.exterior_voxel_mm,
-                              iterations=int(plan["exterior_iterations"]), subsets=settings.exterior_subsets)
-    except ValueError as e:
+    the sources, and ``notes`` says why. ``memo`` (a dict shared by an ensemble's members, whose guess
+    does not depend on their sampling seeds) keeps the first member's choice for the others."""
+    if memo is not None and "choice" in memo:
+        choice = memo["choice"]
+    else:
+        plan = settings.resolved(True).plan()
+        binning = int(plan["coarse_binning"])
+        li_c, mask_c, nom_c, grid_c = _level(li, mask, nominal, estimation_grid(grid, settings.padding), binning)
+        try:
+            choice = choose_reach(li_c, nom_c, grid_c, mask_c, voxel_mm=settings.exterior_voxel_mm,
+                                  iterations=int(plan["exterior_iterations"]), subsets=settings.exterior_subsets)
+        except ValueError as e:
+            choice = e
+        if memo is not None:
+            memo["choice"] = choice
+    if isinstance(choice, ValueError):
+        e = choice
         on = settings.exterior == "on"
         notes.append(f"the object's reach was not stated and could not be guessed ({e}): " + (
             "the exterior model reached up to the sources" if on else
@@ -140,6 +149,7 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
         if settings.ensemble <= 1 or not method.samples or configs is not None:
             return _calibrate_once(line_integrals, nominal, grid, settings, **kw)
         runs = []
+        kw["reach_memo"] = {}  # the reach guess (nominal geometry, no sampling) is the same for every member
         for k, seed in enumerate(member_seeds(settings.seed, settings.ensemble)):
             say(f"ensemble member {k + 1}/{settings.ensemble} (sampling seed {seed})")
             runs.append(_calibrate_once(line_integrals, nominal, grid, settings.replace(seed=seed), **kw))
@@ -152,7 +162,8 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
 @blas_single_threaded
 def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, settings: CalibrationSettings, *,
                     valid_mask, drift_times, gauge_points_mm, configs, focus_modes, fdk_kwargs, progress,
-                    on_iteration, accuracy, executor=None, final_volume=True) -> CalibrationResult:
+                    on_iteration, accuracy, executor=None, final_volume=True,
+                    reach_memo: dict | None = None) -> CalibrationResult:
     """One run of the loop (the body of :func:`calibrate`).
 
     Each outer iteration reconstructs with the current geometry (FDK, then SIRT on a truncated
@@ -226,7 +237,8 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
         if settings.exterior == "auto":
             say(f"truncation level {level:.3f}: {'the object outside the ROI is modelled' if exterior else 'ROI model'}")
     if exterior and guess_reach:
-        settings, exterior, unmodelled = _guess_reach(li, mask, nominal, grid, settings, exterior_notes, say)
+        settings, exterior, unmodelled = _guess_reach(li, mask, nominal, grid, settings, exterior_notes, say,
+                                                      memo=reach_memo)
     reach_mm = settings.exterior_half_width_mm
     # the schedule (auto: exterior with the exterior model, else accurate) and the fields it sets; the result records them
     settings = settings.resolved(exterior)

@@ -595,6 +595,32 @@ def test_an_unstated_reach_is_guessed_by_held_out_prediction_and_the_result_says
     assert kept.settings.exterior_half_width_mm == 0 and kept.settings.schedule == "accurate"
 
 
+def test_an_ensemble_guesses_the_reach_once_for_all_its_members(monkeypatch):
+    """The guess uses the nominal geometry and no sampling: an ensemble's members share the first one's
+    choice (choose_reach runs once), model the same reach, and the ensemble's notes carry the guess's note
+    as a note every member made."""
+    from robot_ct_ros.ct.calibration import loop
+
+    nominal, _, grid, wider = _small_scan(n_views=20, n_det=32, body_width_mm=40.0, length_mm=30.0)
+    calls = []
+    real = loop.choose_reach
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(loop, "choose_reach", counted)
+    both = calibrate(wider, nominal, grid, method="ncc-lle-exact", iterations=1, exterior_voxel_mm=2.0,
+                     final_volume=False, ensemble=2)
+    assert len(calls) == 1
+    assert both.settings.exterior_half_width_mm > 0
+    guess = [n for n in both.notes if "was not stated" in n]
+    assert len(guess) == 1 and not guess[0].startswith("run"), both.notes
+    single = calibrate(wider, nominal, grid, method="ncc-lle-exact", iterations=1, exterior_voxel_mm=2.0,
+                       final_volume=False)
+    assert len(calls) == 2 and single.settings.exterior_half_width_mm == both.settings.exterior_half_width_mm
+
+
 def test_the_default_schedule_is_exterior_with_the_exterior_model_and_accurate_without_and_the_result_says_which():
     """schedule auto: the loop decides the model first, then runs that model's schedule, and its result records
     the schedule and the values it filled in (iterations, stop_ncc_gain, exterior passes); values given win."""
