@@ -44,6 +44,7 @@ bench-reach-selection: $(STAMP)
 
 bench-reach-guess: $(STAMP)
 	$(PY) bench/bench_reach_guess.py --out docs/results
+	$(PY) bench/bench_reach_guess.py --cases bags --out docs/results/reach_guess_bags
 
 bench-interior-diagnosis: $(STAMP)
 	$(PY) bench/bench_interior_diagnosis.py --out docs/results

@@ -23,7 +23,8 @@ without a reach before the guess (``exterior_reach_guess`` off) are in those ben
 (``sweep.md``, ``results.md``, ``interior.md``; docs/calibration.md, "The exterior model"). Writes
 ``reach_guess.md`` and ``reach_guess.json`` into ``--out``.
 
-    .venv/bin/python bench/bench_reach_guess.py --out docs/results      # about 25 min on 2 cores
+    .venv/bin/python bench/bench_reach_guess.py --out docs/results                                # 15 min
+    .venv/bin/python bench/bench_reach_guess.py --cases bags --out docs/results/reach_guess_bags  # 7 min
 """
 
 from __future__ import annotations
@@ -75,6 +76,9 @@ def bag_title(case: str) -> str:
     return "robot-ct simulate " + " ".join(f"--{k.replace('_', '-')} {v}" for k, v in BAG_SCANS[case].items())
 
 
+GROUPS = {"scans": [c for c in CASES if c not in BAG_SCANS], "bags": list(BAG_SCANS)}
+"""``--cases`` names for several cases: the other benches' scans (reach_guess.md) and the robot-ct simulate
+bags (reach_guess_bags/)."""
 CASES.update({case: bag_title(case) for case in BAG_SCANS})
 SWEEP_ITERATIONS = 3
 """bench_truncation_sweep.py's and bench_calibration.py's outer iterations; the interior neck runs the defaults."""
@@ -137,11 +141,12 @@ def ncc3(x) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--cases", default=",".join(CASES), help=f"comma-separated, of {', '.join(CASES)}")
+    ap.add_argument("--cases", default="scans", help=f"comma-separated, of {', '.join(CASES)}, or the groups "
+                    f"{', '.join(GROUPS)} (default scans)")
     ap.add_argument("--seed", type=int, default=0, help="the scans' seed: phantom, errors, noise")
     ap.add_argument("--out", default="out/bench_reach_guess")
     args = ap.parse_args(argv)
-    cases = [c.strip() for c in args.cases.split(",") if c.strip()]
+    cases = [c for name in args.cases.split(",") if name.strip() for c in GROUPS.get(name.strip(), [name.strip()])]
     unknown = [c for c in cases if c not in CASES]
     if unknown or not cases:
         ap.error(f"--cases: unknown {', '.join(unknown) or '(none given)'} (known: {', '.join(CASES)})")

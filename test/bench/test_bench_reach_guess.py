@@ -13,6 +13,18 @@ def test_a_bad_case_or_seed_is_a_usage_error_before_any_work(load_bench, argv, t
     assert not (tmp_path / "out").exists()
 
 
+def test_case_groups_name_the_benches_scans_and_the_users_bags(load_bench, tmp_path, capsys):
+    """--cases scans (the default) is the other benches' scans, bags the robot-ct simulate ones; a group and
+    names mix, and only an unknown name is reported."""
+    bench = load_bench("bench_reach_guess")
+    assert set(bench.GROUPS["scans"]) | set(bench.GROUPS["bags"]) == set(bench.CASES)
+    assert not set(bench.GROUPS["scans"]) & set(bench.BAG_SCANS) and set(bench.GROUPS["bags"]) == set(bench.BAG_SCANS)
+    with pytest.raises(SystemExit):
+        bench.main(["--cases", "bags,leg", "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert "unknown leg (" in err and "bag48" not in err.split("(known")[0]
+
+
 def test_each_scan_states_the_reach_its_own_bench_states(load_bench):
     """The mice's and (b)'s far side from their scenario, the neck's bench_interior.REACH_MM; the mice and (b)
     run 3 iterations as their benches do, the neck the defaults with the prior at its robots' accuracy."""
