@@ -91,6 +91,14 @@ def _det(text: str) -> tuple[int, int]:
     return parts[0], parts[1]
 
 
+def far_side_mm(phantom, center_mm) -> float:
+    """How far ``phantom`` reaches from ``center_mm`` across the z axis (its bounding box's farthest side
+    in x or y, mm): the reach a user states for the exterior model (exterior_half_width_mm)."""
+    lo, hi = (np.asarray(b, float) for b in phantom.bounds_mm())
+    c = np.asarray(center_mm, float)
+    return float(np.max(np.maximum(c[:2] - lo[:2], hi[:2] - c[:2])))
+
+
 def make_scenario(key: str, views: int, det: tuple[int, int], vol: int, binning: int, seed: int, say,
                   sim_oversample: int = 2, phantom_scale: float = 1.0, n_axial: int | None = None):
     """Nominal and true geometry, simulated scan, ROI grid, phantom and truth reconstruction.
@@ -120,8 +128,7 @@ def make_scenario(key: str, views: int, det: tuple[int, int], vol: int, binning:
     else:
         raise ValueError(f"unknown scenario {key!r}")
     # the exterior model's grid (a square about the ROI centre across the axis) reaches the object's far side
-    lo, hi = (np.asarray(b, float) for b in phantom.bounds_mm())
-    exterior_half_width_mm = float(np.max(np.maximum(center[:2] - lo[:2], hi[:2] - center[:2])))
+    exterior_half_width_mm = far_side_mm(phantom, center)
     nominal = robotic_roi_scan(system, roi_center_mm=tuple(center), fov_diameter_mm=fov, n_views=views,
                                binning=binning, n_rows=rows, n_cols=cols)
     true = nominal.perturbed(errors)

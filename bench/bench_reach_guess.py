@@ -39,7 +39,7 @@ import time
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-from bench_calibration import make_scenario  # noqa: E402
+from bench_calibration import far_side_mm, make_scenario  # noqa: E402
 from bench_interior import REACH_MM, make_scan  # noqa: E402
 
 from robot_ct_ros.ct import calibration  # noqa: E402
@@ -104,8 +104,6 @@ def bag_scan(case: str, seed: int, say):
     import tempfile
     from types import SimpleNamespace
 
-    import numpy as np
-
     from robot_ct_ros.bag import read_scan
     from robot_ct_ros.jobs.calibrate import scan_grid
     from robot_ct_ros.jobs.simulate import make_phantom, simulate_bag
@@ -116,12 +114,8 @@ def bag_scan(case: str, seed: int, say):
         scan = read_scan(bag)
     li, mask = scan.to_line_integrals()
     grid = scan_grid(scan)
-    # the phantom's far side from the ROI centre
-    lo, hi = (np.asarray(b, float) for b in make_phantom(options["phantom"], seed).bounds_mm())
-    c = np.asarray(grid.center_mm, float)
-    far_mm = float(np.max(np.maximum(c[:2] - lo[:2], hi[:2] - c[:2])))
     sc = SimpleNamespace(li=li, mask=mask, nominal=scan.geom, true=scan.geom_true, grid=grid)
-    return sc, far_mm, DEFAULTS
+    return sc, far_side_mm(make_phantom(options["phantom"], seed), grid.center_mm), DEFAULTS
 
 
 def outcome(res, sc, pts) -> dict:
