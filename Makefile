@@ -9,7 +9,9 @@ export PYTHONPATH := $(CURDIR)$(if $(PYTHONPATH),:$(PYTHONPATH))
 
 .PHONY: venv demo test bench bench-calibration bench-calibration-speed bench-interior bench-exterior-reach bench-reach-selection bench-reach-guess bench-interior-diagnosis bench-offset-diagnosis bench-realdata bench-realdata-halves bench-realdata-consistency bench-embedding bench-sweep bench-guard bench-dask bench-fullsize bench-streaming clean
 
-venv: $(STAMP)
+CLI    := $(VENV)/bin/robot-ct
+
+venv: $(STAMP) $(CLI)
 
 $(STAMP): requirements.txt requirements-test.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -17,10 +19,17 @@ $(STAMP): requirements.txt requirements-test.txt
 	$(PY) -m pip install --quiet -r requirements-test.txt
 	touch $(STAMP)
 
-demo: $(STAMP)
+# The venv finds this checkout from any folder (a .pth file; no copy, edits take effect at once), and
+# .venv/bin/robot-ct runs the command line: on the PATH after `source .venv/bin/activate`.
+$(CLI): $(STAMP) Makefile
+	$(PY) -c "import site, sys; open(site.getsitepackages()[0] + '/robot_ct_ros_checkout.pth', 'w').write(sys.argv[1] + '\\n')" "$(CURDIR)"
+	printf '#!/bin/sh\n# robot-ct from this checkout (written by make venv)\nexec "%s" -m robot_ct_ros.cli "$$@"\n' "$(CURDIR)/$(PY)" > $(CLI)
+	chmod +x $(CLI)
+
+demo: $(STAMP) $(CLI)
 	$(PY) -m robot_ct_ros.cli demo --out out/demo
 
-test: $(STAMP)
+test: $(STAMP) $(CLI)
 	$(PY) -m pytest
 
 bench: $(STAMP)

@@ -343,3 +343,22 @@ def test_info_checks_a_fan_beam_scans_centre_of_rotation_by_opposed_rays(tmp_pat
         assert moved[fraction] == pytest.approx(shift_px + 0.5, abs=0.05)
     assert main(["info", str(bags / "sim_mouse_80")]) == 0
     assert "opposed rays" not in capsys.readouterr().out
+
+
+def test_the_venv_that_make_makes_runs_robot_ct_from_any_folder(tmp_path):
+    """`make venv` (and so `make test` and `make demo`) writes .venv/bin/robot-ct and lets the venv's Python
+    find this checkout, so the README's `robot-ct ...` lines work from a user's own data folder."""
+    import os
+    import subprocess
+    import sys
+
+    repo = Path(__file__).resolve().parents[1]
+    venv = repo / ".venv"
+    if Path(sys.prefix).resolve() != venv.resolve():
+        pytest.skip("not running in the venv that make makes")
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}  # make exports it; a user's shell does not
+    for cmd in ([str(venv / "bin" / "robot-ct"), "simulate", "--help"],
+                [str(venv / "bin" / "python"), "-m", "robot_ct_ros.cli", "info", "--help"]):
+        done = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
+        assert done.returncode == 0, done.stderr
+        assert "usage: robot-ct" in done.stdout
