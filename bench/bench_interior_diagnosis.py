@@ -35,13 +35,15 @@ can do from what the reconstruction feeds it:
     the view's fold, on data binned 2, 4 and 8 times, how well they predict the views they did not see and
     where the estimate ends against them; at 180, 360 and 720 views;
 15. tables 3 and 7 with each fold's own term (the full volume's reprojection less the held-out
-    one's) taken out of the fold's data too, so that the data and the held-out volume hold the same.
+    one's) taken out of the fold's data too, so that the data and the held-out volume hold the same;
+16. the ROI grid's voxel (fewer voxels to follow each view's error, less resolution to place it);
+17. table 15's leave-out iterated from the nominal geometry, beside the plain alternation.
 
 ``--tables 6`` computes only table 6 and keeps the others from the json already in ``--out``.
 
 Writes ``interior_diagnosis.md`` and ``.json`` into ``--out``.
 
-    .venv/bin/python bench/bench_interior_diagnosis.py --out docs/results     # about 110 min on 2 cores
+    .venv/bin/python bench/bench_interior_diagnosis.py --out docs/results     # about 120 min on 2 cores
     .venv/bin/python bench/bench_interior_diagnosis.py --tables 11 --out docs/results   # one table (11: 8 min, 14: 16 min)
 """
 
@@ -132,10 +134,12 @@ class Study:
         return self._bands[level]
 
     def volume(self, level, params, views=None, *, voxel_mm=None, iterations=None,
-               after_pass=None) -> VolumeParts:
-        """The exterior model reconstructed from the level's data (``views`` of them) with the geometry ``params``."""
+               after_pass=None, grid=None) -> VolumeParts:
+        """The exterior model reconstructed from the level's data (``views`` of them) with the geometry ``params``;
+        ``grid`` replaces the level's ROI grid."""
         s = self.settings
-        li, nom, grid, mask, _ = self.level(level)
+        li, nom, grid_l, mask, _ = self.level(level)
+        grid = grid_l if grid is None else grid
         geom = nom.perturbed(params)
         if views is not None:
             li, geom, mask = li[views], geom.subset(views), mask[views]
@@ -143,12 +147,14 @@ class Study:
                                          half_width_mm=HALF_WIDTH_MM, iterations=iterations or self.exterior_iterations,
                                          subsets=s.exterior_subsets, after_pass=after_pass)
 
-    def estimate(self, level, params, volume, views=None, *, mask=None, cfg=None, measured=None):
+    def estimate(self, level, params, volume, views=None, *, mask=None, cfg=None, measured=None, grid=None):
         """One estimation pass of ``views`` (default all) from ``params`` against ``volume``; ``mask``
         (the level's shape) replaces the level's valid-pixel mask, ``cfg`` the level's LLE configuration,
-        ``measured`` (``views``' data at the level) the level's data of those views."""
+        ``measured`` (``views``' data at the level) the level's data of those views, ``grid`` the level's ROI
+        grid (the one ``volume`` was built on)."""
         views = np.arange(self.n) if views is None else views
-        li, nom, grid, mask_l, cfg_l = self.level(level)
+        li, nom, grid_l, mask_l, cfg_l = self.level(level)
+        grid = grid_l if grid is None else grid
         mask = mask_l if mask is None else mask
         cfg = cfg_l if cfg is None else cfg
         out = np.array(params, float)
@@ -239,6 +245,59 @@ def table_left_out(st: Study, say, folds: int = 12, geometries=("true", "nominal
                      "held out, own term taken out of the data too (px)": round(st.error_px(p_left), 3),
                      "wall time (s)": round(time.perf_counter() - t0, 1)})
         say(f"  15. {rows[-1]}")
+    return rows
+
+
+def table_roi_voxel(st: Study, say, binnings=(1, 2, 3)) -> list:
+    """16: the ROI grid's voxel. A coarser ROI has fewer voxels with which to follow each view's error, and
+    resolves less of what places the views (coarse level, one pass from the nominal geometry, against volumes
+    from the nominal and from the true geometry)."""
+    zero = np.zeros((st.n, 9))
+    grid_c = st.level("coarse")[2]
+    rows = []
+    for b in binnings:
+        grid = grid_c.binned(b) if b > 1 else grid_c
+        t0 = time.perf_counter()
+        est = {name: st.error_px(st.estimate("coarse", zero, st.volume("coarse", p_rec, grid=grid), grid=grid))
+               for name, p_rec in (("nominal", zero), ("true", st.true_p))}
+        rows.append({"ROI voxel (mm)": round(float(grid.voxel_size_mm[0]), 4), "ROI grid (z, y, x)": str(grid.shape_zyx),
+                     "estimate, volume from the nominal geometry (px)": round(est["nominal"], 3),
+                     "estimate, volume from the true geometry (px)": round(est["true"], 3),
+                     "wall time (s)": round(time.perf_counter() - t0, 1)})
+        say(f"  16. {rows[-1]}")
+    return rows
+
+
+def table_left_out_iterated(st: Study, say, rounds: int = 4, folds: int = 12) -> list:
+    """17: table 15's leave-out (each fold registered against a volume its own views did not build, with the fold's
+    own term taken out of its data) iterated from the nominal geometry, each round's volumes built with the
+    previous round's estimate, beside the plain alternation (every view's data in) from the same start; with the
+    u shift's slope on the truth (table 12) after each round (coarse level)."""
+    li, nom, grid, _, _ = st.level("coarse")
+    u_shift = next(iter(shift_combinations(st).values()))
+
+    def slope(p):
+        return round(float(np.polyfit(u_shift(st.true_p), u_shift(p), 1)[0]), 3)
+
+    p_left, p_plain = np.zeros((st.n, 9)), np.zeros((st.n, 9))
+    rows = []
+    t0 = time.perf_counter()
+    for r in range(1, rounds + 1):
+        geom = nom.perturbed(p_left)
+        full = st.volume("coarse", p_left)
+        p_next = p_left.copy()
+        for f in range(folds):
+            test = np.arange(f, st.n, folds)
+            held = st.volume("coarse", p_left, np.setdiff1d(np.arange(st.n), test))
+            own = project(full, grid, geom.subset(test)) - project(held, grid, geom.subset(test))
+            p_next = st.estimate("coarse", p_next, held, test, measured=li[test] - own)
+        p_left = p_next
+        p_plain = st.estimate("coarse", p_plain, st.volume("coarse", p_plain))
+        rows.append({"round": r, "left out, own term out (px)": round(st.error_px(p_left), 3),
+                     "left out: u-shift slope": slope(p_left), "every view in (px)": round(st.error_px(p_plain), 3),
+                     "every view in: u-shift slope": slope(p_plain),
+                     "elapsed (s)": round(time.perf_counter() - t0, 1)})
+        say(f"  17. {rows[-1]}")
     return rows
 
 
@@ -602,6 +661,9 @@ TABLES = {
            lambda st, args, say: table_bands(st, say, more_views=(360, 720), args=args)),
     "15": ("Held-out volumes with the views' own term taken out of their data too (12 interleaved folds, coarse)",
            lambda st, args, say: table_left_out(st, say)),
+    "16": ("The ROI grid's voxel (coarse, one pass)", lambda st, args, say: table_roi_voxel(st, say)),
+    "17": ("Table 15's leave-out iterated, beside the plain alternation (coarse)",
+           lambda st, args, say: table_left_out_iterated(st, say)),
 }
 """Number -> (title, builder(study, args, say) -> rows)."""
 
