@@ -144,3 +144,18 @@ def test_the_iterated_leave_out_starts_as_table_15_and_rebuilds_its_volumes_each
     assert rows[0]["every view in (px)"] == once["all views, own data in (px)"]
     for key in ("left out, own term out (px)", "every view in (px)"):
         assert rows[1][key] != rows[0][key] and np.isfinite(rows[1][key])
+
+
+def test_the_background_table_passes_each_order_to_the_metric(load_bench):
+    """Table 18 on a small interior neck (axis +y): the (0, 0) row is the default coarse pass (the loop's metric), and
+    a quadratic background changes the estimate, so each row's order reaches the estimator."""
+    bench = load_bench("bench_interior_diagnosis")
+    sc = bench.make_scan(0.1, views=24, det=(16, 40), axis="y", seed=0, nxy=24, say=lambda m: None)
+    st = bench.Study(sc, calibration.CalibrationSettings().with_prior(0.1, 0.1))
+    assert tuple(st.coarse.background) == (0, 0)
+    rows = bench.table_background(st, lambda m: None, orders=((0, 0), (2, 2)))
+    zero = np.zeros((st.n, 9))
+    default = round(st.error_px(st.estimate("coarse", zero, st.volume("coarse", zero))), 3)
+    assert [r["background ignored (orders along u, v)"] for r in rows] == ["(0, 0)", "(2, 2)"]
+    assert rows[0]["estimate, volume from the nominal geometry (px)"] == default
+    assert rows[1]["estimate, volume from the nominal geometry (px)"] != default
