@@ -100,6 +100,13 @@ def _positive(what: str, kind=float):
     return parse
 
 
+def _arc_deg(text: str) -> float:
+    value = _positive("arc-deg")(text)
+    if value > 360.0:
+        raise argparse.ArgumentTypeError(f"arc-deg must be at most 360, got {text!r}")
+    return value
+
+
 # ------------------------------------------------------------------------------ settings options
 def add_settings_arguments(p: argparse.ArgumentParser, skip=("method",)) -> None:
     """One option per field of :class:`~robot_ct_ros.ct.calibration.settings.CalibrationSettings`
@@ -146,7 +153,8 @@ def _cmd_simulate(args) -> int:
     simulate_bag(prepare_out(args.out, must_not_exist=True), phantom=args.phantom, views=args.views, rows=args.rows, cols=args.cols,
                  binning=args.binning, sigma_mm=args.sigma_mm, sigma_deg=args.sigma_deg, seed=args.seed,
                  drift_mm=args.drift_mm, drift_deg=args.drift_deg,
-                 photons=args.photons, fov_mm=args.fov_mm, sim_voxel_mm=args.sim_voxel_mm, progress=not args.quiet)
+                 photons=args.photons, fov_mm=args.fov_mm, sim_voxel_mm=args.sim_voxel_mm, arc_deg=args.arc_deg,
+                 progress=not args.quiet)
     return 0
 
 
@@ -168,7 +176,10 @@ def _cmd_info(args) -> int:
         return 1
     info = s["scan_info"]
     print(f"format     {info['format']}, projection units {info['projection_units']}, binning {info['binning']}")
-    print(f"views      {s['paired_views']} paired frames")
+    arc = s["arc_deg"]
+    print(f"views      {s['paired_views']} paired frames, "
+          + ("a full circle" if arc >= 360.0 else f"an arc of {arc:.1f} deg (a short scan: FDK uses Parker's weights)"
+             if arc > 180.0 else f"an arc of {arc:.1f} deg, at most half a turn: FDK is approximate"))
     print(f"detector   {s['detector']}")
     print(f"geometry   SDD {s['source_to_detector_mm']:.1f} mm, magnification {s['magnification']:.3f}, "
           f"centre {np.round(s['scan_center_mm'], 3).tolist()} mm")
@@ -338,6 +349,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="field-of-view diameter (default: the centred detector's)")
     p.add_argument("--sim-voxel-mm", type=_positive("sim-voxel-mm"), default=None,
                    help="voxel of the phantom in the ROI (default: half the reconstruction voxel, at most 200^3 voxels)")
+    p.add_argument("--arc-deg", type=_arc_deg, default=360.0,
+                   help="the arc the views spread over (default 360; a short scan from half a turn plus the fan)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--out", required=True, help="output bag directory (must not exist)")

@@ -362,3 +362,17 @@ def test_the_venv_that_make_makes_runs_robot_ct_from_any_folder(tmp_path):
         done = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
         assert done.returncode == 0, done.stderr
         assert "usage: robot-ct" in done.stdout
+
+
+def test_simulate_takes_a_short_arc_and_info_says_so(tmp_path, capsys):
+    """`simulate --arc-deg 200` spreads the views over 200 degrees; `info` names the arc (a full circle
+    otherwise), and an arc outside (0, 360] is refused in one line."""
+    bag = tmp_path / "short"
+    assert main(["simulate", "--phantom", "mouse", "--views", "30", "--rows", "8", "--cols", "32", "--arc-deg", "200",
+                 "--quiet", "--out", str(bag)]) == 0
+    capsys.readouterr()
+    assert main(["info", str(bag)]) == 0
+    assert "30 paired frames, an arc of 193.3 deg (a short scan" in capsys.readouterr().out  # 200 * 29 / 30
+    with pytest.raises(SystemExit):
+        main(["simulate", "--arc-deg", "361", "--out", str(tmp_path / "x")])
+    assert "arc-deg must be at most 360" in capsys.readouterr().err

@@ -638,6 +638,8 @@ def summarize(path) -> dict:
         out["scan_error"] = str(exc)
         out["warnings"] = raw.warnings
         return out
+    from robot_ct_ros.ct.reconstruction import scan_arc
+
     g = scan.geom
     c = scan.scan_center_mm()
     out.update({
@@ -645,6 +647,7 @@ def summarize(path) -> dict:
         "detector": f"{g.n_rows} x {g.n_cols} pixels of {g.row_pitch_mm * 1000:.1f} x {g.col_pitch_mm * 1000:.1f} um",
         "source_to_detector_mm": float(np.median(g.sdd_mm)),
         "magnification": float(np.median(g.magnification(c))),
+        "arc_deg": float(np.degrees(scan_arc(g, c)[0])),
         "scan_center_mm": [float(x) for x in c],
         "valid_pixel_fraction": float(scan.valid_mask.mean()),
         "has_geometry_corrected": scan.geom_corrected is not None,

@@ -39,8 +39,12 @@ get Wang's redundancy weights instead of the 1/2 (:func:`displaced_detector_weig
 Interior (truncated) scans: before filtering each detector row is extended beyond both
 edges (point-symmetric continuation or capped symmetric mirror, cosine-tapered to zero)
 so the ramp filter does not see a jump at the detector edge, which would otherwise
-produce a bright rim ("truncation ring") in the ROI. Short scans (< 360 degrees, Parker
-weights) are not handled.
+produce a bright rim ("truncation ring") in the ROI.
+
+Short scans (an arc of half a turn plus the fan angle, as robots that cannot circle the whole
+object take) get Parker's redundancy weights instead of the 1/2 (:func:`short_scan_weights`):
+each ray and its conjugate, measured from both ends of the arc, weigh 2 together. An arc
+shorter than half a turn cannot be weighted so; FDK then warns and is only approximate.
 """
 
 from __future__ import annotations
@@ -61,6 +65,8 @@ __all__ = [
     "fdk_backproject",
     "fdk_view_weights",
     "displaced_detector_weights",
+    "short_scan_weights",
+    "scan_arc",
     "estimate_scan_axis",
     "ramp_kernel_spectrum",
     "fill_invalid_pixels",
@@ -91,7 +97,96 @@ def estimate_scan_axis(geom: ConeGeometry) -> np.ndarray:
     return n if np.dot(n, vmean) >= 0 else -n
 
 
-def fdk_view_weights(geom: ConeGeometry, center_mm=None, axis=None):
+def _scan_angles(geom: ConeGeometry, center_mm, axis):
+    """(phi, n, c, e1, e2): each source's angle phi (n_views,) about the unit ``axis`` n (default
+    :func:`estimate_scan_axis`) through ``center_mm`` c (default the world origin), counter-clockwise
+    about n from e1 (the in-plane direction of the source furthest from the axis) towards e2 = n x e1."""
+    c = np.zeros(3) if center_mm is None else np.asarray(center_mm, dtype=np.float64)
+    n = estimate_scan_axis(geom) if axis is None else np.asarray(axis, dtype=np.float64)
+    n = n / np.linalg.norm(n)
+    r = geom.source_mm - c
+    r = r - np.outer(r @ n, n)
+    radius = np.linalg.norm(r, axis=1)
+    e1 = r[np.argmax(radius)] / radius.max()
+    e2 = np.cross(n, e1)
+    return np.arctan2(r @ e2, r @ e1), n, c, e1, e2
+
+
+def scan_arc(geom: ConeGeometry, center_mm=None, axis=None, min_gap_rad: float = np.pi / 9):
+    """(arc, first, beta): the angle (rad) the sources cover about ``axis`` through ``center_mm`` (as
+    :func:`fdk_view_weights`), 2 pi for a full circle; for a short scan, whose largest gap between
+    neighbouring views exceeds ``min_gap_rad`` (20 degrees, as RTK) and five times the median gap, the
+    angle from the view after that gap to the view before it, with ``first`` that view's index and
+    ``beta`` (n_views,) each view's angle from it, counter-clockwise about the axis (``first``, ``beta``
+    None for a full circle). Views in any order."""
+    nv = geom.n_views
+    if nv < 3:
+        return 2 * np.pi, None, None
+    phi = _scan_angles(geom, center_mm, axis)[0]
+    order = np.argsort(phi)
+    ps = phi[order]
+    gaps = np.mod(np.roll(ps, -1) - ps, 2 * np.pi)
+    k = int(np.argmax(gaps))
+    if gaps[k] <= max(min_gap_rad, 5.0 * float(np.median(gaps))):
+        return 2 * np.pi, None, None
+    first = int(order[(k + 1) % nv])
+    beta = np.mod(phi - phi[first], 2 * np.pi)
+    beta[first] = 0.0
+    return float(beta.max()), first, beta
+
+
+def short_scan_weights(geom: ConeGeometry, center_mm=None, axis=None, min_gap_rad: float = np.pi / 9):
+    """Parker's redundancy weights (n_views, n_cols) for a short scan, or None for a full one.
+
+    The scan is short as :func:`scan_arc` says; its arc runs from the view after its largest gap to
+    the view before it, counter-clockwise about the axis: beta in [0, pi + 2 delta]. Each column's fan angle
+    gamma is the angle, in the plane normal to the axis and counted the same way, from the ray
+    through the scan centre to the ray through that column's centre; a ray (beta, gamma) and its
+    conjugate (beta + pi + 2 gamma, -gamma) are the same line. Weights (Parker 1982), times 2 so
+    that they replace FDK's full-scan 1/2 per ray pair::
+
+        2 sin^2(pi/4 beta / (delta - gamma))               0 <= beta < 2 delta - 2 gamma
+        2                                                   up to pi - 2 gamma
+        2 sin^2(pi/4 (pi + 2 delta - beta) / (delta + gamma))   up to pi + 2 delta
+
+    They sum to 2 over every ray and its conjugate where delta is at least the fan's half-angle;
+    with less (an arc shorter than a half turn plus the fan) the rays at the fan's edge are
+    measured once only, and a warning says so. An arc of half a turn or less cannot be weighted
+    (None, with a warning). Views in any order; the weights follow each view's own geometry.
+    """
+    nc = geom.n_cols
+    arc, _, beta = scan_arc(geom, center_mm, axis, min_gap_rad)
+    if beta is None:
+        return None
+    _, n, c, e1, e2 = _scan_angles(geom, center_mm, axis)
+    delta = 0.5 * (arc - np.pi)
+    if delta <= 0:
+        warnings.warn(f"the scan's arc ({np.degrees(beta.max()):.1f} degrees) is no longer than half a turn: "
+                      "no redundancy weights make FDK exact", RuntimeWarning, stacklevel=3)
+        return None
+    # fan angle of each column's centre (the middle row), in the plane normal to the axis
+    cols = (np.arange(nc) - 0.5 * (nc - 1)) * geom.col_pitch_mm
+    ray = geom.detector_mm[:, None, :] + cols[None, :, None] * geom.u[:, None, :] - geom.source_mm[:, None, :]
+    central = c[None, :] - geom.source_mm
+
+    def angle(d):
+        return np.arctan2(d @ e2, d @ e1)
+
+    gamma = np.mod(angle(ray) - angle(central)[:, None] + np.pi, 2 * np.pi) - np.pi  # (nv, nc)
+    if delta < float(np.abs(gamma).max()):
+        warnings.warn(f"short scan: the arc exceeds half a turn by {np.degrees(2 * delta):.1f} degrees, less than the "
+                      f"fan angle ({np.degrees(2 * np.abs(gamma).max()):.1f} degrees); the rays at the fan's edge are "
+                      "measured once only and FDK is approximate there", RuntimeWarning, stacklevel=3)
+    b = beta[:, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rise = np.sin(0.25 * np.pi * b / (delta - gamma)) ** 2
+        fall = np.sin(0.25 * np.pi * (np.pi + 2 * delta - b) / (delta + gamma)) ** 2
+    w = np.where(b < 2 * delta - 2 * gamma, rise, np.where(b <= np.pi - 2 * gamma, 1.0,
+                                                           np.where(b <= np.pi + 2 * delta, fall, 0.0)))
+    return 2.0 * np.nan_to_num(w, nan=0.0)
+
+
+def fdk_view_weights(geom: ConeGeometry, center_mm=None, axis=None, *, short_scan_weighted: bool = False):
     """Per-view angular quadrature of the FDK sum.
 
     Angles of the source positions around ``axis`` (default: :func:`estimate_scan_axis`)
@@ -101,17 +196,13 @@ def fdk_view_weights(geom: ConeGeometry, center_mm=None, axis=None):
 
     Returns ``(dbeta, g)``: ``dbeta`` (n_views,) in radians and ``g`` (n_views, 3) in mm,
     the source displacement attributed to each view (``dbeta * R * tangent`` with R the
-    distance of the source from the axis).
+    distance of the source from the axis). ``short_scan_weighted``: the caller applies
+    :func:`short_scan_weights`, so a partial arc is no reason to warn.
     """
-    c = np.zeros(3) if center_mm is None else np.asarray(center_mm, dtype=np.float64)
-    n = estimate_scan_axis(geom) if axis is None else np.asarray(axis, dtype=np.float64)
-    n = n / np.linalg.norm(n)
+    phi, n, c, _, _ = _scan_angles(geom, center_mm, axis)
     r = geom.source_mm - c
     r = r - np.outer(r @ n, n)  # in-plane radius vectors
     radius = np.linalg.norm(r, axis=1)
-    e1 = r[np.argmax(radius)] / radius.max()
-    e2 = np.cross(n, e1)
-    phi = np.arctan2(r @ e2, r @ e1)
     nv = geom.n_views
     if nv == 1:
         dbeta = np.array([2.0 * np.pi])
@@ -123,8 +214,9 @@ def fdk_view_weights(geom: ConeGeometry, center_mm=None, axis=None):
         med = np.median(d_next)
         big = d_next > 5.0 * max(med, 1e-12)
         if np.any(big):
-            warnings.warn("scan does not cover 360 degrees; FDK full-scan weighting (1/2 per ray pair) "
-                          "is then only approximate (no Parker weights)", RuntimeWarning, stacklevel=3)
+            if not short_scan_weighted:
+                warnings.warn("scan does not cover 360 degrees; FDK full-scan weighting (1/2 per ray pair) "
+                              "is then only approximate (no Parker weights)", RuntimeWarning, stacklevel=3)
             d_next = np.where(big, 0.0, d_next)  # trapezoid rule at the ends of the arc
             d_prev = np.roll(d_next, 1)
         gaps = 0.5 * (d_next + d_prev)
@@ -379,12 +471,13 @@ def fdk_filter_projections(line_integrals: np.ndarray, geom: ConeGeometry, *, ce
                            axis=None, window: str = "hann", cutoff: float = 1.0,
                            truncation: str | None = "extrapolate", extension: int | None = None,
                            pad_factor: float = 2.0, valid_mask=None, displaced_detector: bool = True,
-                           mu_water_per_mm: float = 0.02,
+                           short_scan: bool = True, mu_water_per_mm: float = 0.02,
                            view_chunk: int = 32) -> tuple[np.ndarray, ConeGeometry]:
     """Weighted and ramp-filtered projections ready for :func:`fdk_backproject`.
 
     Folds in everything that does not depend on the voxel: the generalised cosine weight,
-    the angular quadrature, the full-scan 1/2 (or the displaced-detector weights), the
+    the angular quadrature, the full-scan 1/2 (or the displaced-detector weights, or on a
+    short scan with ``short_scan`` Parker's, :func:`short_scan_weights`), the
     ``D`` of the distance weight and the pixel pitch of the discrete convolution.
     ``extension`` is the number of pixels each row is extended by on each side (default:
     the row length) when ``truncation`` is set and the data are truncated (some edge pixel
@@ -410,7 +503,8 @@ def fdk_filter_projections(line_integrals: np.ndarray, geom: ConeGeometry, *, ce
     cm = np.zeros(3) if center_mm is None else np.asarray(center_mm, dtype=np.float64)
 
     c0, r0, sdd, w_s = _principal_point(geom)
-    _, g = fdk_view_weights(geom, cm, axis)
+    parker = short_scan_weights(geom, cm, axis) if short_scan else None
+    _, g = fdk_view_weights(geom, cm, axis, short_scan_weighted=parker is not None)
     g_u = np.einsum("ij,ij->i", g, geom.u)
     g_w = np.einsum("ij,ij->i", g, w_s)
     if np.any(np.abs(g_u) < 0.5 * np.linalg.norm(g, axis=1)):
@@ -439,6 +533,12 @@ def fdk_filter_projections(line_integrals: np.ndarray, geom: ConeGeometry, *, ce
             asym = np.abs((nc - 0.5 - cc) - (cc + 0.5))  # at most 3 rows: _centre_column bounds cc
             m_lo = int(math.ceil(asym[side == -1].max())) if np.any(side == -1) else 0
             m_hi = int(math.ceil(asym[side == 1].max())) if np.any(side == 1) else 0
+            if parker is not None:  # each covers half of the rays' redundancy; both at once is not derived here
+                warnings.warn("a short scan with a displaced detector: only the displaced-detector weights are "
+                              "applied, and FDK is approximate", RuntimeWarning, stacklevel=2)
+                parker = None
+    if parker is not None:
+        lin = lin * parker
 
     ext = 0 if truncation is None else (nc if extension is None else int(extension))
     if ext and _edges_are_empty(p):
@@ -627,7 +727,7 @@ def fdk_backproject(filtered: np.ndarray, geom: ConeGeometry, grid: VolumeGrid,
 
 def fdk(line_integrals: np.ndarray, geom: ConeGeometry, grid: VolumeGrid, *, window: str = "hann",
         cutoff: float = 1.0, truncation: str | None = "extrapolate", extension: int | None = None,
-        pad_factor: float = 2.0, valid_mask=None, displaced_detector: bool = True,
+        pad_factor: float = 2.0, valid_mask=None, displaced_detector: bool = True, short_scan: bool = True,
         mu_water_per_mm: float = 0.02, center_mm=None, axis=None) -> np.ndarray:
     """FDK reconstruction (float32, ``grid.shape_zyx``) from line integrals for any per-view geometry.
 
@@ -651,16 +751,16 @@ def fdk(line_integrals: np.ndarray, geom: ConeGeometry, grid: VolumeGrid, *, win
     displaced_detector : apply redundancy weights (:func:`displaced_detector_weights`) in the
         views where the detector reaches further on one side of the scan centre than on the
         other (offset-detector ROI scans); centred views are unaffected.
+    short_scan : on an arc short of a full turn, apply Parker's weights
+        (:func:`short_scan_weights`) in place of the full scan's 1/2 per ray pair.
     center_mm, axis : scan centre and axis for the angular and redundancy weights (default:
         the grid centre and the normal of the plane fitted to the source positions).
-
-    The angular weights assume a full 360-degree scan (1/2 per ray pair); no Parker weights.
     """
     c = grid.center_mm if center_mm is None else center_mm
     q, q_geom = fdk_filter_projections(line_integrals, geom, center_mm=c, axis=axis, window=window,
                                        cutoff=cutoff, truncation=truncation, extension=extension,
                                        pad_factor=pad_factor, valid_mask=valid_mask,
-                                       displaced_detector=displaced_detector,
+                                       displaced_detector=displaced_detector, short_scan=short_scan,
                                        mu_water_per_mm=mu_water_per_mm)
     return fdk_backproject(q, q_geom, grid)
 

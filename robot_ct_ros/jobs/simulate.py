@@ -29,8 +29,8 @@ def make_phantom(name: str, seed: int = 0):
 def simulate_bag(out, *, phantom: str = "carotid", views: int = 360, rows: int = 272, cols: int = 636,
                  binning: int = 2, sigma_mm: float = 0.1, sigma_deg: float = 0.1, seed: int = 0,
                  drift_mm: float = 0.0, drift_deg: float = 0.0, photons: float | None = None,
-                 fov_mm: float | None = None, sim_voxel_mm: float | None = None, chunk_views: int = 8,
-                 progress: bool = True, say=_say) -> Path:
+                 fov_mm: float | None = None, sim_voxel_mm: float | None = None, arc_deg: float = 360.0,
+                 chunk_views: int = 8, progress: bool = True, say=_say) -> Path:
     """Simulate a seed-system robotic ROI scan of a phantom and record it as a scan bag at ``out``.
 
     The nominal geometry (/ct/geometry) is :func:`robotic_roi_scan`; the frames are
@@ -39,8 +39,12 @@ def simulate_bag(out, *, phantom: str = "carotid", views: int = 360, rows: int =
     linearly by ``drift_mm`` (its 3 translations) and ``drift_deg`` (its 3 rotations) over the
     scan; the bag keeps the true geometry on /ct/geometry_true. Frames are photon counts
     (``photons`` per binned pixel per frame unattenuated; default: 4,000 behind 13 cm of
-    water) with flat field and dead pixels.
+    water) with flat field and dead pixels. ``arc_deg`` below 360 takes a short scan: the views
+    spread over that arc (reconstructed with Parker's weights where it exceeds half a turn plus
+    the fan, :func:`robot_ct_ros.ct.reconstruction.short_scan_weights`).
     """
+    if not 0.0 < float(arc_deg) <= 360.0:
+        raise ValueError(f"the scan's arc must lie in (0, 360] degrees, got {arc_deg}")
     from tqdm import tqdm
 
     from robot_ct_ros.bag import ScanBagWriter, default_stamps, scan_info_for
@@ -53,7 +57,7 @@ def simulate_bag(out, *, phantom: str = "carotid", views: int = 360, rows: int =
     if fov_mm is None:
         fov_mm = 0.999 * 2 * fov_radius_mm(0.5 * cols * pitch, system.sod_mm, system.sdd_mm)
     nominal = robotic_roi_scan(system, n_views=views, binning=binning, n_rows=rows, n_cols=cols,
-                               fov_diameter_mm=fov_mm)
+                               fov_diameter_mm=fov_mm, arc_rad=np.radians(float(arc_deg)))
     model = sim.robot_coordination(sigma_mm, sigma_deg, seed=seed)
     if drift_mm or drift_deg:
         model = model + sim.detector_drift(drift_mm / max(views - 1, 1), drift_deg / max(views - 1, 1), kind="linear")

@@ -118,7 +118,8 @@ class StreamingEstimator:
         return li_b, mask_b, nominal.binned(self.binning)
 
     def _backproject(self, li, mask, geom: ConeGeometry) -> np.ndarray:
-        """The FDK contributions of these views (each filtered alone, weighted 1 / n_views), summed."""
+        """The FDK contributions of these views (each filtered alone, weighted 1 / n_views), summed. Each view is
+        weighted as in a full circle: Parker's short-scan weights need the whole arc, which a stream has not seen."""
         from robot_ct_ros.ct.reconstruction import fdk_backproject, fdk_filter_projections
 
         out = np.zeros(self.grid.shape_zyx, np.float32)
