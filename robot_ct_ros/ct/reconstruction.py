@@ -58,6 +58,14 @@ from scipy import ndimage
 from numba import njit, prange
 
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
+from robot_ct_ros.ct.scan_weights import (  # noqa: F401  (re-exported: FDK's weights live there)
+    centre_column,
+    displaced_detector_weights,
+    estimate_scan_axis,
+    fdk_view_weights,
+    scan_arc,
+    short_scan_weights,
+)
 
 __all__ = [
     "fdk",
@@ -78,155 +86,6 @@ WINDOWS = ("ram-lak", "hann", "hamming", "cosine", "shepp-logan")
 
 
 # ---------------------------------------------------------------------------- geometry
-def estimate_scan_axis(geom: ConeGeometry) -> np.ndarray:
-    """Unit rotation axis of the scan: normal of the plane fitted to the source positions.
-
-    The sign is chosen so the axis points along the mean detector v (row) direction, i.e.
-    the axial direction of a usual scan. With fewer than 3 views, or sources on a line,
-    the mean v direction itself is returned.
-    """
-    s = geom.source_mm
-    vmean = geom.v.mean(axis=0)
-    vmean = vmean / max(np.linalg.norm(vmean), 1e-12)
-    if geom.n_views < 3:
-        return vmean
-    _, sv, vt = np.linalg.svd(s - s.mean(axis=0), full_matrices=False)
-    if sv[1] <= 1e-9 * max(sv[0], 1e-12):  # degenerate (collinear) trajectory
-        return vmean
-    n = vt[2]
-    return n if np.dot(n, vmean) >= 0 else -n
-
-
-def _scan_angles(geom: ConeGeometry, center_mm, axis):
-    """(phi, n, c, e1, e2): each source's angle phi (n_views,) about the unit ``axis`` n (default
-    :func:`estimate_scan_axis`) through ``center_mm`` c (default the world origin), counter-clockwise
-    about n from e1 (the in-plane direction of the source furthest from the axis) towards e2 = n x e1."""
-    c = np.zeros(3) if center_mm is None else np.asarray(center_mm, dtype=np.float64)
-    n = estimate_scan_axis(geom) if axis is None else np.asarray(axis, dtype=np.float64)
-    n = n / np.linalg.norm(n)
-    r = geom.source_mm - c
-    r = r - np.outer(r @ n, n)
-    radius = np.linalg.norm(r, axis=1)
-    e1 = r[np.argmax(radius)] / radius.max()
-    e2 = np.cross(n, e1)
-    return np.arctan2(r @ e2, r @ e1), n, c, e1, e2
-
-
-def scan_arc(geom: ConeGeometry, center_mm=None, axis=None, min_gap_rad: float = np.pi / 9):
-    """(arc, first, beta): the angle (rad) the sources cover about ``axis`` through ``center_mm`` (as
-    :func:`fdk_view_weights`), 2 pi for a full circle; for a short scan, whose largest gap between
-    neighbouring views exceeds ``min_gap_rad`` (20 degrees, as RTK) and five times the median gap, the
-    angle from the view after that gap to the view before it, with ``first`` that view's index and
-    ``beta`` (n_views,) each view's angle from it, counter-clockwise about the axis (``first``, ``beta``
-    None for a full circle). Views in any order."""
-    nv = geom.n_views
-    if nv < 3:
-        return 2 * np.pi, None, None
-    phi = _scan_angles(geom, center_mm, axis)[0]
-    order = np.argsort(phi)
-    ps = phi[order]
-    gaps = np.mod(np.roll(ps, -1) - ps, 2 * np.pi)
-    k = int(np.argmax(gaps))
-    if gaps[k] <= max(min_gap_rad, 5.0 * float(np.median(gaps))):
-        return 2 * np.pi, None, None
-    first = int(order[(k + 1) % nv])
-    beta = np.mod(phi - phi[first], 2 * np.pi)
-    beta[first] = 0.0
-    return float(beta.max()), first, beta
-
-
-def short_scan_weights(geom: ConeGeometry, center_mm=None, axis=None, min_gap_rad: float = np.pi / 9):
-    """Parker's redundancy weights (n_views, n_cols) for a short scan, or None for a full one.
-
-    The scan is short as :func:`scan_arc` says; its arc runs from the view after its largest gap to
-    the view before it, counter-clockwise about the axis: beta in [0, pi + 2 delta]. Each column's fan angle
-    gamma is the angle, in the plane normal to the axis and counted the same way, from the ray
-    through the scan centre to the ray through that column's centre; a ray (beta, gamma) and its
-    conjugate (beta + pi + 2 gamma, -gamma) are the same line. Weights (Parker 1982), times 2 so
-    that they replace FDK's full-scan 1/2 per ray pair::
-
-        2 sin^2(pi/4 beta / (delta - gamma))               0 <= beta < 2 delta - 2 gamma
-        2                                                   up to pi - 2 gamma
-        2 sin^2(pi/4 (pi + 2 delta - beta) / (delta + gamma))   up to pi + 2 delta
-
-    They sum to 2 over every ray and its conjugate where delta is at least the fan's half-angle;
-    with less (an arc shorter than a half turn plus the fan) the rays at the fan's edge are
-    measured once only, and a warning says so. An arc of half a turn or less cannot be weighted
-    (None, with a warning). Views in any order; the weights follow each view's own geometry.
-    """
-    nc = geom.n_cols
-    arc, _, beta = scan_arc(geom, center_mm, axis, min_gap_rad)
-    if beta is None:
-        return None
-    _, n, c, e1, e2 = _scan_angles(geom, center_mm, axis)
-    delta = 0.5 * (arc - np.pi)
-    if delta <= 0:
-        warnings.warn(f"the scan's arc ({np.degrees(beta.max()):.1f} degrees) is no longer than half a turn: "
-                      "no redundancy weights make FDK exact", RuntimeWarning, stacklevel=3)
-        return None
-    # fan angle of each column's centre (the middle row), in the plane normal to the axis
-    cols = (np.arange(nc) - 0.5 * (nc - 1)) * geom.col_pitch_mm
-    ray = geom.detector_mm[:, None, :] + cols[None, :, None] * geom.u[:, None, :] - geom.source_mm[:, None, :]
-    central = c[None, :] - geom.source_mm
-
-    def angle(d):
-        return np.arctan2(d @ e2, d @ e1)
-
-    gamma = np.mod(angle(ray) - angle(central)[:, None] + np.pi, 2 * np.pi) - np.pi  # (nv, nc)
-    if delta < float(np.abs(gamma).max()):
-        warnings.warn(f"short scan: the arc exceeds half a turn by {np.degrees(2 * delta):.1f} degrees, less than the "
-                      f"fan angle ({np.degrees(2 * np.abs(gamma).max()):.1f} degrees); the rays at the fan's edge are "
-                      "measured once only and FDK is approximate there", RuntimeWarning, stacklevel=3)
-    b = beta[:, None]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        rise = np.sin(0.25 * np.pi * b / (delta - gamma)) ** 2
-        fall = np.sin(0.25 * np.pi * (np.pi + 2 * delta - b) / (delta + gamma)) ** 2
-    w = np.where(b < 2 * delta - 2 * gamma, rise, np.where(b <= np.pi - 2 * gamma, 1.0,
-                                                           np.where(b <= np.pi + 2 * delta, fall, 0.0)))
-    return 2.0 * np.nan_to_num(w, nan=0.0)
-
-
-def fdk_view_weights(geom: ConeGeometry, center_mm=None, axis=None, *, short_scan_weighted: bool = False):
-    """Per-view angular quadrature of the FDK sum.
-
-    Angles of the source positions around ``axis`` (default: :func:`estimate_scan_axis`)
-    through ``center_mm`` (default: the world origin; :func:`fdk` passes the ROI centre),
-    sorted; the angular gap of each view is half the angle between its two neighbours
-    (periodic, i.e. a full scan; at the ends of a partial arc, the one-sided half gap).
-
-    Returns ``(dbeta, g)``: ``dbeta`` (n_views,) in radians and ``g`` (n_views, 3) in mm,
-    the source displacement attributed to each view (``dbeta * R * tangent`` with R the
-    distance of the source from the axis). ``short_scan_weighted``: the caller applies
-    :func:`short_scan_weights`, so a partial arc is no reason to warn.
-    """
-    phi, n, c, _, _ = _scan_angles(geom, center_mm, axis)
-    r = geom.source_mm - c
-    r = r - np.outer(r @ n, n)  # in-plane radius vectors
-    radius = np.linalg.norm(r, axis=1)
-    nv = geom.n_views
-    if nv == 1:
-        dbeta = np.array([2.0 * np.pi])
-    else:
-        order = np.argsort(phi)
-        ps = phi[order]
-        d_next = np.mod(np.roll(ps, -1) - ps, 2 * np.pi)  # gap to the next view
-        d_prev = np.roll(d_next, 1)
-        med = np.median(d_next)
-        big = d_next > 5.0 * max(med, 1e-12)
-        if np.any(big):
-            if not short_scan_weighted:
-                warnings.warn("scan does not cover 360 degrees; FDK full-scan weighting (1/2 per ray pair) "
-                              "is then only approximate (no Parker weights)", RuntimeWarning, stacklevel=3)
-            d_next = np.where(big, 0.0, d_next)  # trapezoid rule at the ends of the arc
-            d_prev = np.roll(d_next, 1)
-        gaps = 0.5 * (d_next + d_prev)
-        dbeta = np.empty(nv)
-        dbeta[order] = gaps
-    tangent = np.cross(n, r) / np.maximum(radius, 1e-12)[:, None]
-    g = (dbeta * radius)[:, None] * tangent
-    return dbeta, g
-
-
 def _principal_point(geom: ConeGeometry):
     """Principal point (col, row) in pixel indices and signed unit normal towards the detector."""
     s, d, u, v, w = geom.source_mm, geom.detector_mm, geom.u, geom.v, geom.w
@@ -409,57 +268,6 @@ def _place_extensions(buf, n, n_fft, ext, left, right, keep_left, keep_right):
     return buf
 
 
-def _centre_column(geom: ConeGeometry, center_mm) -> np.ndarray:
-    """The detector column (n_views,) the scan centre projects onto, limited to one row length beyond
-    either edge: a centre far off the detector (a grid placed away from the scan, or in a source's
-    plane, where it projects to infinity) is simply "off the detector", and the widening of the
-    filtered rows that follows from it stays bounded (it once asked for 5 GiB)."""
-    nc = geom.n_cols
-    with np.errstate(all="ignore"):
-        cc = geom.project_points(np.asarray(center_mm, dtype=np.float64).reshape(1, 3))[:, 0, 0]
-    cc = np.nan_to_num(cc, nan=0.5 * (nc - 1), posinf=2.0 * nc, neginf=-1.0 * nc)
-    return np.clip(cc, -1.0 * nc, 2.0 * nc)
-
-
-def displaced_detector_weights(geom: ConeGeometry, center_mm=(0.0, 0.0, 0.0),
-                               min_asymmetry_px: float | None = None):
-    """Redundancy weights (n_views, n_cols) for an offset (displaced) detector, after Wang 2002.
-
-    The scan centre ``center_mm`` projects onto column ``c_c``; where the detector reaches
-    further on one side of it than on the other, rays within ``+-delta`` of ``c_c`` (delta =
-    the shorter reach, to the edge of the outer pixel) are measured twice over 360 degrees
-    and the rest once. Weights ``2 sin^2(pi/4 (1 + x))``, ``x = +-(c - c_c) / delta`` (0 at
-    the inner edge, 1 at ``c_c``, 2 beyond ``delta``) sum to 2 over each ray and its
-    conjugate, replacing FDK's 1/2 per ray pair.
-
-    The scan counts as displaced when the median asymmetry of the reaches is at least
-    ``min_asymmetry_px`` (default 10 % of the row, at least 2 pixels); then every view is
-    weighted (with its own centre column and delta), otherwise none is: conjugate views
-    must be treated alike, and per-view robot errors of a few pixels must not switch a
-    nearly centred detector to redundancy weighting.
-
-    Returns ``(weights, inner_side)``: ``inner_side`` (n_views,) is -1 where the short side is
-    at low column indices, +1 at high ones, 0 where no weighting applies.
-    """
-    nv, nc = geom.n_views, geom.n_cols
-    cc = _centre_column(geom, center_mm)
-    reach_lo = cc + 0.5
-    reach_hi = (nc - 0.5) - cc
-    asym = reach_hi - reach_lo
-    if min_asymmetry_px is None:
-        min_asymmetry_px = max(2.0, 0.1 * nc)
-    if np.median(np.abs(asym)) < min_asymmetry_px:
-        return np.ones((nv, nc)), np.zeros(nv, dtype=np.int64)
-    delta = np.minimum(reach_lo, reach_hi)
-    if np.any(delta <= 0):
-        warnings.warn("the scan centre projects off the detector in some views; "
-                      "displaced-detector weights cannot fill the missing half", RuntimeWarning, stacklevel=3)
-    side = np.where(asym >= 0, -1, 1)
-    x = (np.arange(nc)[None, :] - cc[:, None]) * (-side[:, None]) / np.maximum(delta, 1e-6)[:, None]
-    weights = 2.0 * np.sin(0.25 * np.pi * (1.0 + np.clip(x, -1.0, 1.0))) ** 2  # x = -1 at the inner edge
-    return weights, side
-
-
 def _edges_are_empty(p: np.ndarray, rel_tol: float = 1e-3) -> bool:
     """True when the first and last detector columns hold (almost) nothing in every row."""
     peak = float(np.max(np.abs(p))) if p.size else 0.0
@@ -529,8 +337,8 @@ def fdk_filter_projections(line_integrals: np.ndarray, geom: ConeGeometry, *, ce
             lin = lin * red
             keep_lo = np.repeat((side != -1).astype(np.float32), nr)
             keep_hi = np.repeat((side != 1).astype(np.float32), nr)
-            cc = _centre_column(geom, cm)
-            asym = np.abs((nc - 0.5 - cc) - (cc + 0.5))  # at most 3 rows: _centre_column bounds cc
+            cc = centre_column(geom, cm)
+            asym = np.abs((nc - 0.5 - cc) - (cc + 0.5))  # at most 3 rows: centre_column bounds cc
             m_lo = int(math.ceil(asym[side == -1].max())) if np.any(side == -1) else 0
             m_hi = int(math.ceil(asym[side == 1].max())) if np.any(side == 1) else 0
             if parker is not None:  # each covers half of the rays' redundancy; both at once is not derived here

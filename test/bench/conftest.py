@@ -7,7 +7,11 @@ from pathlib import Path
 
 import pytest
 
-BENCH_DIR = Path(__file__).resolve().parents[2] / "bench"
+ROOT = Path(__file__).resolve().parents[2]
+BENCH_DIR = ROOT / "bench"
+# the project's shared folder sits beside the repository (../shared); /work/shared on the project's machines
+HTC2022 = next((p for p in (ROOT.parent / "shared" / "realdata" / "htc2022", Path("/work/shared/realdata/htc2022"))
+                if p.is_dir()), Path("/work/shared/realdata/htc2022"))
 
 
 @pytest.fixture
@@ -19,3 +23,12 @@ def load_bench():
         spec.loader.exec_module(module)
         return module
     return load
+
+
+@pytest.fixture
+def htc2022_01a():
+    """The shared HTC2022 folder, for a test that reads phantom 01a (its sinogram and the dataset's FBP); the test
+    is skipped where they are absent."""
+    if not all((HTC2022 / f"htc2022_01a_{kind}.mat").exists() for kind in ("full", "recon_fbp")):
+        pytest.skip("shared HTC2022 data not present")
+    return HTC2022

@@ -5,15 +5,10 @@ ncc-lle-exact undoes most of the injected geometry error, on the measured data a
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-ROOT = Path(__file__).resolve().parents[2]
-# the project's shared folder sits beside the repository (../shared); /work/shared on the project's machines
-REAL = next((p for p in (ROOT.parent / "shared" / "realdata" / "htc2022", Path("/work/shared/realdata/htc2022"))
-             if p.is_dir()), Path("/work/shared/realdata/htc2022"))
 
 
 def test_noise_sigma_finds_white_noise_under_edges_and_skips_masked_pixels(load_bench):
@@ -33,11 +28,9 @@ def test_noise_sigma_finds_white_noise_under_edges_and_skips_masked_pixels(load_
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(not (REAL / "htc2022_01a_full.mat").exists() or not (REAL / "htc2022_01a_recon_fbp.mat").exists(),
-                    reason="shared HTC2022 data not present")
-def test_bench_realdata_matches_the_dataset_and_corrects_injected_errors(tmp_path, load_bench):
+def test_bench_realdata_matches_the_dataset_and_corrects_injected_errors(tmp_path, load_bench, htc2022_01a):
     bench = load_bench("bench_realdata")
-    assert bench.main(["--data", str(REAL), "--phantoms", "01a", "--cases", "independent,twin", "--view-step", "24",
+    assert bench.main(["--data", str(htc2022_01a), "--phantoms", "01a", "--cases", "independent,twin", "--view-step", "24",
                        "--methods", "none,ncc-lle-exact,documented geometry", "--out", str(tmp_path)]) == 0
     report = json.loads((tmp_path / "realdata.json").read_text())
     ph = report["phantoms"]["01a"]
