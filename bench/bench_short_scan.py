@@ -36,8 +36,9 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-from bench_realdata import DATA, ORIENTATIONS, load_phantom, pearson, read_dataset_fbp, view_mask  # noqa: E402
-from robot_ct_ros.ct.reconstruction import estimate_scan_axis, fdk, scan_arc  # noqa: E402
+from bench_realdata import (DATA, ORIENTATIONS, load_phantom, pearson, read_dataset_fbp,  # noqa: E402
+                            source_angles_deg, view_mask)
+from robot_ct_ros.ct.reconstruction import fdk, scan_arc  # noqa: E402
 from robot_ct_ros.jobs.figures import markdown_table  # noqa: E402
 
 COLUMNS = (("phantom", "phantom", "{}"), ("arc_deg", "arc (deg)", "{:.1f}"), ("start_deg", "start (deg)", "{:g}"),
@@ -45,16 +46,6 @@ COLUMNS = (("phantom", "phantom", "{}"), ("arc_deg", "arc (deg)", "{:.1f}"), ("s
            ("corr_dataset", "correlation with the dataset's FBP", "{:.5f}"),
            ("corr_full", "correlation with our full circle", "{:.5f}"),
            ("mean_rel", "mean in the disc / full circle's", "{:.4f}"))
-
-
-def source_angles_deg(scan) -> np.ndarray:
-    """Each view's source angle (degrees) about the scan's axis through its centre, counter-clockwise."""
-    g, c = scan.geom, scan.scan_center_mm()
-    n = estimate_scan_axis(g)
-    r = g.source_mm - c
-    r = r - np.outer(r @ n, n)
-    e1 = r[0] / np.linalg.norm(r[0])
-    return np.degrees(np.arctan2(r @ np.cross(n, e1), r @ e1))
 
 
 def main(argv=None) -> int:

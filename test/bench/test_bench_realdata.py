@@ -56,3 +56,18 @@ def test_bench_realdata_matches_the_dataset_and_corrects_injected_errors(tmp_pat
     assert twin["ncc-lle-exact"]["reproj_mean_px"] < 0.6 * twin["none"]["reproj_mean_px"]
     assert "slices" not in ph["cases"]["twin"]["figures"]
     assert (tmp_path / "realdata_01a_twin_param_error.png").stat().st_size > 0
+
+
+def test_bench_realdata_calibrates_a_short_arc_of_the_views(tmp_path, load_bench, htc2022_01a):
+    """``--arc-deg 210`` keeps the views within 210 degrees of the first (a short scan: 18 of the 30 views that
+    ``--view-step 24`` keeps over the full circle), says so in realdata.md, and refuses an arc of half a turn or
+    less in one line."""
+    bench = load_bench("bench_realdata")
+    assert bench.main(["--data", str(htc2022_01a), "--phantoms", "01a", "--cases", "independent", "--view-step", "24",
+                       "--methods", "none,documented geometry", "--arc-deg", "210", "--out", str(tmp_path)]) == 0
+    report = json.loads((tmp_path / "realdata.json").read_text())
+    assert report["phantoms"]["01a"]["views_used"] == 18  # 0, 12, ..., 204 degrees
+    assert "only the views within 210 degrees of the first (a short scan, 18 views" in (
+        tmp_path / "realdata.md").read_text()
+    with pytest.raises(SystemExit):
+        bench.main(["--data", str(htc2022_01a), "--arc-deg", "180", "--out", str(tmp_path)])
