@@ -89,9 +89,9 @@ def main(argv=None) -> int:
                             warnings.simplefilter("ignore", RuntimeWarning)  # the 1/2 on a partial arc warns
                             img = flip(fdk(li[views], sub, grid, valid_mask=view_mask(mask, views),
                                            short_scan=short)[0].astype(np.float64))
-                        rows.append({"phantom": ph, "arc_deg": float(np.degrees(scan_arc(sub, scan.scan_center_mm())[0])),
-                                     "start_deg": start, "views": int(views.size), "weights": weights,
-                                     "corr_dataset": pearson(img, ref), "corr_full": pearson(img, full),
+                        covered = float(np.degrees(scan_arc(sub, scan.scan_center_mm())[0]))
+                        rows.append({"phantom": ph, "arc_deg": covered, "start_deg": start, "views": int(views.size),
+                                     "weights": weights, "corr_dataset": pearson(img, ref), "corr_full": pearson(img, full),
                                      "mean_rel": float(img[disc].mean() / full[disc].mean())})
                         say(f"{ph}: arc {rows[-1]['arc_deg']:.1f} from {start:g}, {weights}: correlation "
                             f"{rows[-1]['corr_dataset']:.5f} (dataset), {rows[-1]['corr_full']:.5f} (full circle), "

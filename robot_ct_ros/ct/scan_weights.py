@@ -79,10 +79,11 @@ def scan_arc(geom: ConeGeometry, center_mm=None, axis=None, min_gap_rad: float =
 def short_scan_weights(geom: ConeGeometry, center_mm=None, axis=None, min_gap_rad: float = np.pi / 9):
     """Parker's redundancy weights (n_views, n_cols) for a short scan, or None for a full one.
 
-    The scan is short as :func:`scan_arc` says; its arc runs from the view after its largest gap to
-    the view before it, counter-clockwise about the axis: beta in [0, pi + 2 delta]. Each column's fan angle
-    gamma is the angle, in the plane normal to the axis and counted the same way, from the ray
-    through the scan centre to the ray through that column's centre; a ray (beta, gamma) and its
+    The scan is short as :func:`scan_arc` says; its arc runs from the view after its largest gap
+    to the view before it, counter-clockwise about the axis: beta in [0, pi + 2 delta]. Each
+    column's fan angle gamma is the angle, in the plane normal to the axis and counted the same
+    way, from the ray through the scan centre to the ray through that column's centre (the middle
+    row's pixel; a tilted detector's other rows are taken as that column); a ray (beta, gamma) and its
     conjugate (beta + pi + 2 gamma, -gamma) are the same line. Weights (Parker 1982), times 2 so
     that they replace FDK's full-scan 1/2 per ray pair::
 
