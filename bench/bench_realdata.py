@@ -62,7 +62,8 @@ from robot_ct_ros.ct import calibration  # noqa: E402
 from robot_ct_ros.ct.field_of_view import field_of_view_mask  # noqa: E402
 from robot_ct_ros.ct.metrics import edge_sharpness, reprojection_error, roi_points  # noqa: E402
 from robot_ct_ros.ct.opposed_rays import opposed_ray_offset  # noqa: E402
-from robot_ct_ros.ct.reconstruction import WINDOWS, estimate_scan_axis, fdk  # noqa: E402
+from robot_ct_ros.ct.reconstruction import WINDOWS, fdk  # noqa: E402
+from robot_ct_ros.ct.scan_weights import source_angles  # noqa: E402
 from robot_ct_ros.jobs.figures import COLUMNS, markdown_table, plot_param_error, summarize  # noqa: E402
 from robot_ct_ros.jobs.htc2022 import import_htc2022  # noqa: E402
 
@@ -168,16 +169,6 @@ def load_phantom(data: Path, phantom: str, tmp: Path, say=lambda m: None):
     dso = float(np.median(scan.geom.sod_mm()))
     pixel_src_mm = scan.geom.col_pitch_mm * dso / (float(np.median(scan.geom.sdd_mm)) - dso)
     return scan, scan.default_grid(), li_all, mask_all, pixel_src_mm
-
-
-def source_angles_deg(scan) -> np.ndarray:
-    """Each view's source angle (degrees) about the scan's axis through its centre, counter-clockwise."""
-    g, c = scan.geom, scan.scan_center_mm()
-    n = estimate_scan_axis(g)
-    r = g.source_mm - c
-    r = r - np.outer(r @ n, n)
-    e1 = r[0] / np.linalg.norm(r[0])
-    return np.degrees(np.arctan2(r @ np.cross(n, e1), r @ e1))
 
 
 def view_mask(mask, views):
@@ -329,8 +320,8 @@ def main(argv=None) -> int:
                          "prior_det_mm": prior_det_mm}
             views = np.arange(0, scan.n_views, args.view_step)
             if args.arc_deg < 360.0:  # a short scan: the views within the arc from the first
-                views = views[np.mod(source_angles_deg(scan)[views] - source_angles_deg(scan)[0], 360.0)
-                              <= args.arc_deg + 1e-6]
+                phi = np.degrees(source_angles(scan.geom, scan.scan_center_mm()))
+                views = views[np.mod(phi[views] - phi[0], 360.0) <= args.arc_deg + 1e-6]
             li = np.ascontiguousarray(li_all[views])
             mask = view_mask(mask_all, views)
             true = g0.subset(views)

@@ -36,9 +36,9 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-from bench_realdata import (DATA, ORIENTATIONS, load_phantom, pearson, read_dataset_fbp,  # noqa: E402
-                            source_angles_deg, view_mask)
+from bench_realdata import DATA, ORIENTATIONS, load_phantom, pearson, read_dataset_fbp, view_mask  # noqa: E402
 from robot_ct_ros.ct.reconstruction import fdk, scan_arc  # noqa: E402
+from robot_ct_ros.ct.scan_weights import source_angles  # noqa: E402
 from robot_ct_ros.jobs.figures import markdown_table  # noqa: E402
 
 COLUMNS = (("phantom", "phantom", "{}"), ("arc_deg", "arc (deg)", "{:.1f}"), ("start_deg", "start (deg)", "{:g}"),
@@ -79,7 +79,7 @@ def main(argv=None) -> int:
                          "weights": "full circle", "corr_dataset": pearson(full, ref), "corr_full": 1.0,
                          "mean_rel": 1.0})
             say(f"{ph}: full circle, correlation with the dataset's FBP {rows[-1]['corr_dataset']:.5f}")
-            phi = source_angles_deg(scan)
+            phi = np.degrees(source_angles(g, scan.scan_center_mm()))
             for arc in arcs:
                 for start in starts:
                     views = np.flatnonzero(np.mod(phi - phi[0] - start, 360.0) <= arc + 1e-6)

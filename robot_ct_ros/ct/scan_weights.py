@@ -15,8 +15,8 @@ import numpy as np
 
 from robot_ct_ros.ct.geometry import ConeGeometry
 
-__all__ = ["estimate_scan_axis", "fdk_view_weights", "scan_arc", "short_scan_weights", "displaced_detector_weights",
-           "centre_column"]
+__all__ = ["estimate_scan_axis", "fdk_view_weights", "scan_arc", "source_angles", "short_scan_weights",
+           "displaced_detector_weights", "centre_column"]
 
 
 def estimate_scan_axis(geom: ConeGeometry) -> np.ndarray:
@@ -60,10 +60,21 @@ def scan_arc(geom: ConeGeometry, center_mm=None, axis=None, min_gap_rad: float =
     angle from the view after that gap to the view before it, with ``first`` that view's index and
     ``beta`` (n_views,) each view's angle from it, counter-clockwise about the axis (``first``, ``beta``
     None for a full circle). Views in any order."""
-    nv = geom.n_views
-    if nv < 3:
+    if geom.n_views < 3:
         return 2 * np.pi, None, None
-    phi = _scan_angles(geom, center_mm, axis)[0]
+    return _arc(_scan_angles(geom, center_mm, axis)[0], min_gap_rad)
+
+
+def source_angles(geom: ConeGeometry, center_mm=None, axis=None) -> np.ndarray:
+    """Each view's source angle (rad, n_views) about ``axis`` (default :func:`estimate_scan_axis`) through
+    ``center_mm`` (default the world origin), counter-clockwise about the axis; differences between views are
+    what they mean (the zero direction is the source furthest from the axis)."""
+    return _scan_angles(geom, center_mm, axis)[0]
+
+
+def _arc(phi: np.ndarray, min_gap_rad: float):
+    """:func:`scan_arc` of the source angles ``phi`` (at least 3)."""
+    nv = phi.size
     order = np.argsort(phi)
     ps = phi[order]
     gaps = np.mod(np.roll(ps, -1) - ps, 2 * np.pi)
@@ -97,10 +108,12 @@ def short_scan_weights(geom: ConeGeometry, center_mm=None, axis=None, min_gap_ra
     (None, with a warning). Views in any order; the weights follow each view's own geometry.
     """
     nc = geom.n_cols
-    arc, _, beta = scan_arc(geom, center_mm, axis, min_gap_rad)
+    if geom.n_views < 3:
+        return None
+    phi, n, c, e1, e2 = _scan_angles(geom, center_mm, axis)
+    arc, _, beta = _arc(phi, min_gap_rad)
     if beta is None:
         return None
-    _, n, c, e1, e2 = _scan_angles(geom, center_mm, axis)
     delta = 0.5 * (arc - np.pi)
     if delta <= 0:
         warnings.warn(f"the scan's arc ({np.degrees(beta.max()):.1f} degrees) is no longer than half a turn: "
