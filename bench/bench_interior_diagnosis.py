@@ -42,13 +42,15 @@ can do from what the reconstruction feeds it:
 19. where in the image each view's placement lies: the detector shift at which the NCC peaks (searched
     exhaustively, no estimator), of the images as they are, normalised locally (windowed NCC, the issue's
     candidate) or low-passed, against volumes from the true and the nominal geometry, with each view's own
-    data in and held out.
+    data in and held out;
+20. table 19's held-out row (the true geometry, the images as they are) over the exterior grid's voxel and
+    SIRT passes: whether a finer or a more converged exterior lets the other views place a view better.
 
 ``--tables 6`` computes only table 6 and keeps the others from the json already in ``--out``.
 
 Writes ``interior_diagnosis.md`` and ``.json`` into ``--out``.
 
-    .venv/bin/python bench/bench_interior_diagnosis.py --out docs/results     # about 140 min on 2 cores
+    .venv/bin/python bench/bench_interior_diagnosis.py --out docs/results     # about 160 min on 2 cores
     .venv/bin/python bench/bench_interior_diagnosis.py --tables 11 --out docs/results   # one table (11: 8 min, 14: 16 min)
 """
 
@@ -394,40 +396,77 @@ def table_metric_optimum(st: Study, say, folds: int = 12, filters=FILTERS) -> li
     from the nominal geometry, with every view's data in and with each view's fold held out (``folds``
     interleaved): slope on the truth's projection shift (table 12's combinations), scatter about slope x truth,
     and the RMS distance from the truth, px of the full-size detector (coarse level)."""
-    li, nom, grid, mask, _ = st.level("coarse")
-    zero = np.zeros((st.n, 9))
-    full_pitch = float(np.mean(st.sc.nominal.col_pitch_mm))
-    bin_px = float(np.mean(nom.col_pitch_mm)) / full_pitch
-    combos = list(shift_combinations(st).values())
-    truth = np.stack([combos[0](st.true_p), combos[1](st.true_p)], axis=1) / full_pitch
+    _, nom, grid, _, _ = st.level("coarse")
     rows = []
-    for name, p_rec in (("true", st.true_p), ("nominal", zero)):
+    for name, p_rec in (("true", st.true_p), ("nominal", np.zeros((st.n, 9)))):
         for held_out in (False, True):
             t0 = time.perf_counter()
-            if held_out:
-                model = np.empty_like(li)
-                for f in range(folds):
-                    test = np.arange(f, st.n, folds)
-                    vol = st.volume("coarse", p_rec, np.setdiff1d(np.arange(st.n), test))
-                    model[test] = project(vol, grid, nom.subset(test))
-            else:
-                model = project(st.volume("coarse", p_rec), grid, nom)
+            model = (held_out_model(st, p_rec, folds)[0] if held_out
+                     else project(st.volume("coarse", p_rec), grid, nom))
             built_s = time.perf_counter() - t0
             for label, kind, sigma in filters:
                 t0 = time.perf_counter()
-                # the shift that carries the model onto the data is minus the data's shift on the detector
-                est = -shift_optimum(li, model, mask, kind, sigma) * bin_px
                 row = {"volume from": f"the {name} geometry",
                        "each view's data": f"held out ({folds} folds)" if held_out else "in",
-                       "images": label if kind is None else f"{label}, sigma {sigma:g} px"}
-                for k, axis in enumerate("uv"):
-                    slope = float(np.polyfit(truth[:, k], est[:, k], 1)[0])
-                    row[f"{axis}: slope"] = round(slope, 3)
-                    row[f"{axis}: scatter (px)"] = round(float(np.std(est[:, k] - slope * truth[:, k])), 3)
-                    row[f"{axis}: from the truth (px)"] = round(float(np.sqrt(np.mean((est[:, k] - truth[:, k]) ** 2))), 3)
-                row["search (s)"] = round(time.perf_counter() - t0, 1)
+                       "images": label if kind is None else f"{label}, sigma {sigma:g} px",
+                       **shift_rows(st, measured_shifts(st, model, kind, sigma)),
+                       "search (s)": round(time.perf_counter() - t0, 1)}
                 rows.append(row)
                 say(f"  19. {rows[-1]} (volumes built in {built_s:.1f} s)")
+    return rows
+
+
+def held_out_model(st: Study, p_rec, folds: int, **volume_args):
+    """Each view's reprojection, through the nominal geometry, of the coarse volume built with ``p_rec`` from the
+    views outside its fold (``folds`` interleaved), and the held-out views' projection NCC with the volume (each
+    against its fold's volume through ``p_rec``, the mean over the views); ``volume_args`` go to
+    :meth:`Study.volume`."""
+    li, nom, grid, mask, _ = st.level("coarse")
+    model, ncc = np.empty_like(li), 0.0
+    for f in range(folds):
+        test = np.arange(f, st.n, folds)
+        vol = st.volume("coarse", p_rec, np.setdiff1d(np.arange(st.n), test), **volume_args)
+        model[test] = project(vol, grid, nom.subset(test))
+        ncc += projection_consistency(vol, grid, nom.perturbed(p_rec).subset(test), li[test], mask[test])[1] * len(test)
+    return model, float(ncc / st.n)
+
+
+def shift_rows(st: Study, est_px) -> dict:
+    """Table 19's columns for estimated projection shifts ``est_px`` (views, (u, v)), px of the full-size
+    detector: slope on the truth's (table 12's combinations), scatter about slope x truth, RMS from the truth."""
+    full_pitch = float(np.mean(st.sc.nominal.col_pitch_mm))
+    combos = list(shift_combinations(st).values())
+    row = {}
+    for k, axis in enumerate("uv"):
+        truth = combos[k](st.true_p) / full_pitch
+        slope = float(np.polyfit(truth, est_px[:, k], 1)[0])
+        row[f"{axis}: slope"] = round(slope, 3)
+        row[f"{axis}: scatter (px)"] = round(float(np.std(est_px[:, k] - slope * truth)), 3)
+        row[f"{axis}: from the truth (px)"] = round(float(np.sqrt(np.mean((est_px[:, k] - truth) ** 2))), 3)
+    return row
+
+
+def measured_shifts(st: Study, model, kind=None, sigma_px: float = 0.0) -> np.ndarray:
+    """The coarse data's projection shift (views, (u, v)) relative to ``model``, px of the full-size detector:
+    minus the shift that carries the model onto the data (:func:`shift_optimum`)."""
+    li, nom, _, mask, _ = st.level("coarse")
+    bin_px = float(np.mean(nom.col_pitch_mm)) / float(np.mean(st.sc.nominal.col_pitch_mm))
+    return -shift_optimum(li, model, mask, kind, sigma_px) * bin_px
+
+
+def table_held_out_exterior(st: Study, say, folds: int = 12,
+                            settings=((1.0, 15), (0.5, 5), (0.5, 15), (0.5, 40), (0.5, 80), (0.25, 15))) -> list:
+    """20: table 19's held-out row (volumes from the true geometry without the view's fold, images as they are)
+    over the exterior grid's voxel and SIRT passes (``settings``: (voxel mm, passes)), with the held-out views'
+    projection NCC: how well the other views, placed exactly, predict a view as the exterior is resolved or
+    converged further."""
+    rows = []
+    for voxel_mm, passes in settings:
+        t0 = time.perf_counter()
+        model, ncc = held_out_model(st, st.true_p, folds, voxel_mm=voxel_mm, iterations=passes)
+        rows.append({"exterior voxel (mm)": voxel_mm, "SIRT passes": passes, "held-out projection NCC": round(ncc, 5),
+                     **shift_rows(st, measured_shifts(st, model)), "wall time (s)": round(time.perf_counter() - t0, 1)})
+        say(f"  20. {rows[-1]}")
     return rows
 
 
@@ -799,6 +838,9 @@ TABLES = {
     "19": ("Where each view's placement lies in the image: the NCC's own optimum over detector shifts (coarse data, "
            "exhaustive search, no estimator; px of the full-size detector)",
            lambda st, args, say: table_metric_optimum(st, say)),
+    "20": ("What the other views tell about a view, by the exterior's voxel and SIRT passes (table 19's held-out "
+           "row: the true geometry, 12 folds, the images as they are)",
+           lambda st, args, say: table_held_out_exterior(st, say)),
 }
 """Number -> (title, builder(study, args, say) -> rows)."""
 
