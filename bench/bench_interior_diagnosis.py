@@ -431,9 +431,12 @@ def held_out_model(st: Study, p_rec, folds: int, **volume_args):
     return model, float(ncc / st.n)
 
 
-def shift_rows(st: Study, est_px) -> dict:
-    """Table 19's columns for estimated projection shifts ``est_px`` (views, (u, v)), px of the full-size
-    detector: slope on the truth's (table 12's combinations), scatter about slope x truth, RMS from the truth."""
+def shift_rows(st: Study, shifts) -> dict:
+    """Table 19's columns for the measured projection shifts ``shifts`` (:func:`measured_shifts`): per axis the
+    slope on the truth's (table 12's combinations), the scatter about slope x truth and the RMS from the truth, px
+    of the full-size detector; and how many views' peaks lie at the search's edge (beyond it the search cannot
+    see, so those views' scatter is if anything understated)."""
+    est_px, at_edge = shifts
     full_pitch = float(np.mean(st.sc.nominal.col_pitch_mm))
     combos = list(shift_combinations(st).values())
     row = {}
@@ -443,15 +446,19 @@ def shift_rows(st: Study, est_px) -> dict:
         row[f"{axis}: slope"] = round(slope, 3)
         row[f"{axis}: scatter (px)"] = round(float(np.std(est_px[:, k] - slope * truth)), 3)
         row[f"{axis}: from the truth (px)"] = round(float(np.sqrt(np.mean((est_px[:, k] - truth) ** 2))), 3)
+    row["views at the search's edge"] = int(at_edge)
     return row
 
 
-def measured_shifts(st: Study, model, kind=None, sigma_px: float = 0.0) -> np.ndarray:
-    """The coarse data's projection shift (views, (u, v)) relative to ``model``, px of the full-size detector:
-    minus the shift that carries the model onto the data (:func:`shift_optimum`)."""
+def measured_shifts(st: Study, model, kind=None, sigma_px: float = 0.0, reach_px: float = 4.0):
+    """The coarse data's projection shift (views, (u, v)) relative to ``model``, px of the full-size detector
+    (minus the shift that carries the model onto the data, :func:`shift_optimum` within ``reach_px`` of the
+    coarse data), and the number of views whose peak lies at the search's edge along either axis."""
     li, nom, _, mask, _ = st.level("coarse")
     bin_px = float(np.mean(nom.col_pitch_mm)) / float(np.mean(st.sc.nominal.col_pitch_mm))
-    return -shift_optimum(li, model, mask, kind, sigma_px) * bin_px
+    found = shift_optimum(li, model, mask, kind, sigma_px, reach_px=reach_px)
+    at_edge = int(np.sum(np.any(np.abs(found) >= reach_px + 0.4, axis=1)))  # the fine step reaches 0.5 px past it
+    return -found * bin_px, at_edge
 
 
 def table_held_out_exterior(st: Study, say, folds: int = 12,

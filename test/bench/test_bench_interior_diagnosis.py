@@ -200,6 +200,28 @@ def test_the_metric_optimum_table_measures_each_volume_and_filter(load_bench):
     assert 0.7 < rows[0]["u: slope"] < 1.3
     for r in rows:
         assert all(np.isfinite(v) for k, v in r.items() if k.startswith(("u:", "v:")))
+        assert 0 <= r["views at the search's edge"] <= st.n
+    # the small neck's held-out volumes predict its views so badly that many peaks run to the search's edge
+    assert rows[2]["views at the search's edge"] > rows[0]["views at the search's edge"]
+
+
+def test_a_peak_beyond_the_search_is_counted_at_its_edge(load_bench):
+    """Table 19's edge count: data shifted by 3 px against their model, searched within 1 px, peak at the search's
+    edge (1.5 px with the fine step) and are counted there; searched within 4 px they are found and not counted."""
+    bench = load_bench("bench_interior_diagnosis")
+    from scipy import ndimage
+    from types import SimpleNamespace
+
+    rng = np.random.default_rng(2)
+    model = np.stack([ndimage.gaussian_filter(rng.normal(size=(32, 48)), 2.0) for _ in range(3)])
+    data = np.stack([ndimage.shift(m, (0.0, 3.0), order=3, mode="nearest") for m in model])
+    geom = SimpleNamespace(col_pitch_mm=np.float64(0.11))
+    st = SimpleNamespace(level=lambda name: (data, geom, None, np.ones(data.shape, bool), None),
+                         sc=SimpleNamespace(nominal=geom))
+    near, at_edge = bench.measured_shifts(st, model, reach_px=1.0)
+    assert at_edge == 3 and np.allclose(near[:, 0], -1.5)
+    found, at_edge = bench.measured_shifts(st, model, reach_px=4.0)
+    assert at_edge == 0 and np.allclose(found[:, 0], -3.0, atol=0.1)
 
 
 def test_the_held_out_exterior_table_builds_each_fold_without_its_views(load_bench):
