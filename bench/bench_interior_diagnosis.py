@@ -282,11 +282,6 @@ def table_left_out_iterated(st: Study, say, rounds: int = 4, folds: int = 12) ->
     previous round's estimate, beside the plain alternation (every view's data in) from the same start; with the
     u shift's slope on the truth (table 12) after each round (coarse level)."""
     li, nom, grid, _, _ = st.level("coarse")
-    u_shift = next(iter(shift_combinations(st).values()))
-
-    def slope(p):
-        return round(float(np.polyfit(u_shift(st.true_p), u_shift(p), 1)[0]), 3)
-
     p_left, p_plain = np.zeros((st.n, 9)), np.zeros((st.n, 9))
     rows = []
     t0 = time.perf_counter()
@@ -302,8 +297,9 @@ def table_left_out_iterated(st: Study, say, rounds: int = 4, folds: int = 12) ->
         p_left = p_next
         p_plain = st.estimate("coarse", p_plain, st.volume("coarse", p_plain))
         rows.append({"round": r, "left out, own term out (px)": round(st.error_px(p_left), 3),
-                     "left out: u-shift slope": slope(p_left), "every view in (px)": round(st.error_px(p_plain), 3),
-                     "every view in: u-shift slope": slope(p_plain),
+                     "left out: u-shift slope": u_shift_slope(st, p_left),
+                     "every view in (px)": round(st.error_px(p_plain), 3),
+                     "every view in: u-shift slope": u_shift_slope(st, p_plain),
                      "elapsed (s)": round(time.perf_counter() - t0, 1)})
         say(f"  17. {rows[-1]}")
     return rows
@@ -316,7 +312,6 @@ def table_background(st: Study, say, orders=((0, 0), (1, 1), (2, 2), (4, 4))) ->
     against the volumes from the nominal and from the true geometry), with the u shift's slope on the truth."""
     zero = np.zeros((st.n, 9))
     vols = {"nominal": st.volume("coarse", zero), "true": st.volume("coarse", st.true_p)}
-    u_shift = next(iter(shift_combinations(st).values()))
     rows = []
     for order in orders:
         t0 = time.perf_counter()
@@ -324,7 +319,7 @@ def table_background(st: Study, say, orders=((0, 0), (1, 1), (2, 2), (4, 4))) ->
         for name, vol in vols.items():
             p = st.estimate("coarse", zero, vol, cfg=replace(st.coarse, background=tuple(order)))
             row[f"estimate, volume from the {name} geometry (px)"] = round(st.error_px(p), 3)
-            row[f"u-shift slope, {name}"] = round(float(np.polyfit(u_shift(st.true_p), u_shift(p), 1)[0]), 3)
+            row[f"u-shift slope, {name}"] = u_shift_slope(st, p)
         row["wall time (s)"] = round(time.perf_counter() - t0, 1)
         rows.append(row)
         say(f"  18. {rows[-1]}")
@@ -704,6 +699,13 @@ def shift_combinations(st: Study) -> dict:
     return {f"u shift (d_u + {m1:.2f} s_u)": lambda p: p[:, 3] + m1 * p[:, 0],
             f"v shift (d_v + {m1:.2f} s_v)": lambda p: p[:, 4] + m1 * p[:, 1],
             "in-plane rotation x detector half-width": lambda p: p[:, 8] * half_mm}
+
+
+def u_shift_slope(st: Study, params) -> float:
+    """The slope of the estimate ``params``' projection shift along u on the truth's (table 12's first
+    combination; 1: the estimate recovers all of each view's shift), rounded to 3 places (tables 17 and 18)."""
+    u_shift = next(iter(shift_combinations(st).values()))
+    return round(float(np.polyfit(u_shift(st.true_p), u_shift(params), 1)[0]), 3)
 
 
 def table_absorption(st: Study, say) -> list:
