@@ -110,6 +110,7 @@ class ScanCollector:
                 if topic in self.latched:
                     w.write_raw(topic, *self.latched[topic], t0)
             for s in stamps:
+                w.flush()  # each frame in its own chunk (with its CRC): one damaged chunk costs one view
                 w.write_raw(fmt.TOPIC_PROJECTION, fmt.IMAGE, frames[s], s)
                 w.write_raw(fmt.TOPIC_GEOMETRY, fmt.POSE_ARRAY, geoms[s], s)
                 if s in true:

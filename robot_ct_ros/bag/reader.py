@@ -6,7 +6,8 @@ Two layers:
   bag (metadata.yaml + indexed MCAP) is read with rosbags. When rosbags cannot read it (no
   metadata.yaml after a crash, MCAP without summary, a cut or overwritten tail, garbage in
   the middle) the ``.mcap`` file is scanned record by record with the ``mcap`` library's
-  record parsers: every complete chunk and message is kept, a damaged region is skipped
+  record parsers: every complete chunk and message is kept (of a chunk cut by the file's end,
+  the complete messages before the cut when the chunk has no CRC), a damaged region is skipped
   by re-synchronising on the next well-formed chunk, and what was lost is reported.
 * :func:`read_scan`: the scan (frames, per-view geometry, flat field, pixel masks) with
   frames and geometries paired by equal header stamps; anything unpaired, undecodable or
@@ -139,6 +140,46 @@ def _resync(buf, pos: int, n: int) -> int | None:
         pos += 1
 
 
+def _partial_chunk(buf, pos: int, n: int, handle) -> None:
+    """The complete records at the start of a chunk record cut by the end of the file (``buf[pos:n]``), each
+    given to ``handle(opcode, content)``, up to the first incomplete one.
+
+    Only a chunk without a CRC is read so (rosbags' own writer stores none, and packs a scan into chunks of
+    1 MiB, so a cut file would otherwise lose up to a megabyte of frames); a chunk with a CRC is taken whole or
+    not at all, as everywhere in the reader. A compressed chunk gives what its decompressor yields from the
+    bytes present."""
+    head = pos + 9 + _CHUNK_FIXED
+    if head > n:
+        return
+    _start, _end, _usize, crc, clen = struct.unpack_from("<QQQII", buf, pos + 9)
+    if crc or clen not in (0, 3, 4) or head + clen + 8 > n:
+        return
+    comp = bytes(buf[head:head + clen])
+    data = bytes(buf[head + clen + 8:n])
+    try:
+        if comp == b"zstd":
+            import zstandard
+            data = zstandard.ZstdDecompressor().decompressobj().decompress(data)
+        elif comp == b"lz4":
+            import lz4.frame
+            data = lz4.frame.LZ4FrameDecompressor().decompress(data)
+        elif comp != b"":
+            return
+    except Exception:  # noqa: BLE001 - nothing decodable in what is left
+        return
+    q, cn = 0, len(data)
+    while q + 9 <= cn:
+        op = data[q]
+        (ln,) = struct.unpack_from("<Q", data, q + 1)
+        if op not in (0x03, 0x04, 0x05) or q + 9 + ln > cn:
+            break
+        try:
+            handle(op, data[q + 9:q + 9 + ln])
+        except Exception:  # noqa: BLE001 - a malformed record ends what is taken
+            break
+        q += 9 + ln
+
+
 def _recover_mcap(path: Path) -> tuple[list, list]:
     """Scan an MCAP file record by record; returns (messages, warnings). See the module docstring."""
     from mcap.data_stream import ReadDataStream
@@ -228,8 +269,13 @@ def _recover_mcap(path: Path) -> tuple[list, list]:
             continue
         if end > n and 0x01 <= opcode <= 0x0F and _resync(buf, pos + 1, n) is None:
             lost_bytes += n - pos
+            before = len(out)
+            if opcode == 0x06:
+                _partial_chunk(buf, pos, n, handle)
             warnings.append(f"{path.name}: the file is truncated: the last record (byte {pos}, "
-                            f"{length} bytes announced, {n - pos - 9} present) is incomplete")
+                            f"{length} bytes announced, {n - pos - 9} present) is incomplete"
+                            + (f"; {len(out) - before} complete messages recovered from its start (a chunk "
+                               "without a CRC)" if len(out) > before else ""))
             break
         nxt = _resync(buf, pos + 1, n)
         damaged += 1

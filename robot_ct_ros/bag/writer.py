@@ -252,19 +252,29 @@ def write_corrected_bag(src, dst, geom_corrected: ConeGeometry, stamps_ns, *, no
     ``stamps_ns`` are the stamps of the views of ``geom_corrected`` (the paired frames' stamps);
     corrected geometries already in ``src`` are replaced. Works on damaged bags (copies what
     :func:`robot_ct_ros.bag.reader.read_raw_messages` recovers).
+
+    As the recorder's bags, every frame opens its own MCAP chunk (with its CRC), so one damaged chunk
+    costs one view; each corrected geometry goes in at its stamp's place in log time, beside its frame.
     """
     from .reader import RawBag, read_raw_messages
 
     raw = src if isinstance(src, RawBag) else read_raw_messages(src)
     stamps = np.asarray(stamps_ns, np.int64)
+    pending = sorted((int(s), i) for i, s in enumerate(stamps))[::-1]  # popped from the end, earliest first
     w = ScanBagWriter(dst, None, flush_every_frame=False)
     with w:
         for m in raw.messages:
             if m.topic == fmt.TOPIC_GEOMETRY_CORRECTED:
                 continue
+            if m.topic == fmt.TOPIC_PROJECTION:
+                w.flush()
+            while pending and pending[-1][0] <= m.log_time_ns:
+                s, i = pending.pop()
+                w.write_geometry(geom_corrected, s, fmt.TOPIC_GEOMETRY_CORRECTED, i)
             w.write_raw(m.topic, m.msgtype, m.data, m.log_time_ns)
-        for i, s in enumerate(stamps):
-            w.write_geometry(geom_corrected, int(s), fmt.TOPIC_GEOMETRY_CORRECTED, i)
+        while pending:
+            s, i = pending.pop()
+            w.write_geometry(geom_corrected, s, fmt.TOPIC_GEOMETRY_CORRECTED, i)
         if notes:
             w._writer.set_custom_data("robot_ct_ros.notes", notes)
     return Path(dst)

@@ -299,3 +299,46 @@ def test_a_flipped_byte_is_a_reported_damaged_chunk_not_a_silent_change(tmp_path
         assert stamps[5] not in scan.stamps_ns
         text = " | ".join(scan.warnings)
         assert "CRC mismatch: the chunk at bytes" in text and f"log times {stamps[5]}" in text, text
+
+
+def test_a_corrected_bag_keeps_a_chunk_per_frame_so_a_flipped_byte_costs_one_view(tmp_path, good_bag, tiny_scan):
+    """The corrected bag (calibrate's output) once packed every frame into a few 1 MiB chunks: one flipped
+    byte cost 33 of 80 views. It must keep the recorder's one chunk per frame, each with its CRC, and each
+    frame's corrected geometry beside it."""
+    from robot_ct_ros.bag.writer import write_corrected_bag
+
+    bag, frames, stamps = good_bag
+    geom = tiny_scan[0]
+    corrected = geom.perturbed([0.0, 0.2, 0.0] + [0.0] * 6)
+    dst = write_corrected_bag(bag, tmp_path / "c", corrected, stamps)
+    (mcap,) = sorted(dst.glob("*.mcap"))
+    crcs = _chunk_crcs(mcap)
+    assert len(crcs) >= 12 and all(crcs), crcs
+    data = bytearray(mcap.read_bytes())
+    at = bytes(data).find(bytes(np.ascontiguousarray(frames[5], "<f4").tobytes()))
+    assert at > 0
+    data[at + 100] ^= 0x10
+    scan = read_scan(_damaged_copy(dst, tmp_path / "flipped", bytes(data), keep_metadata=True))
+    assert scan.n_views == 11 and stamps[5] not in scan.stamps_ns
+    _assert_exact_subset(scan, frames, stamps)
+    kept = [int(np.flatnonzero(stamps == s)[0]) for s in scan.stamps_ns]
+    assert scan.geom_corrected is not None and scan.geom_corrected.allclose(corrected.subset(kept), atol=1e-9)
+
+
+def test_the_bag_of_the_scan_as_received_keeps_a_chunk_per_frame(tmp_path, good_bag):
+    """The recon_service's copy of the scan it received (ScanCollector.write_bag) likewise: a chunk per frame."""
+    from robot_ct_ros.bag.collector import ScanCollector
+    from robot_ct_ros.bag.reader import read_raw_messages
+
+    bag, frames, stamps = good_bag
+    collector = ScanCollector()
+    for m in read_raw_messages(bag).messages:
+        if m.topic in fmt.LATCHED_TOPICS:
+            collector.add_latched(m.topic, m.data)
+        elif m.topic in (fmt.TOPIC_PROJECTION, fmt.TOPIC_GEOMETRY):
+            collector.add_frame_message(m.topic, m.data)
+    path, n = collector.write_bag(tmp_path / "received")
+    assert n == 12
+    (mcap,) = sorted(path.glob("*.mcap"))
+    crcs = _chunk_crcs(mcap)
+    assert len(crcs) >= 12 and all(crcs), crcs

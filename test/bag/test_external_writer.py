@@ -97,3 +97,35 @@ def test_bag_written_with_rosbags_alone_is_read_and_calibrated(tmp_path, check_b
     corrected = read_scan(report["corrected_bag"])
     assert corrected.geom_corrected is not None and corrected.n_views == 24
     check_bag(report["corrected_bag"])
+
+
+def test_a_cut_bag_written_with_rosbags_alone_keeps_every_complete_frame(tmp_path):
+    """rosbags' writer packs a scan into 1 MiB chunks without a CRC: a file cut inside its last chunk once
+    recovered nothing of it (0 messages from a bag cut at 90 %). Every complete message before the cut is kept,
+    the pixels exactly, and the cut is reported; a chunk with a CRC (the project's writer) stays all or nothing."""
+    from robot_ct_ros.bag import read_scan
+    from robot_ct_ros.ct.trajectory import robotic_roi_scan
+
+    n = 24
+    geom = robotic_roi_scan(n_views=n, n_rows=16, n_cols=24, fov_diameter_mm=1.0)
+    frames = np.random.default_rng(0).uniform(100.0, 1000.0, (n, 16, 24)).astype(np.float32)
+    stamps = [1_800_000_000_000_000_000 + 100_000_000 * i for i in range(n)]
+    info = {"format": "robot_ct_ros.scan/1", "n_rows": 16, "n_cols": 24, "row_pitch_m": geom.row_pitch_mm * 1e-3,
+            "col_pitch_m": geom.col_pitch_mm * 1e-3, "binning": 1, "projection_units": "counts", "n_views": n}
+    bag = tmp_path / "whole"
+    _write_like_the_docs(bag, frames, np.full((16, 24), 1000.0, np.float32), stamps, geom.source_mm * 1e-3,
+                         geom.detector_mm * 1e-3, geom.u, geom.v, info)
+    (mcap,) = sorted(bag.glob("*.mcap"))
+    data = mcap.read_bytes()
+    for fraction in (0.9, 0.5):
+        cut = tmp_path / f"cut_{fraction}"
+        cut.mkdir()
+        (cut / mcap.name).write_bytes(data[:int(fraction * len(data))])
+        scan = read_scan(cut)
+        assert scan.recovered
+        # each view's frame and geometry take about 1/n of the file: all but the one being cut survive
+        assert scan.n_views >= int(fraction * n) - 2, (fraction, scan.n_views)
+        for k, s in enumerate(scan.stamps_ns):
+            np.testing.assert_array_equal(scan.counts[k], frames[stamps.index(int(s))])
+        assert scan.geom.allclose(geom.subset([stamps.index(int(s)) for s in scan.stamps_ns]), atol=1e-9)
+        assert any("complete messages recovered from its start" in w for w in scan.warnings), scan.warnings
