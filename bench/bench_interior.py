@@ -22,6 +22,8 @@ the prior is each scan's robot error. Writes ``interior.md``, ``interior.json`` 
     .venv/bin/python bench/bench_interior.py --sigmas 0.1 --methods none,ncc-lle-exact --views 90
     .venv/bin/python bench/bench_interior.py --sigmas 0.1 --methods "none,ncc-lle-exact + exterior" \
         --exterior-voxel-mm 0.25 --out docs/results/interior_exterior_voxel_0.25
+    .venv/bin/python bench/bench_interior.py --methods none --oracle --oracle-voxels 0.25,0.125 \
+        --out docs/results/interior_oracle_fine   # the perfect volume on finer exterior voxels, about 15 min
 """
 
 from __future__ import annotations
@@ -173,6 +175,8 @@ def main(argv=None) -> int:
     ap.add_argument("--oracle", action="store_true",
                     help="also estimate the views against the true object (ROI alone, and with the outside on 1, "
                          "0.5, 0.25 mm voxels): what the data term can do with a perfect volume")
+    ap.add_argument("--oracle-voxels", default="roi,1,0.5,0.25",
+                    help="--oracle's volumes: 'roi' (the ROI alone) and exterior voxel sizes in mm, comma-separated")
     ap.add_argument("--out", default="out/bench_interior")
     add_settings_arguments(ap, skip=BENCH_OWNS)
     args = ap.parse_args(argv)
@@ -183,6 +187,10 @@ def main(argv=None) -> int:
         settings = settings.replace(iterations=args.iterations)
     rows, cols = (int(x) for x in args.det.lower().split("x"))
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    try:
+        oracle_voxels = tuple(None if v.strip() == "roi" else float(v) for v in args.oracle_voxels.split(","))
+    except ValueError:
+        ap.error(f"--oracle-voxels: 'roi' or voxel sizes in mm, comma-separated, not {args.oracle_voxels!r}")
     os.makedirs(args.out, exist_ok=True)
     t_all = time.perf_counter()
 
@@ -233,7 +241,8 @@ def main(argv=None) -> int:
             lines += ["", "The loop's error after each outer iteration (mean px, before the guard):", ""]
             lines += [f"- {m}: {', '.join(f'{e:.3f}' for e in v)}" for m, v in per_iteration.items()]
         if args.oracle:
-            rows_o = oracle(sc, sim.interior_neck_phantom(args.seed).moved(AXES[args.axis].as_matrix()), say)
+            rows_o = oracle(sc, sim.interior_neck_phantom(args.seed).moved(AXES[args.axis].as_matrix()), say,
+                            oracle_voxels)
             report["scans"][-1]["oracle"] = rows_o
             lines += ["", "What the data term can do with a perfect volume (the true object voxelised; ncc-lle-exact, "
                       "one coarse and one fine pass, no alternation):", "",

@@ -31,3 +31,18 @@ def test_a_setting_given_to_the_bench_reaches_the_calibration_and_the_report(loa
     assert "error after each outer iteration" in (out / "interior.md").read_text()
     with pytest.raises(SystemExit):
         bench.main(["--prior-sigma", "1,1", "--out", str(out)])
+
+
+def test_the_perfect_volume_table_takes_the_volumes_asked_for(load_bench, tmp_path):
+    """``--oracle-voxels`` chooses the perfect volumes (the ROI alone, exterior voxel sizes): one row per volume, in
+    that order, each with the error from the nominal and from the true geometry; a bad list is refused."""
+    bench = load_bench("bench_interior")
+    out = tmp_path / "oracle"
+    assert bench.main(["--sigmas", "0.1", "--methods", "none", "--views", "12", "--det", "16x40", "--nxy", "16",
+                       "--oracle", "--oracle-voxels", "roi,1", "--out", str(out)]) == 0
+    rows = json.loads((out / "interior.json").read_text())["scans"][0]["oracle"]
+    assert [r["model"] for r in rows] == ["ROI only", "ROI + exterior on 1 mm voxels"]
+    assert all(r["from_nominal_px"] >= 0 and r["from_true_px"] >= 0 for r in rows)
+    assert "| ROI + exterior on 1 mm voxels |" in (out / "interior.md").read_text()
+    with pytest.raises(SystemExit):
+        bench.main(["--oracle-voxels", "roi,fine", "--out", str(out)])
