@@ -51,7 +51,7 @@ def reconstruct_bag(bag, out, *, geometry: str = "auto", voxel_mm=None, shape_xy
     files = write_volume(vol, grid, out)
     report = base_report(scan, grid)
     report.update({"job": "reconstruct", "geometry": "corrected" if use_corrected else "nominal",
-                   "geometry_error": geometry_error(scan, geom), "files": files,
+                   "geometry_error": geometry_error(scan, geom, grid), "files": files,
                    "wall_s": time.perf_counter() - t0})
     write_json(out / "report.json", report)
     say(f"wrote {out}/volume.npy, volume.tif, report.json ({report['wall_s']:.1f} s)")

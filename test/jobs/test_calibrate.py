@@ -1,6 +1,7 @@
 """The correction job on bags in any world frame: a scan about +y (RTK's convention) is a scan."""
 
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 from robot_ct_ros.bag import read_scan, write_scan
@@ -36,6 +37,10 @@ def test_a_scan_about_y_calibrates_as_the_same_scan_about_z(tmp_path):
     before = reprojection_error(about_y.geom, about_y.geom_true, pts)["mean_px"]
     after = reprojection_error(y.geom, about_y.geom_true, pts)["mean_px"]
     assert after < 0.6 * before, (before, after)
+    # report.json's figures against /ct/geometry_true are these, gauge removed (the raw RMS counts the gauge)
+    report = y.report
+    assert report["geometry_error_nominal"]["reprojection_error_px"]["mean"] == pytest.approx(before, rel=1e-9)
+    assert report["geometry_error_corrected"]["reprojection_error_px"]["mean"] == pytest.approx(after, rel=1e-9)
     np.testing.assert_allclose(y.result.params, z.result.params, atol=1e-3)
     np.testing.assert_allclose(y.volume, z.volume, atol=1e-3 * np.abs(z.volume).max())
 
