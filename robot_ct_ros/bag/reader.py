@@ -512,6 +512,31 @@ def _single_image(raw: RawBag, topic: str, shape, encodings, warnings: list):
     return arr
 
 
+STARVED_FLAT_COUNTS = 100.0
+"""A usable pixel reading 0 counts where its flat field holds at least this many is reported (:func:`_zero_counts_warning`)."""
+
+
+def _zero_counts_warning(counts, flat, valid) -> str | None:
+    """A warning when usable pixels read exactly 0 counts under a bright flat field: either photon starvation
+    behind dense matter, or pixels that dropped out in those frames (a dead column reads as an attenuation of
+    ln(flat / 0.5), some 60 times a tissue scan's, and streaks the whole volume). The data are kept as they are:
+    the reader cannot tell the two apart, the user can (a dead pixel belongs in /ct/dead_pixels)."""
+    if flat is None:
+        return None
+    zero = valid & (counts == 0) & (np.asarray(flat)[None] >= STARVED_FLAT_COUNTS)
+    if not zero.any():
+        return None
+    frames = np.flatnonzero(zero.any(axis=(1, 2)))
+    columns = int((zero.all(axis=1)).sum())  # whole detector columns of a frame at 0
+    rows = int((zero.all(axis=2)).sum())
+    whole = [f"{columns} whole detector columns" if columns else "", f"{rows} whole rows" if rows else ""]
+    whole = " and ".join(w for w in whole if w)
+    return (f"{int(zero.sum())} usable pixels in {len(frames)} frames (first {frames[:5].tolist()}) read 0 counts "
+            f"under a flat field of at least {STARVED_FLAT_COUNTS:g} counts" + (f", among them {whole}" if whole else "")
+            + ": photon starvation behind dense matter, or pixels that dropped out; they are used as the attenuation "
+            "of 0.5 counts. If they are dead, list them in /ct/dead_pixels or write them as NaN")
+
+
 def read_scan(path, *, keep_raw: bool = False) -> ScanData:
     """Read the scan bag at ``path`` (see the module docstring and docs/bag-format.md).
 
@@ -649,6 +674,9 @@ def scan_from_raw(raw: RawBag, path, *, keep_raw: bool = False, min_views: int |
         if neg.any():
             warnings.append(f"{int(neg.sum())} negative counts are marked invalid")
             valid &= ~neg
+        zero_warning = _zero_counts_warning(counts, flat, valid)
+        if zero_warning:
+            warnings.append(zero_warning)
 
     def extra(topic):
         gs = _geometries(raw, topic, warnings)

@@ -342,3 +342,19 @@ def test_the_bag_of_the_scan_as_received_keeps_a_chunk_per_frame(tmp_path, good_
     (mcap,) = sorted(path.glob("*.mcap"))
     crcs = _chunk_crcs(mcap)
     assert len(crcs) >= 12 and all(crcs), crcs
+
+
+def test_zero_counts_under_a_bright_flat_are_reported_and_kept(tmp_path, tiny_scan):
+    """A column that dropped out in one frame (0 counts under a flat of 1000) read as an attenuation 60 times a
+    tissue scan's and ruined the volume without a word ('pixels 100 % valid'). The reader keeps the counts (a 0
+    may be photon starvation) and says which frames and that a whole column is at 0."""
+    geom, frames, flat, dead = tiny_scan
+    frames = frames.copy()
+    frames[5, :, 7] = 0.0
+    scan = read_scan(write_scan(tmp_path / "zero", frames, geom, flat=flat, dead_pixels=dead))
+    text = " | ".join(scan.warnings)
+    assert "8 usable pixels in 1 frames (first [5]) read 0 counts" in text and "1 whole detector columns" in text
+    np.testing.assert_array_equal(scan.counts[5], frames[5])
+    assert scan.valid_mask[5, :, 7].all()
+    clean = read_scan(write_scan(tmp_path / "clean", tiny_scan[1], geom, flat=flat, dead_pixels=dead))
+    assert not any("read 0 counts" in w for w in clean.warnings)
