@@ -555,7 +555,8 @@ def scan_from_raw(raw: RawBag, path, *, keep_raw: bool = False, min_views: int |
     infos = _decode(raw, fmt.TOPIC_SCAN_INFO, fmt.STRING, warnings)
     if not infos:
         topics = ", ".join(f"{t} ({n})" for t, (_, n) in sorted(raw.topics().items()))
-        raise ScanBagError(f"{path}: no /ct/scan_info message; a scan bag starts with one (found: {topics})")
+        raise ScanBagError(f"{path}: no /ct/scan_info message; a scan bag starts with one ("
+                           + (f"found: {topics})" if topics else "the bag holds no message at all)"))
     info = fmt.scan_info_from_msg(infos[0][1])
     if len(infos) > 1:
         others = [m.data for _, m in infos[1:]]

@@ -358,3 +358,13 @@ def test_zero_counts_under_a_bright_flat_are_reported_and_kept(tmp_path, tiny_sc
     assert scan.valid_mask[5, :, 7].all()
     clean = read_scan(write_scan(tmp_path / "clean", tiny_scan[1], geom, flat=flat, dead_pixels=dead))
     assert not any("read 0 counts" in w for w in clean.warnings)
+
+
+def test_an_empty_bag_says_it_holds_no_message(tmp_path):
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    with Writer(tmp_path / "empty", version=9, storage_plugin=StoragePlugin.MCAP):
+        pass
+    with pytest.raises(ScanBagError, match="no /ct/scan_info message; a scan bag starts with one \\(the bag holds no "
+                                           "message at all\\)"):
+        read_scan(tmp_path / "empty")
