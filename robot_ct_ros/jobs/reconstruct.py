@@ -5,6 +5,8 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+import numpy as np
+
 from robot_ct_ros.bag.reader import read_scan
 from robot_ct_ros.bag.format import ScanBagError
 from robot_ct_ros.jobs.calibrate import base_report, geometry_error, scan_grid
@@ -29,6 +31,7 @@ def reconstruct_bag(bag, out, *, geometry: str = "auto", voxel_mm=None, shape_xy
         The grid and the projections would not fit in memory (checked before allocating; the
         message says what would fit).
     """
+    from robot_ct_ros.ct.field_of_view import field_of_view_mask
     from robot_ct_ros.ct.reconstruction import fdk
 
     if geometry not in GEOMETRIES:
@@ -48,11 +51,15 @@ def reconstruct_bag(bag, out, *, geometry: str = "auto", voxel_mm=None, shape_xy
     say(f"{scan.n_views} views, detector {geom.n_rows}x{geom.n_cols}; FDK on {grid.shape_zyx[::-1]} voxels of "
         f"{grid.voxel_size_mm[0] * 1000:.1f} um ({'corrected' if use_corrected else 'nominal'} geometry)")
     vol = fdk(li, geom, grid, valid_mask=mask)
+    outside = 1.0 - float(np.mean(field_of_view_mask(geom, grid)))
+    if outside > 0.3:  # beyond a square grid's corners (21 %): FDK puts streaks there, not the object
+        say(f"note: {100 * outside:.0f} % of the grid lies outside the field of view (voxels that the measured rays "
+            "do not reach from every direction); FDK's values there are streaks, not the object")
     files = write_volume(vol, grid, out)
     report = base_report(scan, grid)
     report.update({"job": "reconstruct", "geometry": "corrected" if use_corrected else "nominal",
-                   "geometry_error": geometry_error(scan, geom, grid), "files": files,
-                   "wall_s": time.perf_counter() - t0})
+                   "geometry_error": geometry_error(scan, geom, grid), "outside_field_of_view_fraction": outside,
+                   "files": files, "wall_s": time.perf_counter() - t0})
     write_json(out / "report.json", report)
     say(f"wrote {out}/volume.npy, volume.tif, report.json ({report['wall_s']:.1f} s)")
     return report

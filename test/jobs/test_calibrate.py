@@ -1,5 +1,7 @@
 """The correction job on bags in any world frame: a scan about +y (RTK's convention) is a scan."""
 
+import json
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -79,6 +81,10 @@ def test_a_one_row_bag_reconstructs_and_calibrates(tmp_path):
     assert main(["reconstruct", str(bag), "--out", str(tmp_path / "recon")]) == 0
     volume = np.load(tmp_path / "recon" / "volume.npy")
     assert volume.shape[0] == 1 and np.isfinite(volume).all() and volume.max() > 0.03
+    # a grid far wider than the fan: the report says how much of it no complete data reach
+    assert main(["reconstruct", str(bag), "--shape", "300,300,1", "--out", str(tmp_path / "wide")]) == 0
+    wide = json.loads((tmp_path / "recon" / "report.json").read_text())["outside_field_of_view_fraction"]
+    assert wide < 0.3 < json.loads((tmp_path / "wide" / "report.json").read_text())["outside_field_of_view_fraction"]
     correction = calibrate_bag(bag, tmp_path / "calib", CalibrationSettings(iterations=2), evaluate_truth=True,
                                say=lambda s: None)
     truth = correction.report["truth"]
