@@ -16,7 +16,8 @@ settle time, only for the exposure, and switched off as soon as the detector ans
 aborts: an arm leaving position or falling silent, an arm driver reporting ERROR, a move not done
 within move_timeout_s, the interlock refusing the beam, the beam dropping during an exposure or
 showing up outside one, the detector failing or timing out, a frame not arriving or of the wrong
-size, an e-stop. Abort = beam off requested, disarmed, state "aborted" with the reason. Frames
+size, an e-stop (seen on the estop topic or latched at the source). No scan starts while the source's
+e-stop is latched: the arms do not move. Abort = beam off requested, disarmed, state "aborted" with the reason. Frames
 already taken stay published; a beam-interrupted frame is never one of them (the pcd_grabber
 publishes it on /ct/projection_rejected only), so it is neither counted nor paired.
 
@@ -126,6 +127,7 @@ class ScanSequencer:
         self.arm_pose_t: dict[str, float] = {r: -math.inf for r in ROLES}
         self.device_state: dict[str, tuple[float, str]] = {}
         self.beam_on: bool | None = None
+        self.estop_latched = False  # as source_control last said (source/estop_latched), or an e-stop seen since
         self.state = "idle"
         self.message = "ready"
         self.protocol: ScanProtocol | None = None
@@ -222,8 +224,16 @@ class ScanSequencer:
             self.abort(f"beam on outside an exposure (view {self.view}, {self.state})")
 
     def on_estop(self, pressed: bool) -> None:
-        if pressed and self.running:
-            self.abort("e-stop")
+        if pressed:
+            self.estop_latched = True  # until source_control says it was reset
+            if self.running:
+                self.abort("e-stop")
+
+    def on_estop_latched(self, latched: bool) -> None:
+        """source_control's e-stop latch (source/estop_latched): a scan neither starts nor goes on under it."""
+        self.estop_latched = bool(latched)
+        if latched and self.running:
+            self.abort("e-stop latched at the source")
 
     def on_diagnostics(self, reports) -> None:
         """/diagnostics statuses as (name, is_error, message, lifecycle_state or None): device
@@ -263,6 +273,8 @@ class ScanSequencer:
             return False, f"protocol: {exc}"
         now, ports, timeout = self._now(), self.ports, self.settings.arm_report_timeout_s
         problems = []
+        if self.estop_latched:  # the arms must not move either
+            problems.append("the e-stop is latched (reset it: source/reset_estop)")
         if not ports.beam_service_ready():
             problems.append("source/set_beam not available (source_control)")
         if not ports.expose_service_ready():

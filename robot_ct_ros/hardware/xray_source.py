@@ -3,6 +3,9 @@
 Safety rule (enforced here, not in the ROS node): the beam is on only while a scan is
 armed, both arms report in position (recently: a stale report counts as "not in
 position"), and no e-stop is latched. Losing any condition switches the beam off at once.
+The beam is also never on for longer than one exposure can take (``max_beam_on_s``), so a
+controller that dies with the beam on cannot leave it on; and an e-stop disarms the scan for
+good: arming while it is latched is ignored, so after a reset the scan must be armed anew.
 Units: kilovolt peak (kVp), watts, seconds. :class:`SourceSettings` are the source_control
 node's parameters. No ROS import.
 """
@@ -59,6 +62,11 @@ class SimulatedXraySource:
             self.beam_on_seconds += now_s - self._on_since
         self._beam_on = bool(on)
 
+    def total_beam_on_s(self, now_s: float) -> float:
+        """Beam-on time so far, the current stretch included."""
+        running = now_s - self._on_since if self._beam_on and self._on_since is not None else 0.0
+        return self.beam_on_seconds + running
+
     @property
     def beam_on(self) -> bool:
         return self._beam_on
@@ -96,23 +104,35 @@ class InterlockedSource:
 
     ``request_beam(True)`` is the only way to switch the beam on; it succeeds only when
     :func:`beam_permitted` says so. ``tick(now_s)`` must be called periodically so that
-    stale arm reports switch the beam off.
+    stale arm reports, and a beam on for longer than ``max_beam_on_s``, switch the beam off.
+    While the e-stop is latched the scan stays disarmed whatever arrives.
     """
 
-    def __init__(self, source: XraySource, max_report_age_s: float = 1.0):
+    def __init__(self, source: XraySource, max_report_age_s: float = 1.0, max_beam_on_s: float = 10.0):
         self.source = source
         self.max_report_age_s = float(max_report_age_s)
+        self.max_beam_on_s = float(max_beam_on_s)
         self.inputs = InterlockInputs()
         self.last_reason = "scan not armed"
+        self.last_cut_reason = ""  # why the interlock last switched the beam off
+        self._on_since: float | None = None
 
     def _enforce(self, now_s: float) -> None:
         ok, reason = beam_permitted(self.inputs, now_s, self.max_report_age_s)
+        if ok and self.source.beam_on and self._on_since is not None and now_s - self._on_since > self.max_beam_on_s:
+            ok, reason = False, (f"beam on for {now_s - self._on_since:.1f} s, longer than max_beam_on_s "
+                                 f"{self.max_beam_on_s:g} s: no exposure takes that long (is the scan's controller "
+                                 "alive?)")
         self.last_reason = reason
         if not ok and self.source.beam_on:
             self.source.set_beam(False, now_s)
+            self.last_cut_reason = reason
 
     def update(self, now_s: float, **changes) -> None:
-        self.inputs = replace(self.inputs, **changes)
+        inputs = replace(self.inputs, **changes)
+        if inputs.estop_latched and inputs.scan_armed:
+            inputs = replace(inputs, scan_armed=False)  # arming under a latched e-stop does not count, nor after
+        self.inputs = inputs
         self._enforce(now_s)
 
     def report_arm(self, which: str, in_position: bool, now_s: float) -> None:
@@ -140,6 +160,8 @@ class InterlockedSource:
         self.last_reason = reason
         if not ok:
             return False, f"beam refused: {reason}"
+        if not self.source.beam_on:
+            self._on_since = now_s
         self.source.set_beam(True, now_s)
         return True, "beam on"
 
@@ -150,7 +172,7 @@ class InterlockedSource:
 
 @dataclass(frozen=True)
 class SourceSettings:
-    """The tube settings and the interlock's report age (the source_control node's parameters).
+    """The tube settings and the interlock's time limits (the source_control node's parameters).
 
     The tube range is the source's to check (:meth:`XraySource.configure` refuses what it cannot
     do, and the node's configure transition fails with the reason), so kvp and power_w are bounded
@@ -161,6 +183,8 @@ class SourceSettings:
     power_w: float = setting(150.0, "tube power (<= 150 for the simulated source)", unit="W", minimum=0.0)
     max_report_age_s: float = setting(1.0, "an arm in-position report older than this cuts the beam", unit="s",
                                       minimum=0.0)
+    max_beam_on_s: float = setting(10.0, "the beam is cut when on for longer than this (keep it above the longest "
+                                         "exposure)", unit="s", minimum=0.0)
 
     def __post_init__(self):
         validate(self)
@@ -168,4 +192,4 @@ class SourceSettings:
     def interlocked(self, source: XraySource) -> InterlockedSource:
         """``source`` configured at these settings, behind the interlock; raises SourceError if it refuses."""
         source.configure(self.kvp, self.power_w)
-        return InterlockedSource(source, max_report_age_s=self.max_report_age_s)
+        return InterlockedSource(source, max_report_age_s=self.max_report_age_s, max_beam_on_s=self.max_beam_on_s)

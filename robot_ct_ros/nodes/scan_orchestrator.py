@@ -10,7 +10,8 @@ Topics and services (relative names follow the node namespace; /ct/* from robot_
               /diagnostics (1 Hz)
   subscribes  source_arm/in_position, detector_arm/in_position (std_msgs/Bool), source_arm/tool_pose,
               detector_arm/tool_pose (geometry_msgs/PoseStamped), source/beam_on (std_msgs/Bool), estop
-              (std_msgs/Bool), /diagnostics (arm driver ERROR aborts; a detector or x-ray source
+              (std_msgs/Bool), source/estop_latched (std_msgs/Bool: while true no scan starts, and a
+              running one aborts), /diagnostics (arm driver ERROR aborts; a detector or x-ray source
               lifecycle node reported not active refuses the start), /ct/projection (frame check),
               /ct/geometry (pairing count)
   clients     source/set_beam (std_srvs/SetBool), pcd/expose (std_srvs/Trigger)
@@ -83,6 +84,7 @@ class ScanOrchestratorNode(Node):
             self.create_subscription(PoseStamped, f"{r}_arm/tool_pose", lambda m, r=r: self._on_tool_pose(r, m), 10)
         self.create_subscription(Bool, "source/beam_on", lambda m: self.scan.on_beam(m.data), LATCHED)
         self.create_subscription(Bool, "estop", lambda m: self.scan.on_estop(m.data), 10)
+        self.create_subscription(Bool, "source/estop_latched", lambda m: self.scan.on_estop_latched(m.data), LATCHED)
         self.create_subscription(DiagnosticArray, fmt.node_topic(fmt.TOPIC_DIAGNOSTICS), self._on_diagnostics, 50)
         self.create_subscription(Image, fmt.node_topic(fmt.TOPIC_PROJECTION), lambda m: self.scan.on_frame(
             stamp_to_ns(m.header.stamp), (m.height, m.width)), STREAM)

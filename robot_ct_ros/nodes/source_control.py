@@ -4,12 +4,16 @@ Topics (relative names; namespace the node to place them):
   subscribes  scan/armed (std_msgs/Bool), source_arm/in_position (std_msgs/Bool),
               detector_arm/in_position (std_msgs/Bool), estop (std_msgs/Bool: true latches the e-stop)
   publishes   source/beam_on (std_msgs/Bool, transient-local: on every change, at 10 Hz while active,
-              and false on every transition out of active), /diagnostics (diagnostic_msgs/DiagnosticArray, 1 Hz)
+              and false on every transition out of active), source/estop_latched (std_msgs/Bool,
+              transient-local, on every change: the orchestrator refuses to start a scan while it is true),
+              /diagnostics (diagnostic_msgs/DiagnosticArray, 1 Hz)
   services    source/set_beam (std_srvs/SetBool), source/estop (std_srvs/Trigger),
               source/reset_estop (std_srvs/Trigger); <node>/change_state, <node>/get_state (lifecycle_msgs)
 Parameters: kvp (kVp, 60-120), power_w (W, <= 150), max_report_age_s (s): an arm report
-older than this counts as "not in position" and cuts the beam (hardware.xray_source.SourceSettings);
-autostart (default true).
+older than this counts as "not in position" and cuts the beam; max_beam_on_s (s): a beam on for longer
+is cut (no exposure takes that long, so a controller that dies with the beam on cannot leave it on)
+(hardware.xray_source.SourceSettings); autostart (default true). An e-stop disarms the scan: after
+source/reset_estop the beam needs scan/armed true anew.
 
 Lifecycle: configure builds the (simulated) source at kvp/power_w behind the interlock, activate
 serves source/set_beam and publishes the beam state, deactivate switches the beam off at once and
@@ -52,6 +56,7 @@ class SourceControlNode(LifecycleNode):
         self.last_error = ""
 
         self.beam_pub = self.create_publisher(Bool, "source/beam_on", LATCHED)
+        self.estop_pub = self.create_publisher(Bool, "source/estop_latched", LATCHED)
         self.diag_pub = self.create_publisher(DiagnosticArray, fmt.TOPIC_DIAGNOSTICS, 10)
         self.create_subscription(Bool, "scan/armed", lambda m: self._update(scan_armed=m.data), 10)
         self.create_subscription(Bool, "source_arm/in_position", lambda m: self._arm("source", m.data), 10)
@@ -64,6 +69,7 @@ class SourceControlNode(LifecycleNode):
         self.create_timer(1.0, self._publish_diagnostics)
         self._last_published: bool | None = None
         self._publish_beam()
+        self._publish_estop()
         if autostart and self.trigger_configure() == TransitionCallbackReturn.SUCCESS:
             self.trigger_activate()
 
@@ -86,6 +92,7 @@ class SourceControlNode(LifecycleNode):
         if self._estop_unconfigured:
             interlock.estop(self._now_s())
         self.interlock, self.last_error = interlock, ""
+        self._publish_estop()
         self.get_logger().info(f"source configured: {self.kvp} kVp, {self.power_w} W")
         return TransitionCallbackReturn.SUCCESS
 
@@ -152,6 +159,13 @@ class SourceControlNode(LifecycleNode):
             self.interlock.report_arm(which, in_position, self._now_s())
             self._publish_beam()
 
+    @property
+    def estop_latched(self) -> bool:
+        return self._estop_unconfigured or (self.interlock is not None and self.interlock.inputs.estop_latched)
+
+    def _publish_estop(self) -> None:
+        publish_while_up(self, self.estop_pub, Bool(data=self.estop_latched))
+
     def _estop(self) -> None:
         if self.interlock is None:
             self._estop_unconfigured = True
@@ -159,6 +173,7 @@ class SourceControlNode(LifecycleNode):
             self.interlock.estop(self._now_s())
         self.get_logger().error("e-stop latched")
         self._publish_beam()
+        self._publish_estop()
 
     def _on_estop_topic(self, msg: Bool) -> None:
         if msg.data:
@@ -188,6 +203,7 @@ class SourceControlNode(LifecycleNode):
         self._estop_unconfigured = False
         if self.interlock is not None:
             self.interlock.reset_estop(self._now_s())
+        self._publish_estop()
         response.success, response.message = True, "e-stop reset (scan must be re-armed)"
         return response
 
@@ -201,10 +217,14 @@ class SourceControlNode(LifecycleNode):
             self.interlock.request_beam(False, self._now_s())
             self._publish_beam(force=True)
 
+    def _beam_on_seconds(self, il: InterlockedSource) -> float:
+        total = getattr(il.source, "total_beam_on_s", None)  # the current stretch too, where the driver can tell
+        return total(self._now_s()) if total is not None else getattr(il.source, "beam_on_seconds", 0.0)
+
     def _publish_diagnostics(self) -> None:
         state = self.lifecycle_state
         il = self.interlock
-        latched = self._estop_unconfigured or (il is not None and il.inputs.estop_latched)
+        latched = self.estop_latched
         if latched or self.last_error:
             level = DiagnosticStatus.ERROR
         elif not self._active:
@@ -214,8 +234,8 @@ class SourceControlNode(LifecycleNode):
         values = [("lifecycle_state", state), ("beam_on", self.beam_on), ("kvp", self.kvp),
                   ("power_w", self.power_w), ("estop_latched", latched)]
         if il is not None:
-            values += [("scan_armed", il.inputs.scan_armed),
-                       ("beam_on_seconds", f"{getattr(il.source, 'beam_on_seconds', 0.0):.3f}")]
+            values += [("scan_armed", il.inputs.scan_armed), ("last_beam_cut", il.last_cut_reason or "-"),
+                       ("beam_on_seconds", f"{self._beam_on_seconds(il):.3f}")]
         message = self.last_error or (il.last_reason if il is not None and self._active else state)
         publish_diagnostic(self, self.diag_pub, level, "x-ray source", "simulated_xray_source", message, values)
 

@@ -308,3 +308,23 @@ def test_autostart_retries_until_the_graph_is_up(tmp_path):
     rig.report_arms(False)
     rig.advance(0.6)
     assert rig.seq.state == "moving"
+
+
+def test_no_scan_starts_under_a_latched_estop_and_a_latch_aborts_a_running_one(tmp_path):
+    """An outside check started a scan while the source's e-stop was latched: the arms moved, and only the beam
+    request failed. Now the start is refused with the reason and no goal goes out; a reset lets it start; a latch
+    reported by the source mid-scan aborts it."""
+    rig = Rig(tmp_path)
+    rig.report_arms(False)
+    rig.seq.on_estop_latched(True)
+    ok, msg = rig.seq.start()
+    assert not ok and "e-stop is latched" in msg and "source/reset_estop" in msg
+    assert rig.ports.goals == [] and rig.ports.armed == [False]
+    rig.seq.on_estop_latched(False)
+    assert rig.seq.start()[0] and rig.ports.goals
+    rig.seq.on_estop_latched(True)
+    _aborted(rig, "e-stop latched at the source")
+    rig = Rig(tmp_path)
+    rig.seq.on_estop(True)  # a press on the estop topic counts as latched until the source says otherwise
+    rig.report_arms(False)
+    assert not rig.seq.start()[0] and rig.ports.goals == []

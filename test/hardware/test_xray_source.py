@@ -65,3 +65,36 @@ def test_settings_configure_the_source_behind_the_interlock():
         SourceSettings(kvp=200.0).interlocked(SimulatedXraySource())
     with pytest.raises(ValueError, match="max_report_age_s must be >= 0"):
         SourceSettings(max_report_age_s=-1.0)
+
+
+def test_a_beam_left_on_is_cut_after_max_beam_on_s():
+    """An orchestrator that dies with the beam on (armed, arms in position and reporting) once left it on for good:
+    the interlock cuts it after max_beam_on_s, says why, and a new exposure may switch it on again."""
+    src = SourceSettings(max_beam_on_s=2.0).interlocked(SimulatedXraySource())
+    src.update(0.0, scan_armed=True)
+    for t in (0.0, 0.5, 1.0, 1.5, 2.0, 2.5):
+        src.report_arm("source", True, t)
+        src.report_arm("detector", True, t)
+        src.tick(t)
+        if t == 0.0:
+            assert src.request_beam(True, 0.0)[0]
+        assert src.beam_on == (t <= 2.0), t
+    assert "longer than max_beam_on_s 2 s" in src.last_cut_reason
+    assert src.source.total_beam_on_s(2.5) == pytest.approx(2.5)
+    assert src.request_beam(True, 2.5)[0] and src.source.total_beam_on_s(3.0) == pytest.approx(3.0)
+
+
+def test_after_an_estop_the_scan_must_be_armed_anew():
+    """Arming while the e-stop is latched is ignored, so a reset does not bring the beam back by itself."""
+    src = InterlockedSource(SimulatedXraySource(), max_report_age_s=1.0)
+    src.update(10.0, **ALL_OK)
+    assert src.request_beam(True, 10.1)[0]
+    src.estop(10.2)
+    assert not src.beam_on and not src.inputs.scan_armed
+    src.update(10.3, scan_armed=True)  # someone arms during the latch
+    assert not src.inputs.scan_armed
+    src.reset_estop(10.4)
+    ok, why = src.request_beam(True, 10.5)
+    assert not ok and "not armed" in why
+    src.update(10.6, scan_armed=True)
+    assert src.request_beam(True, 10.7)[0]

@@ -205,13 +205,34 @@ def test_detector_failure_aborts_and_keeps_frames(ros, tmp_path):
     assert g.status[-1]["frames"] == 2 and "detector exploded" in g.status[-1]["message"]
 
 
-def test_beam_refused_aborts(ros, tmp_path):
+def test_a_latched_estop_refuses_the_start_and_the_arms_stay(ros, tmp_path):
+    """The source's e-stop latched before the scan (source/estop, not the estop topic): scan/start once moved the
+    arms and failed only at the beam. The orchestrator hears the latch on source/estop_latched and refuses the
+    start with the reason, no goal goes out; after source/reset_estop the scan runs."""
     g = Graph(ros, tmp_path)
     estop = g.probe.create_client(Trigger, "source/estop")
-    assert ros.call(estop, Trigger.Request()).success  # latched before the scan: the interlock refuses
+    assert ros.call(estop, Trigger.Request()).success
+    assert ros.spin_until(lambda: g.orch.scan.estop_latched)
+    assert ros.spin_until(lambda: all(a.lifecycle_state == "active" for a in g.arms))
+    answer = ros.call(g.start_client, Trigger.Request())
+    assert not answer.success and "e-stop is latched" in answer.message, answer.message
+    ros.spin_for(0.3)
+    assert g.goals == {"source": [], "detector": []} and not g.detector.requests
+    assert ros.spin_until(g.safe)
+    reset = g.probe.create_client(Trigger, "source/reset_estop")
+    assert ros.call(reset, Trigger.Request()).success
+    assert ros.spin_until(lambda: not g.orch.scan.estop_latched)
     g.start()
     g.wait_end()
-    assert g.orch.state == "aborted" and "beam refused" in g.orch.message and "e-stop" in g.orch.message
+    assert g.orch.state == "done", g.orch.message
+
+
+def test_beam_refused_aborts(ros, tmp_path):
+    g = Graph(ros, tmp_path)
+    g.start()
+    g.source.interlock.max_report_age_s = 0.0  # every arm report is stale: the interlock refuses the beam
+    g.wait_end()
+    assert g.orch.state == "aborted" and "beam refused" in g.orch.message and "stale" in g.orch.message
     assert g.orch.frames == 0 and not g.detector.requests
     assert ros.spin_until(g.safe)
 

@@ -54,12 +54,30 @@ def test_beam_refused_until_interlock_satisfied_then_cut_by_estop(ros):
     pubs["estop"].publish(Bool(data=True))
     assert ros.spin_until(lambda: beam and beam[-1] is False)
     assert node.interlock.inputs.estop_latched
-    # latched: re-arming alone does not allow the beam
-    _ready(ros, pubs, node)
+    # latched: arming is ignored, and the beam stays refused
+    pubs["scan/armed"].publish(Bool(data=True))
+    ros.spin_for(0.3)
+    assert not node.interlock.inputs.scan_armed
     assert not ros.call(set_beam, SetBool.Request(data=True)).success
     reset = probe.create_client(Trigger, "source/reset_estop")
-    assert ros.call(reset, Trigger.Request()).success
+    answer = ros.call(reset, Trigger.Request())
+    assert answer.success and "re-armed" in answer.message
+    # the reset does not re-arm (arming during the latch was ignored): the scan must be armed anew
+    answer = ros.call(set_beam, SetBool.Request(data=True))
+    assert not answer.success and "not armed" in answer.message
+    _ready(ros, pubs, node)
     assert ros.call(set_beam, SetBool.Request(data=True)).success
+
+
+def test_the_estop_latch_is_published_for_the_orchestrator(ros):
+    node, probe, pubs, beam, set_beam = _setup(ros)
+    latched = []
+    probe.create_subscription(Bool, "source/estop_latched", lambda m: latched.append(m.data), LATCHED)
+    assert ros.spin_until(lambda: latched and latched[-1] is False)  # transient-local: a late subscriber hears it
+    assert ros.call(probe.create_client(Trigger, "source/estop"), Trigger.Request()).success
+    assert ros.spin_until(lambda: latched[-1] is True)
+    assert ros.call(probe.create_client(Trigger, "source/reset_estop"), Trigger.Request()).success
+    assert ros.spin_until(lambda: latched[-1] is False)
 
 
 def test_arm_leaving_position_cuts_beam(ros):
