@@ -219,6 +219,13 @@ def _write(out, proj, geom: ConeGeometry, *, counts: bool, flat, dark, notes: di
         dark_frame = None if dark is None else read_frame(dark, shape, "dark frame")
         frames, flat_frame = dark_corrected(proj, flat_frame, dark_frame)
         units = "counts"
+        usable = np.isfinite(frames) & (flat_frame > 0)[None]
+        if not usable.any():  # refused before anything is written: such a bag would be no scan at all
+            dark_text = " minus the dark frame" if dark_frame is not None else ""
+            raise ValueError("no usable pixel: " + (
+                f"the flat field{dark_text} is at or below 0 everywhere" if not np.any(flat_frame > 0)
+                else f"every projection value{dark_text} is at or below 0") + " (are --flat and --dark swapped, or "
+                "the projections not raw counts?)")
     else:
         if flat is not None or dark is not None:
             raise ValueError("--flat and --dark go with --counts (raw counts); without it the projections are "
@@ -227,8 +234,10 @@ def _write(out, proj, geom: ConeGeometry, *, counts: bool, flat, dark, notes: di
     info = scan_info_for(geom, projection_units=units, notes=notes)
     write_scan(out, frames, geom, info=info, flat=flat_frame)
     bad = int(np.isnan(frames).sum()) if counts else 0
+    empty = int((~usable.any(axis=(1, 2))).sum()) if counts else 0
     say(f"wrote {out}: {geom.n_views} views, {geom.n_rows} x {geom.n_cols} detector of {geom.row_pitch_mm:g} x "
-        f"{geom.col_pitch_mm:g} mm, {units}{f' ({bad} pixel values <= dark marked unusable)' if bad else ''}")
+        f"{geom.col_pitch_mm:g} mm, {units}{f' ({bad} pixel values <= dark marked unusable)' if bad else ''}"
+        + (f"; warning: {empty} frames have no usable pixel and will not be views" if empty else ""))
     return Path(out)
 
 

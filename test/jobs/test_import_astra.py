@@ -152,3 +152,24 @@ def test_import_errors_are_one_line(tmp_path, capsys):
     (tmp_path / "bag").mkdir()
     assert run("--projections", p, "--vectors", v) == 2
     _one_line_error(capsys, "exists already")
+
+
+def test_raw_counts_with_no_usable_pixel_are_refused_before_writing(tmp_path, capsys):
+    """A dark frame equal to the flat (or --flat and --dark swapped) once wrote a bag with no usable pixel and
+    exited 0; info then called it no scan. The import refuses in one line and writes nothing."""
+    g = _geometry()
+    shape = g.det_shape
+    flat = np.full(shape, 3000.0)
+    counts = np.full((g.n_views,) + shape, 1000.0)
+    np.save(tmp_path / "p.npy", counts)
+    np.save(tmp_path / "flat.npy", flat)
+    np.save(tmp_path / "dark.npy", flat)
+    np.savetxt(tmp_path / "v.txt", g.to_astra_vec())
+    args = ["import", "astra", "--projections", str(tmp_path / "p.npy"), "--vectors", str(tmp_path / "v.txt"),
+            "--counts", "--flat", str(tmp_path / "flat.npy"), "--dark", str(tmp_path / "dark.npy"), "--out"]
+    assert main(args + [str(tmp_path / "bag")]) == 2
+    _one_line_error(capsys, "no usable pixel", "the flat field minus the dark frame is at or below 0 everywhere")
+    assert not (tmp_path / "bag").exists()
+    np.save(tmp_path / "dark.npy", np.full(shape, 2000.0))  # above every count, below the flat
+    assert main(args + [str(tmp_path / "bag2")]) == 2
+    _one_line_error(capsys, "no usable pixel", "every projection value minus the dark frame is at or below 0")
