@@ -289,6 +289,7 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
     held = ~observable_params(nominal)
     history = []
     undone_note = None  # set when undo_inconsistent undoes an iteration: the result must say so
+    still_note = None  # set when the first iteration already moves the views less than stop_update_px
     skipped = set()  # views that saw too little of the grid to be estimated at some level
     # the coarse level's reconstruction with the geometry entering each iteration: its volume
     # for the coarse estimate, its FDK's NCC for undo_inconsistent, its SIRT correction for a
@@ -370,8 +371,14 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
             + ("" if np.isnan(rec.independent_fraction) else f"independent pixels {rec.independent_fraction:.3f}, ")
             + f"views moved {rec.update_px:.3f} px, {rec.wall_s:.1f} s")
         if last and it + 1 < n_iter:
-            say(f"converged: the views moved less than {stop_update_px:g} px; stopping after {rec.iteration} of "
-                f"{n_iter} iterations")
+            if rec.iteration == 1:  # nothing found is not convergence: say so, here and in the result
+                still_note = (f"the first iteration moved the views by {rec.update_px:.3f} px only (stop_update_px "
+                              f"{stop_update_px:g}): the data found next to nothing to correct, so the geometry "
+                              "stays close to where it started")
+                say(f"stopping after the first of {n_iter} iterations: {still_note}")
+            else:
+                say(f"converged: the views moved less than {stop_update_px:g} px; stopping after {rec.iteration} "
+                    f"of {n_iter} iterations")
             break
     notes = []
     if skipped:
@@ -382,6 +389,8 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
     notes += exterior_notes
     if undone_note:
         notes.append(undone_note)
+    if still_note:
+        notes.append(still_note)
     unguarded = None
     explained = history[-1].projection_ncc if history else float("nan")
     # a strongly truncated scan needs a model that explains more, with the exterior modelled or not

@@ -127,7 +127,18 @@ def test_loop_stops_when_an_iteration_hardly_moves_the_views():
     stopped = calibrate(measured, nominal, grid, method="ncc-lle-exact", iterations=3, stop_update_px=2 * first,
                         progress=said.append)
     assert len(stopped.history) == 1
-    assert any(line.startswith("converged") for line in said)
+    # nothing found at once is not convergence (an outside check read "converged" on a correction of 0.01 px)
+    assert not any(line.startswith("converged") for line in said)
+    assert any("stopping after the first of 3 iterations" in line for line in said)
+    assert any("the data found next to nothing to correct" in n for n in stopped.notes), stopped.notes
+    # a threshold between the first and the second update: two iterations, converged
+    said.clear()
+    second = result.history[1].update_px
+    assert second < first
+    stopped = calibrate(measured, nominal, grid, method="ncc-lle-exact", iterations=3,
+                        stop_update_px=0.5 * (first + second), progress=said.append)
+    assert len(stopped.history) == 2 and any(line.startswith("converged") for line in said)
+    assert not any("next to nothing" in n for n in stopped.notes)
     with pytest.raises(ValueError, match="stop_update_px"):
         calibrate(measured, nominal, grid, stop_update_px=-1.0)
 
