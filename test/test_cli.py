@@ -148,6 +148,10 @@ def test_simulate_info_reconstruct_calibrate(tmp_path, capsys):
     for figure in ("report_slices.png", "report_rmse.png", "report_param_error.png", "report.md"):
         assert (compared / figure).stat().st_size > 0
     assert "| ncc-lle |" in (compared / "report.md").read_text()
+    # each column's method and its notes (the guard's verdict...), not one method for all
+    assert table["notes"]["methods"] == ["none", "ncc-lle"] and "method" not in table["notes"]["settings"]
+    assert table["method_notes"]["ncc-lle"], table["method_notes"]
+    assert f"- ncc-lle: {'; '.join(table['method_notes']['ncc-lle'])}" in (compared / "report.md").read_text()
     assert main(["report", str(bag), "--methods", "none,ncc-lle-fast", "--out", str(tmp_path / "never2")]) == 2
     assert "ncc-lle-fast" in capsys.readouterr().err and not (tmp_path / "never2").exists()
 

@@ -151,11 +151,12 @@ def unguarded_error(result, nominal: ConeGeometry, true_geom: ConeGeometry, poin
 def method_notes(results: dict, nominal: ConeGeometry, true_geom: ConeGeometry, points_mm) -> dict:
     """Each calibrated method's notes (the guard's verdict, skipped views, models used), and where the
     guard kept views at their nominal geometry, the error of the estimate before it, against
-    ``true_geom`` on ``points_mm``: {method: [note, ...]} for the methods that have any."""
+    ``true_geom`` on ``points_mm`` (None: a measured scan, no such error): {method: [note, ...]} for the methods
+    that have any."""
     notes = {}
     for method, result in results.items():
         lines = list(getattr(result, "notes", ()))
-        e = unguarded_error(result, nominal, true_geom, points_mm)
+        e = None if true_geom is None else unguarded_error(result, nominal, true_geom, points_mm)
         if e is not None:
             lines.append(f"before the guard {e['mean_px']:.3f} px mean, {e['p95_px']:.3f} px p95")
         if lines:
@@ -310,7 +311,7 @@ def plot_param_error(path, results: dict, true_geom: ConeGeometry, points_mm, *,
 def write_report(out_dir, results: dict, grid: VolumeGrid, truth=None, nominal: ConeGeometry | None = None, *,
                  name: str = "report", title: str = "", points_mm=None, slice_center_mm=None, zoom: float = 0.6,
                  initial_rmse: float | None = None, notes: dict | None = None, reconstruct=None,
-                 reconstruct_cap=None, figures: bool = True) -> dict:
+                 reconstruct_cap=None, figures: bool = True, notes_per_method: dict | None = None) -> dict:
     """Write the figures and the table of one scan's calibration results; returns their paths.
 
     ``results`` maps method name to a :class:`~robot_ct_ros.ct.calibration.CalibrationResult`
@@ -320,6 +321,7 @@ def write_report(out_dir, results: dict, grid: VolumeGrid, truth=None, nominal: 
     plot as "none"; with ``truth`` the table also gives the error before the guard
     (:func:`summarize`). ``initial_rmse`` is plotted at iteration 0. ``notes`` go into the JSON.
     ``reconstruct``, ``reconstruct_cap``: see :func:`summarize`. ``figures`` False: the table alone.
+    ``notes_per_method`` ({method: [note, ...]}, :func:`method_notes`) go below the table and into the JSON.
     Returned dict: paths under keys "slices", "rmse", "param_error" (truth known; with figures),
     "markdown", "json", and the table "rows".
     """
@@ -339,10 +341,13 @@ def write_report(out_dir, results: dict, grid: VolumeGrid, truth=None, nominal: 
         if nominal is not None and "none" not in geoms:
             geoms = {"none": (nominal, np.zeros(grid.shape_zyx, np.float32), ())} | geoms
         paths["param_error"] = plot_param_error(out / f"{name}_param_error.png", geoms, true_geom, pts, title=title)
-    md = (f"## {title or name}\n\n" + markdown_table(rows)
-          + "\n" + "".join(f"![{k}]({Path(paths[k]).name})\n" for k in ("slices", "rmse", "param_error") if k in paths))
+    md = (f"## {title or name}\n\n" + markdown_table(rows) + "\n"
+          + "".join(f"- {m}: {'; '.join(lines)}\n" for m, lines in (notes_per_method or {}).items())
+          + ("\n" if notes_per_method else "")
+          + "".join(f"![{k}]({Path(paths[k]).name})\n" for k in ("slices", "rmse", "param_error") if k in paths))
     paths["markdown"] = out / f"{name}.md"
     paths["markdown"].write_text(md)
     paths["json"] = out / f"{name}.json"
-    write_json(paths["json"], {"name": name, "title": title, "rows": rows, "notes": notes or {}})
+    write_json(paths["json"], {"name": name, "title": title, "rows": rows, "notes": notes or {},
+                               "method_notes": notes_per_method or {}})
     return paths

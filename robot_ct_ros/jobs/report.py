@@ -36,7 +36,8 @@ def report_bag(bag, out, methods=REPORT_METHODS, settings: CalibrationSettings |
     """
     from robot_ct_ros.ct.calibration.volume import projection_consistency
     from robot_ct_ros.ct.reconstruction import fdk
-    from robot_ct_ros.jobs.figures import markdown_table, write_report
+    from robot_ct_ros.ct.metrics import roi_points
+    from robot_ct_ros.jobs.figures import markdown_table, method_notes, write_report
 
     methods = tuple(methods)
     if not methods:
@@ -76,15 +77,19 @@ def report_bag(bag, out, methods=REPORT_METHODS, settings: CalibrationSettings |
         truth = (scan.geom_true, results["true geometry"][1], None)
     initial = projection_consistency(results["none"].volume, grid, scan.geom, li, mask)[0] if "none" in results else None
     name = Path(bag).name.removesuffix(".mcap")
+    per_method = method_notes({m: results[m] for m in methods}, scan.geom, scan.geom_true, roi_points(grid))
+    shared = {k: v for k, v in settings.to_dict().items() if k != "method"}  # the method is each column's
     paths = write_report(out, results, grid, truth, scan.geom, name="report", title=f"{name}: {scan.n_views} views",
                          initial_rmse=initial, reconstruct=reconstruct if truth is not None else None,
-                         notes={"bag": str(bag), "settings": settings.to_dict(), "iterations": settings.iterations,
+                         notes_per_method=per_method,
+                         notes={"bag": str(bag), "methods": list(methods), "settings": shared,
+                                "iterations": settings.iterations,
                                 "schedule": settings.schedule,
                                 "prior_sigma": None if settings.prior_sigma is None else list(settings.prior_sigma),
                                 "drift_order": settings.drift_order, "seed": settings.seed,
                                 "ensemble": settings.ensemble, "padding": settings.padding,
                                 "grid": grid.to_dict(), "bag_warnings": list(scan.warnings)})
-    say("\n" + markdown_table(paths["rows"]))
+    say("\n" + markdown_table(paths["rows"]) + "".join(f"\n{m}: {'; '.join(n)}" for m, n in per_method.items()))
     say(f"wrote {', '.join(str(paths[k]) for k in ('slices', 'rmse', 'param_error', 'markdown', 'json') if k in paths)}"
         f" ({time.perf_counter() - t0:.1f} s)")
     return paths
