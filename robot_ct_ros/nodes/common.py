@@ -12,7 +12,8 @@ def run_node(node_factory: Callable[[], "object"], description: str, argv: list[
 
     ``--help`` is answered without starting ROS; ROS arguments (``--ros-args ...``) are
     passed to rclpy untouched. The node spins on a SingleThreadedExecutor (the Jazzy
-    wheel's MultiThreadedExecutor is slow, rclpy issue 1452) until SIGINT/SIGTERM.
+    wheel's MultiThreadedExecutor is slow, rclpy issue 1452) until SIGINT/SIGTERM, or until it
+    shuts its context down itself; the exit status is then its ``exit_code`` (default 0).
     """
     argv = list(sys.argv if argv is None else argv)
     prog = argv[0].rsplit("/", 1)[-1] if argv else "node"
@@ -38,7 +39,7 @@ def run_node(node_factory: Callable[[], "object"], description: str, argv: list[
         if node is not None:
             node.destroy_node()
         shutdown_once(rclpy)
-    return 0
+    return int(getattr(node, "exit_code", 0) or 0)  # a node that ends itself (replay's exit_when_done) says how
 
 
 def shutdown_once(rclpy, context=None) -> None:

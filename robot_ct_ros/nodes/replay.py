@@ -11,7 +11,8 @@ Parameters
   many subscribers), method ("" = no offline job; "none" = reconstruct only; else a calibration
   method, robot_ct_ros.ct.calibration.registry), the other calibration settings
   (robot_ct_ros.ct.calibration.CalibrationSettings: iterations, prior_sigma_translation_m, ...),
-  output_dir (corrected bag, volume .npy/.tif and report.json, as ``robot-ct calibrate``).
+  output_dir (corrected bag, volume .npy/.tif and report.json, as ``robot-ct calibrate``),
+  exit_when_done (end the node when all is done, exit status 1 if the job failed; default: spin on).
 """
 
 from __future__ import annotations
@@ -72,6 +73,8 @@ class ReplaySettings:
     method: str = setting("", "offline job after republishing: empty = none; none = reconstruct only; else a "
                               "calibration method", choices=_offline_methods)
     output_dir: str = setting("replay_out", "corrected bag, volume .npy/.tif and report.json")
+    exit_when_done: bool = setting(False, "end the node once republishing and the offline job are done (exit 0, or 1 "
+                                          "if the job failed); off: keep serving ~/report until SIGINT")
 
     def __post_init__(self):
         validate(self)
@@ -104,6 +107,9 @@ class ReplayNode(Node):
         self._report_pub = self.create_publisher(String, "~/report", LATCHED)
         self._job: threading.Thread | None = None
         self._next = 0
+        self.exit_code = 0
+        if rs.exit_when_done:
+            self.create_timer(0.2, self._exit_if_done)
         n_frames = sum(1 for g in self.groups for m in g if m.topic == fmt.TOPIC_PROJECTION)
         self.get_logger().info(f"{self.bag_path}: {n_frames} frames, {len(raw.messages)} messages"
                                + (f"; republishing at {self.rate_hz} Hz" if self.rate_hz > 0 else ""))
@@ -170,6 +176,17 @@ class ReplayNode(Node):
     def done(self) -> bool:
         job_done = not self.method or self.report is not None or self.error is not None
         return self.republish_done and job_done
+
+    def _exit_if_done(self) -> None:
+        """With exit_when_done: end the spin (run_node then exits with exit_code) once everything is done."""
+        if self.done and self.context.ok():
+            import rclpy
+
+            from robot_ct_ros.nodes.common import shutdown_once
+
+            self.exit_code = 1 if self.error else 0
+            self.get_logger().info("done; exiting (exit_when_done)")
+            shutdown_once(rclpy, self.context)
 
 
 def main(argv=None) -> int:

@@ -78,3 +78,26 @@ def test_frame_groups_end_with_a_projection():
     latched, groups = frame_groups(msgs)
     assert [x.log_time_ns for x in latched] == [0]
     assert [[x.log_time_ns for x in g] for g in groups] == [[1, 2], [3, 4, 5]]
+
+
+def test_exit_when_done_ends_the_executable_with_the_jobs_status(tmp_path):
+    """Run as an offline tool (``ros2 run robot_ct_ros replay ... exit_when_done:=true``) the node ends once the
+    job is done: exit 0 with the report written, 1 when the job failed (here: the output place is a file)."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    bag = _bag(tmp_path)[0]
+    repo = Path(__file__).resolve().parents[2]
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_DOMAIN_ID=str(150 + os.getpid() % 50),
+               PYTHONPATH=str(repo))
+    (tmp_path / "a_file").write_text("not a folder")
+    for out, status in ((tmp_path / "out", 0), (tmp_path / "a_file" / "out", 1)):
+        proc = subprocess.run([sys.executable, "-m", "robot_ct_ros.nodes.replay", "--ros-args", "-p",
+                               f"bag_path:={bag}", "-p", "rate_hz:=0.0", "-p", "method:=none", "-p",
+                               f"output_dir:={out}", "-p", "exit_when_done:=true"],
+                              capture_output=True, text=True, env=env, timeout=120)
+        assert proc.returncode == status, proc.stderr[-2000:]
+        assert "exiting (exit_when_done)" in proc.stderr, proc.stderr[-2000:]
+        assert (out / "report.json").exists() == (status == 0)
