@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 from typing import Callable
 
 
@@ -40,6 +41,22 @@ def run_node(node_factory: Callable[[], "object"], description: str, argv: list[
             node.destroy_node()
         shutdown_once(rclpy)
     return int(getattr(node, "exit_code", 0) or 0)  # a node that ends itself (replay's exit_when_done) says how
+
+
+def writable_dir(path, parameter: str) -> Path:
+    """``path`` as an absolute folder that exists (made if need be) and can be written, checked when a node starts
+    so that a bad place is refused in one line (``parameter ...``, exit status 2) instead of failing with the
+    first scan; raises ValueError."""
+    import os
+
+    folder = Path(path).expanduser().absolute()
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ValueError(f"parameter {parameter}: cannot make the folder {folder} ({exc.strerror or exc})") from None
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise ValueError(f"parameter {parameter}: the folder {folder} is not writable")
+    return folder
 
 
 def shutdown_once(rclpy, context=None) -> None:

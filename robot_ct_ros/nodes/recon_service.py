@@ -35,7 +35,7 @@ from robot_ct_ros.bag.collector import PER_FRAME, ScanCollector
 from robot_ct_ros.ct.calibration import CalibrationSettings
 from robot_ct_ros.jobs.online import RunPlanner, ServiceSettings
 from robot_ct_ros.jobs.streaming import StreamingCorrector, mid_slices
-from robot_ct_ros.nodes.common import declare_settings, publish_diagnostic, run_settings_node
+from robot_ct_ros.nodes.common import declare_settings, publish_diagnostic, run_settings_node, writable_dir
 from robot_ct_ros.nodes.recorder import message_class
 
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
@@ -50,7 +50,8 @@ class ReconServiceNode(Node):
         super().__init__(node_name, **kwargs)
         self.settings = declare_settings(self, CalibrationSettings)
         self.service = declare_settings(self, ServiceSettings)
-        self.output_dir = Path(self.service.output_dir).expanduser().absolute()  # reports name files, not cwd-relative paths
+        # absolute: reports name files, not cwd-relative paths; refused at start if it cannot be written
+        self.output_dir = writable_dir(self.service.output_dir, "output_dir")
 
         self.scan = ScanCollector()
         for topic in fmt.LATCHED_TOPICS:
@@ -140,8 +141,11 @@ class ReconServiceNode(Node):
                 self.get_logger().info("scan done but no frame was collected here; nothing to correct")
                 return
             ok, why = self.start_run()
-            if not ok:
-                self.get_logger().error(f"automatic correction not started: {why}")
+            if not ok:  # the scan's run is used up: say so where a run's failure is said, not only in the log
+                self.state, self.error = "failed", f"automatic correction not started: {why}"
+                self.get_logger().error(self.error)
+                self._progress("failed", self.error, self.runs + 1, self.n_paired)
+                self.report_pub.publish(String(data=json.dumps({"run": self.runs + 1, "error": self.error})))
         elif run == "partial":
             self.start_run(partial=True)
 

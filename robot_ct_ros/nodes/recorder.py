@@ -32,7 +32,7 @@ from std_srvs.srv import Trigger
 
 from robot_ct_ros.bag import ScanBagWriter
 from robot_ct_ros.bag import format as fmt
-from robot_ct_ros.nodes.common import declare_settings, run_settings_node
+from robot_ct_ros.nodes.common import declare_settings, run_settings_node, writable_dir
 from robot_ct_ros.parameters import setting, validate
 
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
@@ -82,7 +82,7 @@ class RecorderNode(Node):
     def __init__(self, **kwargs):
         super().__init__("recorder", **kwargs)
         self.settings = st = declare_settings(self, RecorderSettings)
-        self.output_dir = Path(st.output_dir).expanduser().resolve()
+        self.output_dir = writable_dir(st.output_dir, "output_dir").resolve()  # refused at start, not at the scan
         self.bag_prefix = st.bag_prefix
         record_arm, flush_period = st.record_arm_topics, st.flush_period_s
         self.writer: ScanBagWriter | None = None
@@ -111,7 +111,7 @@ class RecorderNode(Node):
         return path
 
     def _open_bag(self) -> None:
-        self.output_dir.mkdir(parents=True, exist_ok=True)
+        self.output_dir.mkdir(parents=True, exist_ok=True)  # checked at start; made again if removed since
         self.bag_path = self._new_bag_path()
         self.writer = ScanBagWriter(self.bag_path, None, flush_every_frame=False).open()
         now = self.get_clock().now().nanoseconds

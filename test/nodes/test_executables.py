@@ -22,6 +22,8 @@ CASES = [
     ("replay", "rate_hz:=abc", "parameter rate_hz"),
     ("replay", "bag_path:=/nonexistent/bag", "parameter bag_path"),
     ("replay", "method:=foo", "parameter method"),
+    ("recorder", "output_dir:=/proc/version", "parameter output_dir"),  # a file: refused at start, not at the scan
+    ("recon_service", "output_dir:=/proc/version", "parameter output_dir"),
 ]
 
 

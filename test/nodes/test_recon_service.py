@@ -227,3 +227,27 @@ def test_streaming_publishes_live_geometry_during_the_scan_and_the_final_run_equ
     replayed = fmt.as_transmitted(offline.geom)
     for a in ("source_mm", "detector_mm", "u", "v"):
         np.testing.assert_array_equal(getattr(online, a), getattr(replayed, a))
+
+
+def test_an_automatic_run_that_cannot_start_is_a_failure_not_idle(ros, tmp_path):
+    """The scan is done but its run cannot start (the output folder became a file after the node started): the
+    node once logged one line and went on looking idle and healthy. Now it is failed, with the reason on
+    recon/progress, recon/report and the node's state."""
+    import shutil
+
+    bag = _bag(tmp_path)
+    probe = Probe(ros)
+    out = tmp_path / "recon"
+    recon = ros.add(ReconServiceNode(context=ros.context, parameter_overrides=_params(
+        output_dir=str(out), method="none", auto_run=True)))
+    replay = ros.add(ReplayNode(context=ros.context, parameter_overrides=_params(
+        bag_path=str(bag), rate_hz=200.0, wait_for_subscribers=1)))
+    assert ros.spin_until(lambda: replay.done and recon.n_paired == N, timeout_s=30.0), recon.n_paired
+    shutil.rmtree(out)
+    out.write_text("not a folder any more")
+    status = probe.node.create_publisher(String, "scan/status", STATUS)
+    status.publish(String(data=json.dumps({"state": "done", "scan_id": "s1", "frames": N, "view": N - 1})))
+    assert ros.spin_until(lambda: recon.state == "failed" and probe.reports and probe.progress, timeout_s=15.0), \
+        (recon.state, recon.error)
+    assert "automatic correction not started" in recon.error and recon.runs == 0
+    assert probe.progress[-1]["stage"] == "failed" and "not started" in probe.reports[-1]["error"]
