@@ -161,6 +161,7 @@ class StreamingCorrector:
     ncc: list = field(default_factory=list)
     views: int = 0
     mean_ncc: float = float("nan")
+    received: int = 0  # frames handed in for this scan
 
     def __post_init__(self):
         self._pool = ProcessPoolExecutor(1, mp_context=get_context(self.context), initializer=_init_worker,
@@ -184,11 +185,13 @@ class StreamingCorrector:
         self._queue.clear()
         self._arrived.clear()
         self.latencies, self.ncc, self.views, self.mean_ncc, self.error = [], [], 0, float("nan"), ""
+        self.received = 0
 
     def add_frame(self, stamp_ns: int, image: bytes, geometry: bytes, latched: dict) -> None:
         """A frame paired with its geometry (CDR bytes), with the scan's latched messages as held now
         (topic -> (type, bytes)): queued for the next batch."""
         self._queue.append((int(stamp_ns), bytes(image), bytes(geometry)))
+        self.received += 1
         self._arrived[int(stamp_ns)] = time.monotonic()
         self._latched = dict(latched)
 
@@ -245,9 +248,12 @@ class StreamingCorrector:
         return {"views": self.views, "mean_projection_ncc": None if not np.isfinite(self.mean_ncc) else self.mean_ncc,
                 "latency_s_median": float(np.median(lat)) if lat.size else None,
                 "latency_s_max": float(lat.max()) if lat.size else None, "worker_nice": int(self.nice),
-                "warmup_views": int(self.warmup_views), "error": self.error,
-                "note": "per-view estimates against the running volume (coarse level); the final correction is "
-                        "the whole-scan run"}
+                "warmup_views": int(self.warmup_views), "error": self.error, "frames_received": int(self.received),
+                "note": (f"no live estimate: the scan gave {self.received} frames, fewer than stream_warmup_views "
+                         f"({self.warmup_views}), the views the first running volume is made of; "
+                         if self.views == 0 and self.received < self.warmup_views else "")
+                        + "per-view estimates against the running volume (coarse level); the final correction is "
+                          "the whole-scan run"}
 
     def close(self) -> None:
         """Stop the worker: queued frames are dropped, the batch in progress ends first."""

@@ -50,6 +50,7 @@ def test_frames_stream_through_a_niced_worker_and_come_back_with_their_geometry(
         summary = stream.summary()
         assert summary["views"] == n and summary["worker_nice"] == 5 and summary["latency_s_median"] > 0
         assert np.isfinite(summary["mean_projection_ncc"])
+        assert summary["frames_received"] == n and "no live estimate" not in summary["note"]
         # the worker runs at a lower priority than this process
         assert os.getpriority(os.PRIO_PROCESS, stream.worker_pid) >= min(19, os.getpriority(os.PRIO_PROCESS, 0) + 5)
     finally:
@@ -72,3 +73,19 @@ def test_the_collector_hands_each_pair_over_once_and_forgets_them_with_a_new_sca
     collector.reset()
     collector.add_frame_message(fmt.TOPIC_PROJECTION, frames[1].data)
     assert collector.take_new_pairs() == []
+
+
+def test_a_scan_shorter_than_the_warm_up_says_why_it_has_no_live_estimate():
+    """Fewer frames than stream_warmup_views: no live estimate can exist, and the summary (report.json's live) once
+    said nothing about why."""
+    stream = StreamingCorrector(CalibrationSettings(method="ncc-lle-exact"), warmup_views=8, nice=5)
+    try:
+        for k in range(3):
+            stream.add_frame(k, b"", b"", {})
+        summary = stream.summary()
+        assert summary["views"] == 0 and summary["frames_received"] == 3
+        assert "no live estimate: the scan gave 3 frames, fewer than stream_warmup_views (8)" in summary["note"]
+        stream.new_scan()
+        assert stream.summary()["frames_received"] == 0
+    finally:
+        stream.close()

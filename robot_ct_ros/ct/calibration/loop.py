@@ -391,6 +391,12 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
         notes.append(undone_note)
     if still_note:
         notes.append(still_note)
+    if drift_order is not None:
+        n_views = nominal.n_views
+        notes.append(f"drift model: each parameter a polynomial of degree {drift_order} in time over the scan "
+                     f"({drift_order + 1} coefficients for {n_views} views)"
+                     + ("; so many that it is hardly a constraint (per-view estimates are as free)"
+                        if drift_order + 1 > n_views // 2 else ""))
     unguarded = None
     explained = history[-1].projection_ncc if history else float("nan")
     # a strongly truncated scan needs a model that explains more, with the exterior modelled or not

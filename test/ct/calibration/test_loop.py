@@ -211,6 +211,10 @@ def test_drift_model_beats_per_view_estimates_on_a_drifting_truncated_scan():
         errors[order] = reprojection_error(result.geom, true, pts)["mean_px"]
         if order is not None:
             np.testing.assert_allclose(fit_drift(result.params, order), result.params, atol=1e-9)
+            assert any(n.startswith("drift model: each parameter a polynomial of degree 3") and "hardly" not in n
+                       for n in result.notes), result.notes  # the result says which model made it
+        else:
+            assert not any(n.startswith("drift model") for n in result.notes)
     assert reprojection_error(nominal, true, pts)["mean_px"] > 0.5
     assert errors[3] < 0.85 * errors[None], errors
     with pytest.raises(ValueError, match="more than"):
