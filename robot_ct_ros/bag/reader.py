@@ -167,16 +167,26 @@ def _partial_chunk(buf, pos: int, n: int, handle) -> None:
             return
     except Exception:  # noqa: BLE001 - nothing decodable in what is left
         return
-    q, cn = 0, len(data)
-    while q + 9 <= cn:
-        op = data[q]
-        (ln,) = struct.unpack_from("<Q", data, q + 1)
-        if op not in (0x03, 0x04, 0x05) or q + 9 + ln > cn:
-            break
+    for op, content in _chunk_records(data, partial=True):
         try:
-            handle(op, data[q + 9:q + 9 + ln])
+            handle(op, content)
         except Exception:  # noqa: BLE001 - a malformed record ends what is taken
             break
+
+
+def _chunk_records(data: bytes, partial: bool = False):
+    """(opcode, content) of each record in a chunk's uncompressed records, in order. A record cut short, or of a
+    kind a chunk does not hold, raises ValueError after the records before it; with ``partial`` (a chunk cut by the
+    end of the file) it ends the records instead."""
+    q, cn = 0, len(data)
+    while q < cn:
+        op, ln = (data[q], struct.unpack_from("<Q", data, q + 1)[0]) if q + 9 <= cn else (None, 0)
+        if op is None or q + 9 + ln > cn or op not in (0x03, 0x04, 0x05):
+            if partial:
+                return
+            raise ValueError("chunk ends inside a record header" if op is None
+                             else f"bad record (opcode {op:#x}, length {ln}) inside a chunk")
+        yield op, data[q + 9:q + 9 + ln]
         q += 9 + ln
 
 
@@ -245,16 +255,8 @@ def _recover_mcap(path: Path) -> tuple[list, list]:
                         raise ChunkCrcError(
                             f"CRC mismatch: the chunk at bytes {pos} to {end} (log times {chunk.message_start_time} "
                             f"to {chunk.message_end_time} ns) is damaged; its messages are not used")
-                    q, cn = 0, len(data)
-                    while q < cn:
-                        if q + 9 > cn:
-                            raise ValueError("chunk ends inside a record header")
-                        op = data[q]
-                        (ln,) = struct.unpack_from("<Q", data, q + 1)
-                        if q + 9 + ln > cn or op not in (0x03, 0x04, 0x05):
-                            raise ValueError(f"bad record (opcode {op:#x}, length {ln}) inside a chunk")
-                        handle(op, data[q + 9:q + 9 + ln])
-                        q += 9 + ln
+                    for op, record in _chunk_records(data):
+                        handle(op, record)
                 elif opcode in (0x03, 0x04, 0x05):
                     handle(opcode, content)
             except ChunkCrcError as exc:  # nothing of a chunk that fails its checksum is trusted

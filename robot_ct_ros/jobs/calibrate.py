@@ -66,16 +66,24 @@ def geometry_error(scan: ScanData, geom: ConeGeometry, grid: VolumeGrid | None =
         return None
     out = {}
     if grid is not None:
-        from robot_ct_ros.ct.metrics import reprojection_error, roi_points
+        from robot_ct_ros.ct.metrics import roi_points
 
-        e = reprojection_error(geom, scan.geom_true, roi_points(grid))
-        out["reprojection_error_px"] = {"mean": e["mean_px"], "p95": e["p95_px"], "max": e["max_px"]}
+        out["reprojection_error_px"] = _reprojection_px(geom, scan.geom_true, roi_points(grid))
     d = geom.params_relative_to(scan.geom_true)
     out.update({"rms_translation_mm": float(np.sqrt((d[:, :6] ** 2).mean())),
                 "rms_rotation_deg": float(np.rad2deg(np.sqrt((d[:, 6:] ** 2).mean()))),
                 "note": ("reprojection_error_px: pixels, ROI points, best global rigid motion (the gauge) removed; "
                          "rms_*: raw difference to /ct/geometry_true, the gauge not removed")})
     return out
+
+
+def _reprojection_px(geom: ConeGeometry, true_geom: ConeGeometry, points_mm) -> dict:
+    """The gauge-aligned reprojection error of ``geom`` against ``true_geom`` (metrics.reprojection_error), as the
+    reports give it: {"mean", "p95", "max"} in pixels."""
+    from robot_ct_ros.ct.metrics import reprojection_error
+
+    e = reprojection_error(geom, true_geom, points_mm)
+    return {"mean": e["mean_px"], "p95": e["p95_px"], "max": e["max_px"]}
 
 
 def base_report(scan: ScanData, grid: VolumeGrid) -> dict:
@@ -93,7 +101,7 @@ def truth_metrics(scan: ScanData, line_integrals, mask, geom: ConeGeometry, volu
     corrected reconstruction against the reconstruction with the true geometry (same grid,
     same FDK).
     """
-    from robot_ct_ros.ct.metrics import reprojection_error, roi_points, ssim
+    from robot_ct_ros.ct.metrics import roi_points, ssim
     from robot_ct_ros.ct.reconstruction import fdk
 
     if scan.geom_true is None:
@@ -101,8 +109,7 @@ def truth_metrics(scan: ScanData, line_integrals, mask, geom: ConeGeometry, volu
     pts = roi_points(grid)
     out = {}
     for name, g in (("nominal", scan.geom), ("corrected", geom)):
-        e = reprojection_error(g, scan.geom_true, pts)
-        out[f"reprojection_error_{name}_px"] = {"mean": e["mean_px"], "p95": e["p95_px"], "max": e["max_px"]}
+        out[f"reprojection_error_{name}_px"] = _reprojection_px(g, scan.geom_true, pts)
     ref = fdk(line_integrals, scan.geom_true, grid, valid_mask=mask)
     nominal = volume if geom is scan.geom else fdk(line_integrals, scan.geom, grid, valid_mask=mask)
     rng = float(ref.max() - ref.min())

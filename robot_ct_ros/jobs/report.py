@@ -77,11 +77,12 @@ def report_bag(bag, out, methods=REPORT_METHODS, settings: CalibrationSettings |
         truth = (scan.geom_true, results["true geometry"][1], None)
     initial = projection_consistency(results["none"].volume, grid, scan.geom, li, mask)[0] if "none" in results else None
     name = Path(bag).name.removesuffix(".mcap")
-    per_method = method_notes({m: results[m] for m in methods}, scan.geom, scan.geom_true, roi_points(grid))
+    pts = roi_points(grid)
+    per_method = method_notes({m: results[m] for m in methods}, scan.geom, scan.geom_true, pts)
     shared = {k: v for k, v in settings.to_dict().items() if k != "method"}  # the method is each column's
     paths = write_report(out, results, grid, truth, scan.geom, name="report", title=f"{name}: {scan.n_views} views",
                          initial_rmse=initial, reconstruct=reconstruct if truth is not None else None,
-                         notes_per_method=per_method,
+                         points_mm=pts, notes_per_method=per_method,
                          notes={"bag": str(bag), "methods": list(methods), "settings": shared,
                                 "iterations": settings.iterations,
                                 "schedule": settings.schedule,

@@ -142,10 +142,7 @@ class ReconServiceNode(Node):
                 return
             ok, why = self.start_run()
             if not ok:  # the scan's run is used up: say so where a run's failure is said, not only in the log
-                self.state, self.error = "failed", f"automatic correction not started: {why}"
-                self.get_logger().error(self.error)
-                self._progress("failed", self.error, self.runs + 1, self.n_paired)
-                self.report_pub.publish(String(data=json.dumps({"run": self.runs + 1, "error": self.error})))
+                self._fail(self.runs + 1, f"automatic correction not started: {why}", self.n_paired)
         elif run == "partial":
             self.start_run(partial=True)
 
@@ -225,6 +222,14 @@ class ReconServiceNode(Node):
         except Exception:  # noqa: BLE001 - node destroyed meanwhile
             pass
 
+    def _fail(self, run: int, error: str, n, log: str | None = None) -> None:
+        """Run ``run`` failed (or could not start): state failed, the reason logged, on recon/progress and on
+        recon/report."""
+        self.state, self.error = "failed", error
+        self.get_logger().error(log or error)
+        self._progress("failed", error, run, n)
+        self.report_pub.publish(String(data=json.dumps({"run": run, "error": error})))
+
     def _on_job_done(self) -> None:
         from robot_ct_ros.jobs.output import clean_json, json_default
 
@@ -234,10 +239,7 @@ class ReconServiceNode(Node):
             return
         run, report, correction, error = result
         if error is not None:
-            self.state, self.error = "failed", error
-            self.get_logger().error(f"run {run} failed: {error}")
-            self._progress("failed", error, run, None)
-            self.report_pub.publish(String(data=json.dumps({"run": run, "error": error})))
+            self._fail(run, error, None, log=f"run {run} failed: {error}")
             return
         if report["partial"]:  # /ct/geometry_corrected carries the correction of the whole scan only
             self.partial_reports.append(report)
