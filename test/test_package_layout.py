@@ -137,3 +137,21 @@ def test_launch_files_and_the_parameter_files_they_name_are_installed(installed)
         assert (share / "launch" / launch.name).is_file(), launch.name
         for ref in re.findall(r'from="\$\(var config_dir\)/([^"]+)"', launch.read_text()):
             assert (share / "config" / ref).is_file(), ref
+
+
+def test_the_installed_package_reads_its_installed_config(installed, tmp_path):
+    """``robot-ct demo`` and the scan graph read hand_eye.yaml and the scan protocols from config/: installed
+    without the source checkout, that is ``<prefix>/share/robot_ct_ros/config`` (the checkout's path ended the
+    installed demo with "cannot access .../site-packages/config/hand_eye.yaml")."""
+    prefix, site = installed
+    env = dict(os.environ, PYTHONPATH=str(site))
+    env.pop("AMENT_PREFIX_PATH", None)
+    code = ("from robot_ct_ros.nodes.config_files import package_config_dir; "
+            "from robot_ct_ros.testing.demo import _config_hand_eye; "
+            "print(package_config_dir()); print(sorted(_config_hand_eye()))")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=tmp_path,
+                          timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    found, mounts = proc.stdout.splitlines()[:2]
+    assert Path(found) == prefix / "share/robot_ct_ros/config"
+    assert mounts == "['detector', 'source']"

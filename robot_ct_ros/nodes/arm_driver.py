@@ -48,8 +48,8 @@ from robot_ct_ros.hardware.arms import make_arm
 from robot_ct_ros.hardware.connection import BackgroundConnection
 from robot_ct_ros.hardware.simulated_arm import JOINT_NAMES, SimulatedArmSettings
 from robot_ct_ros.nodes.common import (LifecycleSettings, WorkerFaults, declare_settings, error_transition,
-                                      publish_diagnostic, publish_while_up, run_settings_node, to_unconfigured,
-                                      transition_result)
+                                      publish_diagnostic, publish_while_up, refuse_unavailable_transitions,
+                                      run_settings_node, to_unconfigured, transition_result)
 from robot_ct_ros.nodes.hand_eye_params import pose_msg_to_ur, ur_to_pose_msg  # noqa: F401 - re-exported
 from robot_ct_ros.parameters import setting, validate
 
@@ -75,6 +75,7 @@ class ArmDriverSettings:
 class ArmDriverNode(LifecycleNode):
     def __init__(self, node_name: str = "arm_driver", *, arm_factory=None, **kwargs):
         super().__init__(node_name, **kwargs)
+        refuse_unavailable_transitions(self)
         self.settings = s = declare_settings(self, ArmDriverSettings)
         self.arm_settings = declare_settings(self, ArmSettings)
         self.sim_settings = declare_settings(self, SimulatedArmSettings, prefix="sim_")

@@ -249,8 +249,9 @@ def declare_settings(node, cls, *, prefix: str = "", exclude=(), **defaults):
     and return the validated instance built from their values.
 
     Each parameter is ``prefix + ros_name``, typed by its default, with a ParameterDescriptor that
-    carries the field's help and unit and, for numbers, its range (rclpy then refuses a value
-    outside it when set at run time). ``exclude``: fields the node declares its own way (they keep
+    carries the field's help, unit and, for numbers, its range. Every parameter is read once, here,
+    so each is declared read-only: a running node refuses ``ros2 param set`` with rclpy's reason
+    instead of reporting a value it does not use (restart the node to change one). ``exclude``: fields the node declares its own way (they keep
     their defaults here). ``defaults`` override field defaults (core units). A value of
     the wrong type or out of range raises ValueError naming the parameter (never a traceback from
     rclpy's internals). List fields (tuple defaults) are double or integer arrays; an optional field
@@ -270,7 +271,8 @@ def declare_settings(node, cls, *, prefix: str = "", exclude=(), **defaults):
         unit = f" [{s.ros_unit}]" if s.ros_unit else ""
         extra = f" ({s.to_ros(None) if s.ros_none is not None else ''} = off)" if s.ros_none is not None else ""
         choices = f" One of: {', '.join(map(str, s.choices))}." if s.choices else ""
-        desc = ParameterDescriptor(name=name, description=f"{s.help}{unit}{extra}{choices}")
+        desc = ParameterDescriptor(name=name, description=f"{s.help}{unit}{extra}{choices}{READ_AT_START}",
+                                   read_only=True)
         if s.kind in (int, float) and s.ros_none is None and (s.minimum is not None or s.maximum is not None):
             lo = -math.inf if s.minimum is None else s.to_ros(s.minimum)
             hi = math.inf if s.maximum is None else s.to_ros(s.maximum)
@@ -292,6 +294,34 @@ def declare_settings(node, cls, *, prefix: str = "", exclude=(), **defaults):
         return from_ros_values(cls, values)
     except ValueError as exc:
         raise ValueError(f"{node.get_name()} parameters: {exc}") from None
+
+
+READ_AT_START = " Read when the node starts (read-only while it runs)."
+"""The end of every parameter's description: nodes read their parameters once (declare_settings)."""
+
+
+def refuse_unavailable_transitions(node) -> None:
+    """Answer a lifecycle ``change_state`` request for a transition the current state does not have with
+    ``success`` False, as rclpy does for an unknown label, instead of letting it end the node.
+
+    rclpy 7.1.6 (Jazzy) triggers a transition given by id without checking it, and the state machine's
+    RCLError ("Transition is not registered") escapes the service callback and the executor (rclpy
+    issue 1209). Wraps the callback of the node's change_state service (``node._service_change_state``,
+    a LifecycleNode attribute)."""
+    service = node._service_change_state
+    answer = service.callback
+
+    def change_state(request, response):
+        if not request.transition.label:  # by label, rclpy itself refuses an unknown one
+            available = {t[0] for t in node._state_machine.available_transitions}
+            if request.transition.id not in available:
+                node.get_logger().warning(f"lifecycle transition {request.transition.id} is not available in state "
+                                          f"{node._state_machine.current_state[1]!r}: refused")
+                response.success = False
+                return response
+        return answer(request, response)
+
+    service.callback = change_state
 
 
 def _unset_parameter_type(spec):

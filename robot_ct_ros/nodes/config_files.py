@@ -16,7 +16,34 @@ from robot_ct_ros.jobs.online import ServiceSettings
 from robot_ct_ros.parameters import yaml_lines
 
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "config"
+"""The source checkout's config folder (this script writes there); an installed package reads its own,
+:func:`package_config_dir`."""
 ANY_NAMESPACE = "# any namespace (a bare name only matches the node in the root namespace)"
+
+
+def package_config_dir() -> Path:
+    """The package's config folder: the source checkout's, else the installed ``share/robot_ct_ros/config``
+    (colcon, ``setup.py install --prefix``), found through the ament index where ROS is sourced, else
+    next to this file's install prefix. Raises FileNotFoundError naming where it looked."""
+    if CONFIG_DIR.is_dir():
+        return CONFIG_DIR
+    looked = [str(CONFIG_DIR)]
+    try:
+        from ament_index_python.packages import get_package_share_directory
+
+        shared = Path(get_package_share_directory("robot_ct_ros")) / "config"
+        if shared.is_dir():
+            return shared
+        looked.append(str(shared))
+    except (ImportError, LookupError, OSError):  # no ament index or AMENT_PREFIX_PATH, or the package not in it
+        pass
+    for prefix in Path(__file__).resolve().parents:  # <prefix>/lib/python3.X/site-packages/robot_ct_ros/nodes
+        shared = prefix / "share" / "robot_ct_ros" / "config"
+        if shared.is_dir():
+            return shared
+    looked.append("share/robot_ct_ros/config above " + str(Path(__file__).resolve().parent))
+    raise FileNotFoundError("robot_ct_ros's config folder (hand_eye.yaml, the scan protocols) is not installed; "
+                            "looked in " + ", ".join(looked))
 
 
 def recon_service_yaml() -> str:

@@ -29,11 +29,16 @@ QUATERNION_TOLERANCE = 1e-3
 
 def declare_hand_eye(node, prefix: str = "hand_eye") -> HandEye:
     """Declare the hand-eye parameters on ``node`` and return the mounts (raises ValueError if invalid)."""
+    from rcl_interfaces.msg import ParameterDescriptor
     from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+
+    from robot_ct_ros.nodes.common import READ_AT_START
 
     def declare(name, value):
         try:
-            return node.declare_parameter(name, value).value
+            return node.declare_parameter(name, value, ParameterDescriptor(
+                name=name, description=f"hand-eye mount of the device on its flange.{READ_AT_START}",
+                read_only=True)).value
         except (InvalidParameterTypeException, InvalidParameterValueException, TypeError) as exc:
             raise ValueError(f"parameter {name}: {exc}") from None
 

@@ -60,7 +60,8 @@ from robot_ct_ros.hardware.detector import (DetectorError, DetectorSettings, Fra
                                             TruePoses, make_detector)
 from robot_ct_ros.hardware.exposure import BeamLog, ExposureGate, frame_usable
 from robot_ct_ros.nodes.common import (LifecycleSettings, ServiceThread, WorkerFaults, declare_settings,
-                                      error_transition, publish_diagnostic, run_settings_node, transition_result)
+                                      error_transition, publish_diagnostic, refuse_unavailable_transitions,
+                                      run_settings_node, transition_result)
 from robot_ct_ros.nodes.hand_eye_params import declare_hand_eye, pose_to_matrix_mm, stamp_to_ns
 
 __all__ = ["PcdGrabberNode", "LATCHED", "STREAM", "main"]
@@ -72,6 +73,7 @@ STREAM = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST, reliability=Reli
 class PcdGrabberNode(LifecycleNode):
     def __init__(self, node_name: str = "pcd_grabber", *, detector_factory=None, **kwargs):
         super().__init__(node_name, **kwargs)
+        refuse_unavailable_transitions(self)
         self.detector_settings = d = declare_settings(self, DetectorSettings)
         self.sim = declare_settings(self, SimulatedDetectorSettings, prefix="sim_")
         autostart = declare_settings(self, LifecycleSettings).autostart

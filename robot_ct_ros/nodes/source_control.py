@@ -35,7 +35,7 @@ from std_srvs.srv import SetBool, Trigger
 from robot_ct_ros.bag import format as fmt
 from robot_ct_ros.hardware.xray_source import InterlockedSource, SimulatedXraySource, SourceError, SourceSettings
 from robot_ct_ros.nodes.common import (LifecycleSettings, declare_settings, publish_diagnostic, publish_while_up,
-                                      run_settings_node)
+                                      refuse_unavailable_transitions, run_settings_node)
 
 __all__ = ["SourceControlNode", "LATCHED", "main"]
 
@@ -45,6 +45,7 @@ LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, relia
 class SourceControlNode(LifecycleNode):
     def __init__(self, node_name: str = "source_control", *, source_factory=None, **kwargs):
         super().__init__(node_name, **kwargs)
+        refuse_unavailable_transitions(self)
         self.settings = declare_settings(self, SourceSettings)
         s = self.settings
         self.kvp, self.power_w, self.max_age_s = s.kvp, s.power_w, s.max_report_age_s

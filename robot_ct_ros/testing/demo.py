@@ -74,9 +74,9 @@ def _config_hand_eye() -> dict:
     """The hand-eye mounts the demo's nodes get (config/hand_eye.yaml, SI form)."""
     import yaml
 
-    from robot_ct_ros.testing.graph import CONFIG_DIR
+    from robot_ct_ros.nodes.config_files import package_config_dir
 
-    with open(CONFIG_DIR / "hand_eye.yaml") as f:
+    with open(package_config_dir() / "hand_eye.yaml") as f:
         return yaml.safe_load(f)["/**"]["ros__parameters"]["hand_eye"]
 
 

@@ -21,10 +21,10 @@ from pathlib import Path
 import yaml
 
 from robot_ct_ros.hardware.detector import warm_up_projector
+from robot_ct_ros.nodes.config_files import package_config_dir
 
-__all__ = ["ARM_REPORT_TIMEOUT_S", "CONFIG_DIR", "ROLES", "GraphError", "GraphResult", "run_scan_graph"]
+__all__ = ["ARM_REPORT_TIMEOUT_S", "ROLES", "GraphError", "GraphResult", "run_scan_graph"]
 
-CONFIG_DIR = Path(__file__).resolve().parents[2] / "config"
 ROLES = ("source", "detector")
 _domains = itertools.count()
 ARM_REPORT_TIMEOUT_S = 10.0
@@ -72,8 +72,9 @@ def _load_protocol(protocol, out_dir: Path) -> tuple[Path, object]:
 
     if isinstance(protocol, (str, Path)):
         path = Path(protocol)
-        if not path.exists() and (CONFIG_DIR / f"scan_protocol_{protocol}.yaml").exists():
-            path = CONFIG_DIR / f"scan_protocol_{protocol}.yaml"
+        named = package_config_dir() / f"scan_protocol_{protocol}.yaml"
+        if not path.exists() and named.exists():
+            path = named
         return path, ScanProtocol.from_yaml(path)
     proto = ScanProtocol.from_dict(dict(protocol))
     path = out_dir / "scan_protocol.yaml"
@@ -122,7 +123,7 @@ def run_scan_graph(out_dir, protocol="quick", *, grabber: dict | None = None, ar
     proto_path, proto = _load_protocol(protocol, out_dir)
     geom = proto.geometry()
     n = proto.n_views
-    he_args = ["--ros-args", "--params-file", str(CONFIG_DIR / "hand_eye.yaml")]
+    he_args = ["--ros-args", "--params-file", str(package_config_dir() / "hand_eye.yaml")]
     grabber_params = {"n_rows": geom.n_rows, "n_cols": geom.n_cols, "binning": proto.binning,
                       "raw_pixel_m": proto.raw_pixel_m, "exposure_s": proto.exposure_s,
                       "exposure_timeout_s": proto.exposure_timeout_s,

@@ -182,3 +182,38 @@ def test_bad_parameter_values_are_refused_with_a_clear_error(ros):
             SourceControlNode(context=ros.context,
                               parameter_overrides=[Parameter(k, value=v) for k, v in params.items()])
         assert "\n" not in str(err.value) and all(w in str(err.value) for w in words), str(err.value)
+
+
+def test_a_transition_the_state_does_not_have_is_refused_and_the_node_lives_on(ros):
+    """A change_state request by id for a transition the current state lacks (activate while unconfigured,
+    configure while active) answers success False; rclpy 7.1.6 alone let the state machine's error end the
+    node (rclpy issue 1209)."""
+    node = ros.add(SourceControlNode(context=ros.context, parameter_overrides=[Parameter("autostart", value=False)]))
+    probe = ros.node("probe")
+    change = probe.create_client(ChangeState, "/source_control/change_state")
+    get = probe.create_client(GetState, "/source_control/get_state")
+    assert not _transition(ros, change, Transition.TRANSITION_ACTIVATE)
+    assert ros.call(get, GetState.Request()).current_state.label == "unconfigured"
+    assert _transition(ros, change, Transition.TRANSITION_CONFIGURE)
+    assert _transition(ros, change, Transition.TRANSITION_ACTIVATE)
+    assert not _transition(ros, change, Transition.TRANSITION_CONFIGURE)
+    assert ros.call(get, GetState.Request()).current_state.label == "active" and node.interlock is not None
+    # by label, rclpy's own refusal
+    answer = ros.call(change, ChangeState.Request(transition=Transition(label="configure")))
+    assert not answer.success and node.lifecycle_state == "active"
+
+
+def test_parameters_are_read_only_while_the_node_runs(ros):
+    """A running node refuses a parameter change with a reason instead of reporting a value it does not use
+    (max_beam_on_s: a shorter limit set at run time would have looked applied and was not)."""
+    from rcl_interfaces.srv import GetParameters, SetParameters
+
+    node = ros.add(SourceControlNode(context=ros.context))
+    probe = ros.node("probe")
+    set_params = probe.create_client(SetParameters, "/source_control/set_parameters")
+    for name, value in (("max_beam_on_s", 1.0), ("kvp", 100.0)):
+        answer = ros.call(set_params, SetParameters.Request(parameters=[Parameter(name, value=value).to_parameter_msg()]))
+        assert not answer.results[0].successful and "read-only" in answer.results[0].reason, answer.results[0]
+    got = ros.call(probe.create_client(GetParameters, "/source_control/get_parameters"),
+                   GetParameters.Request(names=["max_beam_on_s", "kvp"]))
+    assert [v.double_value for v in got.values] == [node.settings.max_beam_on_s, node.settings.kvp]
