@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 import warnings
 
@@ -426,8 +427,23 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _negative_lists_attached(argv: list[str]) -> list[str]:
+    """``--origin-mm -25,-10`` as ``--origin-mm=-25,-10``: argparse takes a value that starts with '-' for an
+    option unless it is a single negative number, and RTK's centred origins are negative pairs."""
+    out, i = [], 0
+    while i < len(argv):
+        if (argv[i].startswith("--") and "=" not in argv[i] and i + 1 < len(argv)
+                and re.fullmatch(r"-[\d.][^\s]*,[^\s]*", argv[i + 1])):
+            out.append(f"{argv[i]}={argv[i + 1]}")
+            i += 2
+        else:
+            out.append(argv[i])
+            i += 1
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    args = build_parser().parse_args(_negative_lists_attached(list(sys.argv[1:] if argv is None else argv)))
     from robot_ct_ros.bag import ScanBagError
 
     commands = {"demo": _cmd_demo, "simulate": _cmd_simulate, "info": _cmd_info, "reconstruct": _cmd_reconstruct,

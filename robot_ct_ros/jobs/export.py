@@ -99,8 +99,9 @@ def write_astra_vectors(geom: ConeGeometry, path) -> Path:
     """ASTRA ``cone_vec`` rows of ``geom`` at ``path`` (.npy, else text; module docstring)."""
     vec = geom.to_astra_vec()
     path = Path(path)
-    if path.suffix == ".npy":
-        np.save(path, vec)
+    if path.suffix.lower() == ".npy":  # as import reads it
+        with open(path, "wb") as f:  # np.save(path) would append ".npy" to "vec.NPY"
+            np.save(f, vec)
     else:
         np.savetxt(path, vec, fmt="%.17g",
                    header=f"ASTRA cone_vec, mm: srcX srcY srcZ dX dY dZ uX uY uZ vX vY vZ; "

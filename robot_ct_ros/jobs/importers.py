@@ -150,7 +150,12 @@ def rtk_geometry(xml_path, n_rows: int, n_cols: int, row_pitch_mm: float, col_pi
                          f"{' (' + first + ')' if first else ''}") from None
     rtk_geom = reader.GetOutputObject()
     if len(rtk_geom.GetGantryAngles()) == 0:
-        raise ValueError(f"{xml_path}: the RTK geometry holds no projection")
+        raise ValueError(f"{xml_path}: the RTK geometry holds no projection (is it RTK's "
+                         "ThreeDCircularProjectionGeometry XML?)")
+    radius = float(rtk_geom.GetRadiusCylindricalDetector())
+    if radius != 0.0:  # RTK's curved detector: a flat-panel geometry would misplace every column but the centre
+        raise ValueError(f"{xml_path}: a cylindrical detector (RadiusCylindricalDetector {radius:g} mm); a scan bag "
+                         "describes flat detectors only")
     geom = rtk_bridge.from_rtk_geometry(rtk_geom, n_rows, n_cols, row_pitch_mm, col_pitch_mm)
     if origin_mm is not None:
         o_row, o_col = (float(x) for x in origin_mm)
@@ -241,6 +246,36 @@ def _write(out, proj, geom: ConeGeometry, *, counts: bool, flat, dark, notes: di
     return Path(out)
 
 
+MAX_HALF_FAN_DEG = 60.0
+"""The widest half angle a detector may subtend from the source: beyond it the distances are not in
+millimetres, or the vectors not a cone or fan beam's (a parallel-beam vector file has the same columns)."""
+
+
+def check_plausible(geom: ConeGeometry, source: str, say=_say) -> None:
+    """Refuse a geometry no scanner has (the source on or behind the detector plane, a detector wider than
+    ``MAX_HALF_FAN_DEG`` allows from the source), naming the likely mix-up; warn where the views span less
+    than 20 degrees (angles in radians where degrees were meant). ``source``: the geometry's file."""
+    from robot_ct_ros.ct.scan_weights import scan_arc
+
+    sdd = np.asarray(geom.sdd_mm, np.float64)
+    if np.any(~(sdd > 0)):
+        view = int(np.argmin(sdd))
+        raise ValueError(f"{source}: view {view} has its source {sdd[view]:g} mm from the detector plane, on it or "
+                         "behind it (a parallel-beam geometry, or the source and detector swapped?)")
+    half_width = 0.5 * np.hypot(geom.n_cols * geom.col_pitch_mm, geom.n_rows * geom.row_pitch_mm)
+    half_fan = float(np.degrees(np.arctan(half_width / sdd.min())))
+    if half_fan > MAX_HALF_FAN_DEG:
+        raise ValueError(f"{source}: the detector's half diagonal ({half_width:g} mm) spans {half_fan:.1f} deg from the "
+                         f"source at {sdd.min():g} mm (more than {MAX_HALF_FAN_DEG:g}): are the distances in metres, "
+                         "or the vectors a parallel beam's (ASTRA parallel_vec / parallel3d_vec have the same "
+                         "columns as fanflat_vec / cone_vec)?")
+    if geom.n_views >= 10:
+        arc = float(np.degrees(scan_arc(geom)[0]))
+        if arc < 20.0:
+            say(f"warning: the {geom.n_views} views span an arc of {arc:.1f} deg only (angles written in radians "
+                "where degrees were meant, as RTK's XML has them?)")
+
+
 def _same_views(n_proj: int, n_geom: int, proj_path, geom_path):
     if n_proj != n_geom:
         raise ValueError(f"{proj_path} holds {n_proj} views but {geom_path} describes {n_geom}")
@@ -259,6 +294,7 @@ def import_rtk(projections, geometry_xml, out, *, pitch_mm, origin_mm=None, coun
     proj = read_stack(projections)
     geom = rtk_geometry(geometry_xml, proj.shape[1], proj.shape[2], pitch_mm[0], pitch_mm[1], origin_mm)
     _same_views(proj.shape[0], geom.n_views, projections, geometry_xml)
+    check_plausible(geom, geometry_xml, say)
     notes = {"generator": "robot-ct import rtk", "projections": Path(projections).name,
              "geometry": f"{Path(geometry_xml).name} (RTK ThreeDCircularProjectionGeometry, rotation about y)",
              "rtk_projection_origin_mm": None if origin_mm is None else [float(x) for x in origin_mm][::-1]}
@@ -277,6 +313,7 @@ def import_astra(projections, vectors, out, *, layout: str = "views-first", row_
     if row_pitch_mm is not None and vec.shape[1] == 12:
         raise ValueError("--row-pitch-mm is for fanflat_vec only; cone_vec's v holds the row pitch")
     geom = astra_geometry(vec, proj.shape[1], proj.shape[2], row_pitch_mm)
+    check_plausible(geom, vectors, say)
     notes = {"generator": "robot-ct import astra", "projections": Path(projections).name, "layout": layout,
              "geometry": f"{Path(vectors).name} (ASTRA {'cone_vec' if vec.shape[1] == 12 else 'fanflat_vec'})"}
     return _write(out, proj, geom, counts=counts, flat=flat, dark=dark, notes=notes, say=say)

@@ -263,3 +263,12 @@ def test_tigre_refuses_a_view_it_cannot_represent(tmp_path, capsys):
     err = _one_line_error(capsys, "view 0", "DSD", "<= DSO", f"of {g.n_views} views are so")
     assert "{" not in err  # every count filled in
     assert not out.exists()
+
+
+def test_astra_vectors_in_an_upper_case_npy_file_import_back(tmp_path, bag):
+    """Export wrote text into ``vec.NPY`` while import read any ``.npy`` suffix as numpy's format."""
+    out = tmp_path / "vec.NPY"
+    assert main(["export", str(bag), "--format", "astra", "--out", str(out)]) == 0
+    nominal = read_scan(bag).geom
+    assert np.load(out).shape == (nominal.n_views, 12)
+    assert astra_geometry(read_astra_vectors(out), nominal.n_rows, nominal.n_cols).allclose(nominal, atol=1e-9)

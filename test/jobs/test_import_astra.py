@@ -173,3 +173,22 @@ def test_raw_counts_with_no_usable_pixel_are_refused_before_writing(tmp_path, ca
     np.save(tmp_path / "dark.npy", np.full(shape, 2000.0))  # above every count, below the flat
     assert main(args + [str(tmp_path / "bag2")]) == 2
     _one_line_error(capsys, "no usable pixel", "every projection value minus the dark frame is at or below 0")
+
+
+def test_parallel_beam_vectors_and_a_source_on_the_detector_are_refused(tmp_path, capsys):
+    """ASTRA parallel_vec / parallel3d_vec files have fanflat_vec's / cone_vec's columns; read as a cone beam,
+    the ray direction became a source 1 mm from the centre. A source on the detector plane likewise."""
+    g = _geometry()
+    np.save(tmp_path / "p.npy", _proj((g.n_views,) + g.det_shape))
+    vec = g.to_astra_vec()
+    parallel = vec.copy()
+    parallel[:, 0:3] = g.w  # parallel3d_vec: a unit ray direction where cone_vec has the source,
+    parallel[:, 3:6] = 0.0  # and the detector centred on the origin, as ASTRA's parallel3d geometry converts
+    on_detector = vec.copy()
+    on_detector[:, 0:3] = vec[:, 3:6]
+    for name, v, words in (("par", parallel, ("parallel",)), ("on", on_detector, ("detector plane",))):
+        np.save(tmp_path / f"{name}.npy", v)
+        assert main(["import", "astra", "--projections", str(tmp_path / "p.npy"), "--vectors",
+                     str(tmp_path / f"{name}.npy"), "--out", str(tmp_path / name)]) == 2
+        _one_line_error(capsys, *words)
+        assert not (tmp_path / name).exists()

@@ -112,3 +112,44 @@ def test_rtk_import_errors_are_one_line(tmp_path, capsys, monkeypatch):
     assert run("--geometry", str(xml), "--pitch-mm", "0.5") == 2
     _one_line_error(capsys, "needs itk-rtk")
     assert not (tmp_path / "bag").exists()
+
+
+def test_geometries_no_scanner_has_are_refused_and_radians_are_warned(tmp_path, capsys):
+    """RTK distances written in metres (a detector far wider than its distance from the source), a curved
+    detector (which a scan bag cannot describe) and gantry angles in radians (60 views over 6.3 degrees) were
+    imported without a word."""
+    pytest.importorskip("itk")
+    from robot_ct_ros.ct import rtk_bridge
+
+    np.save(tmp_path / "p.npy", np.ones((60, 6, 10), np.float32))
+
+    def run(xml, name, *extra):
+        return main(["import", "rtk", "--projections", str(tmp_path / "p.npy"), "--geometry", str(xml),
+                     "--pitch-mm", "0.5,0.5", *extra, "--out", str(tmp_path / name)])
+
+    angles = np.linspace(0.0, 360.0, 60, endpoint=False)
+    metres = _write_xml([[0.5, 0.8, a, 0, 0, 0, 0, 0, 0] for a in angles], tmp_path / "m.xml")
+    assert run(metres, "m") == 2
+    _one_line_error(capsys, "spans", "metres")
+    assert not (tmp_path / "m").exists()
+
+    _, rtk = rtk_bridge._rtk()
+    curved = rtk_bridge.rtk_geometry_from_parameters([[500.0, 800.0, a, 0, 0, 0, 0, 0, 0] for a in angles])
+    curved.SetRadiusCylindricalDetector(800.0)
+    writer = rtk.ThreeDCircularProjectionGeometryXMLFileWriter.New()
+    writer.SetFilename(str(tmp_path / "c.xml"))
+    writer.SetObject(curved)
+    writer.WriteFile()
+    assert run(tmp_path / "c.xml", "c") == 2
+    _one_line_error(capsys, "cylindrical detector", "800")
+
+    radians = _write_xml([[500.0, 800.0, a, 0, 0, 0, 0, 0, 0] for a in np.deg2rad(angles)], tmp_path / "r.xml")
+    assert run(radians, "r") == 0
+    out = capsys.readouterr().out
+    assert "warning" in out and "radians" in out and "6.2 deg" in out, out
+    degrees = _write_xml([[500.0, 800.0, a, 0, 0, 0, 0, 0, 0] for a in angles], tmp_path / "d.xml")
+    assert run(degrees, "d") == 0 and "warning" not in capsys.readouterr().out
+    # a negative origin pair after a space, as RTK's centred origins are: not taken for an option
+    assert run(degrees, "o", "--origin-mm", "-1.25,-2.25") == 0
+    g, go = read_scan(tmp_path / "d").geom, read_scan(tmp_path / "o").geom
+    assert go.allclose(g, atol=1e-9)  # that origin is the centred stack's
