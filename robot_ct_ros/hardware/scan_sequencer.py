@@ -152,6 +152,8 @@ class ScanSequencer:
                 self.protocol = ScanProtocol.from_yaml(settings.protocol_file)
             except PROTOCOL_ERRORS as exc:
                 ports.log("error", f"protocol {settings.protocol_file}: {exc}")
+                # scan/status and /diagnostics say so (not "ready"); scan/start reads the file again
+                self.message = f"protocol {settings.protocol_file} unreadable, fix it before scan/start: {exc}"
         self._autostart = settings.autostart
         self._autostart_next = 0.0
         self._autostart_reason = ""

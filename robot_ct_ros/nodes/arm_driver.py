@@ -63,7 +63,9 @@ class ArmDriverSettings:
     """What the node publishes, and where."""
 
     role: str = setting("source", "which arm: topics go to <role>_arm/", choices=("source", "detector"))
-    publish_rate_hz: float = setting(50.0, "joint_states, tool_pose and in_position rate", unit="Hz", minimum=0.0)
+    publish_rate_hz: float = setting(50.0, "joint_states, tool_pose and in_position rate (at least 2 Hz: "
+                                     "source_control and the orchestrator take an arm silent for 1 s as lost)",
+                                     unit="Hz", minimum=2.0)
     base_frame: str = setting("world", "frame_id of tool_pose and of accepted goals")
     tool_frame: str = setting("", "tool frame reported in diagnostics; empty: <role>_arm_tool0")
     joint_prefix: str = setting("", "joint name prefix; empty: <role>_arm_")

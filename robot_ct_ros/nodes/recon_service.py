@@ -163,6 +163,10 @@ class ReconServiceNode(Node):
 
     def _on_run(self, request, response):
         response.success, response.message = self.start_run()
+        if not response.success:  # the caller has the answer; a progress monitor sees the refusal too
+            data = {"state": self.state, "stage": "refused", "message": response.message, "run": self.runs + 1,
+                    "n_views": None, "elapsed_s": 0.0}
+            self.progress_pub.publish(String(data=json.dumps(data)))
         return response
 
     def start_run(self, partial: bool = False) -> tuple[bool, str]:

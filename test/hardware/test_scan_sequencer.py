@@ -195,6 +195,8 @@ def test_bad_protocol_is_refused_and_flagged(tmp_path):
     rig = Rig(tmp_path, protocol={"n_views": 0})
     assert rig.seq.protocol is None and rig.ports.logs[0][0] == "error"
     assert rig.seq.health()[0] == "warn"
+    # scan/status and the diagnostics' message say why, not "ready"
+    assert "unreadable" in rig.seq.status()["message"] and "protocol.yaml" in rig.seq.status()["message"]
     ok, msg = rig.seq.start()
     assert not ok and msg.startswith("protocol:") and rig.seq.state == "idle"
 

@@ -322,3 +322,17 @@ def test_a_frozen_controller_is_noticed_and_its_last_pose_is_not_republished(ros
         assert "stopped updating" in node.last_error
     finally:
         emu.stop()
+
+
+def test_a_publish_rate_that_would_look_silent_is_refused(ros):
+    """0 Hz was accepted and published once every 10 s, so source_control and the orchestrator (1 s) took
+    the arm for lost without a word."""
+    import pytest
+    from rclpy.parameter import Parameter
+
+    from robot_ct_ros.nodes.arm_driver import ArmDriverNode
+
+    for rate in (0.0, 1.0):
+        with pytest.raises(ValueError) as err:
+            ArmDriverNode(context=ros.context, parameter_overrides=[Parameter("publish_rate_hz", value=rate)])
+        assert "publish_rate_hz" in str(err.value) and "\n" not in str(err.value)

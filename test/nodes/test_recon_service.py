@@ -99,8 +99,13 @@ def test_run_service_on_a_bag_path_and_refusals(ros, tmp_path):
     idle = ros.add(ReconServiceNode("recon_idle", context=ros.context, namespace="idle", parameter_overrides=_params(
         output_dir=str(tmp_path / "idle"), auto_run=False)))
     idle_client = probe.node.create_client(Trigger, "/idle/recon/run")
+    refusals = []
+    probe.node.create_subscription(String, "/idle/recon/progress", lambda m: refusals.append(json.loads(m.data)), 10)
     answer = ros.call(idle_client, Trigger.Request())
     assert not answer.success and "no /ct/scan_info" in answer.message and idle.runs == 0
+    # a progress monitor sees the refusal too; the node's state is unchanged
+    assert ros.spin_until(lambda: refusals and refusals[-1]["stage"] == "refused")
+    assert refusals[-1]["message"] == answer.message and idle.state == "idle"
 
     out = tmp_path / "fdk"
     recon = ros.add(ReconServiceNode(context=ros.context, parameter_overrides=_params(
