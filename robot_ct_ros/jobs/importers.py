@@ -241,9 +241,40 @@ def _write(out, proj, geom: ConeGeometry, *, counts: bool, flat, dark, notes: di
     bad = int(np.isnan(frames).sum()) if counts else 0
     empty = int((~usable.any(axis=(1, 2))).sum()) if counts else 0
     say(f"wrote {out}: {geom.n_views} views, {geom.n_rows} x {geom.n_cols} detector of {geom.row_pitch_mm:g} x "
-        f"{geom.col_pitch_mm:g} mm, {units}{f' ({bad} pixel values <= dark marked unusable)' if bad else ''}"
+        f"{geom.col_pitch_mm:g} mm, {units}"
+        f"{f' ({bad} pixel values at or below the dark, or not finite, marked unusable)' if bad else ''}"
         + (f"; warning: {empty} frames have no usable pixel and will not be views" if empty else ""))
+    if counts:
+        for warning in counts_warnings(frames, flat_frame):
+            say(f"warning: {warning}")
     return Path(out)
+
+
+BRIGHTER_THAN_FLAT_SHARE = 0.05
+"""counts_warnings: the share of usable pixels that may count more than the flat field beyond Poisson noise."""
+
+
+def counts_warnings(frames: np.ndarray, flat: np.ndarray) -> list[str]:
+    """What looks wrong in dark-corrected counts ``frames`` (views, rows, cols; NaN unusable) and flat field
+    ``flat`` (rows, cols): flat pixels unusable in every frame (not finite, or at or below the dark), and
+    more than :data:`BRIGHTER_THAN_FLAT_SHARE` of the usable pixels counting more than the flat field by over
+    3 Poisson standard deviations (negative line integrals: a flat field from another exposure or tube
+    current, or saturated counts)."""
+    out = []
+    flat = np.asarray(flat, np.float64)
+    not_finite, dark_above = int((~np.isfinite(flat)).sum()), int((np.isfinite(flat) & (flat <= 0)).sum())
+    if not_finite or dark_above:
+        out.append(f"the flat field has {not_finite} pixels that are NaN or infinite and {dark_above} at or below "
+                   "the dark frame: those pixels are unusable in every frame")
+    ok = np.isfinite(frames) & (np.isfinite(flat) & (flat > 0))[None]
+    if ok.any():
+        f = np.broadcast_to(flat, frames.shape)[ok]
+        brighter = float(np.mean(frames[ok] > f + 3.0 * np.sqrt(f)))
+        if brighter > BRIGHTER_THAN_FLAT_SHARE:
+            out.append(f"{100 * brighter:.0f} % of the usable pixels count more than the flat field beyond its noise "
+                       "(negative line integrals): is the flat field from this exposure and tube current, or are the "
+                       "projections saturated?")
+    return out
 
 
 MAX_HALF_FAN_DEG = 60.0

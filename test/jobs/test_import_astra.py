@@ -192,3 +192,31 @@ def test_parallel_beam_vectors_and_a_source_on_the_detector_are_refused(tmp_path
                      str(tmp_path / f"{name}.npy"), "--out", str(tmp_path / name)]) == 2
         _one_line_error(capsys, *words)
         assert not (tmp_path / name).exists()
+
+
+def test_raw_counts_brighter_than_their_flat_or_a_dead_flat_are_warned(tmp_path, capsys):
+    """A flat field from another exposure (every line integral negative) and saturated counts above the flat
+    were imported without a word; a dead flat pixel was counted as 'pixel values <= dark'."""
+    g = _geometry()
+    rng = np.random.default_rng(4)
+    flat = np.full(g.det_shape, 3000.0)
+    counts = rng.poisson(flat * np.exp(-rng.uniform(0, 2, (g.n_views,) + g.det_shape))).astype(np.float64)
+    np.savetxt(tmp_path / "v.txt", g.to_astra_vec())
+
+    def run(name, proj, flat_field):
+        np.save(tmp_path / f"{name}.npy", proj)
+        np.save(tmp_path / f"{name}_flat.npy", flat_field)
+        assert main(["import", "astra", "--projections", str(tmp_path / f"{name}.npy"), "--vectors",
+                     str(tmp_path / "v.txt"), "--counts", "--flat", str(tmp_path / f"{name}_flat.npy"), "--out",
+                     str(tmp_path / name)]) == 0
+        return capsys.readouterr().out
+
+    assert "warning" not in run("good", counts, flat)
+    out = run("other_exposure", counts, flat / 4.0)  # the flat of a quarter of the tube current
+    assert "warning" in out and "more than the flat field" in out, out
+    saturated = np.where(rng.random(counts.shape) < 0.3, 65535.0, counts)
+    assert "more than the flat field" in run("saturated", saturated, flat)
+    dead = flat.copy()
+    dead[1, 2], dead[3, 4] = np.nan, 0.0
+    out = run("dead", counts, dead)
+    assert "1 pixels that are NaN or infinite and 1 at or below the dark" in out, out
