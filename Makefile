@@ -7,7 +7,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 export PYTHONPATH := $(CURDIR)$(if $(PYTHONPATH),:$(PYTHONPATH))
 
-.PHONY: venv demo test bench bench-calibration bench-calibration-speed bench-interior bench-exterior-reach bench-reach-selection bench-reach-guess bench-interior-diagnosis bench-offset-diagnosis bench-realdata bench-realdata-halves bench-realdata-consistency bench-short-scan bench-embedding bench-sweep bench-guard bench-dask bench-fullsize bench-streaming clean
+.PHONY: venv demo test bench bench-calibration bench-calibration-speed bench-interior bench-exterior-reach bench-reach-selection bench-reach-guess bench-interior-diagnosis bench-offset-diagnosis bench-realdata bench-realdata-halves bench-realdata-consistency bench-short-scan bench-conjugate-modes bench-embedding bench-sweep bench-guard bench-dask bench-fullsize bench-streaming clean
 
 CLI    := $(VENV)/bin/robot-ct
 
@@ -72,6 +72,9 @@ bench-realdata-consistency: $(STAMP)
 
 bench-short-scan: $(STAMP)
 	$(PY) bench/bench_short_scan.py --out docs/results
+
+bench-conjugate-modes: $(STAMP)
+	$(PY) bench/bench_conjugate_modes.py --out docs/results
 
 bench-embedding: $(STAMP)
 	$(PY) bench/bench_embedding.py --out docs/results

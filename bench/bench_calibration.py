@@ -100,14 +100,15 @@ def far_side_mm(phantom, center_mm) -> float:
 
 
 def make_scenario(key: str, views: int, det: tuple[int, int], vol: int, binning: int, seed: int, say,
-                  sim_oversample: int = 2, phantom_scale: float = 1.0, n_axial: int | None = None):
+                  sim_oversample: int = 2, phantom_scale: float = 1.0, n_axial: int | None = None, errors_of=None):
     """Nominal and true geometry, simulated scan, ROI grid, phantom and truth reconstruction.
 
     The ROI grid has ``vol`` voxels across and ``n_axial`` along the axis (default: 90 % of
     what the central ray's cone covers, at most ``vol``). The field of view is simulated on a
     grid ``sim_oversample`` times finer than the reconstruction's. ``phantom_scale`` scales the
     mouse and the battery (a larger detector at the same pixel size needs a larger object for
-    the same truncation)."""
+    the same truncation). ``errors_of`` (nominal geometry -> (views, 9) parameters) replaces the
+    scenario's robot errors (bench_conjugate_modes: one angular harmonic)."""
     system = SeedSystem()
     rows, cols = det
     pitch = system.raw_pixel_mm * binning
@@ -131,6 +132,8 @@ def make_scenario(key: str, views: int, det: tuple[int, int], vol: int, binning:
     exterior_half_width_mm = far_side_mm(phantom, center)
     nominal = robotic_roi_scan(system, roi_center_mm=tuple(center), fov_diameter_mm=fov, n_views=views,
                                binning=binning, n_rows=rows, n_cols=cols)
+    if errors_of is not None:
+        errors = np.asarray(errors_of(nominal), np.float64)
     true = nominal.perturbed(errors)
     voxel = pitch / system.magnification
     axial = rows * pitch / system.magnification

@@ -36,10 +36,12 @@ def image_entropy(volume: np.ndarray) -> float:
 
 
 CONJUGATE_MODES = {"shift": (3, 5, 7)}
-"""Angular harmonics worth setting by sharpness: the detector shift along u odd under a half
-turn (k = 1 is the gauge). The in-plane roll (odd k) and the magnification (even k) are as
-invisible to the loop, but the entropy minimum did not recover them on the simulated mouse
-scan (it doubled the error), so they are available, not listed here."""
+"""Angular harmonics the focus sets by default: the detector shift along u odd under a half
+turn (k = 1 is the gauge). The in-plane roll (odd k) and the magnification (even k) are the
+parallel-beam analogues, but the entropy minimum did not recover them on the simulated mouse
+scan (it doubled the error), so they are available, not listed here. On a cone beam the loop
+itself removes most of an odd shift harmonic, and more than the focus does
+(docs/results/conjugate_modes.md): the focus is off by default."""
 
 
 def focus_conjugate_modes(line_integrals, nominal: ConeGeometry, params: np.ndarray, grid: VolumeGrid, mask, *,
@@ -48,12 +50,13 @@ def focus_conjugate_modes(line_integrals, nominal: ConeGeometry, params: np.ndar
                           fdk_kwargs=None) -> tuple[np.ndarray, dict]:
     """Set the geometry modes the consistency metric cannot see by image sharpness.
 
-    In a full scan, view angle t and t + pi see the same rays reversed (u -> -u). A change
-    of view t's image that its conjugate view can mirror moves each ray and its conjugate
-    alike, so the data stay consistent and the alternating loop leaves it in place: a
-    detector shift along u or an in-plane roll that is odd under the half turn (odd angular
-    harmonics cos(k t), sin(k t)), and a magnification that is even under it
-    (docs/calibration.md, "What the data cannot tell"). Such modes still blur the image, so each
+    In a parallel-beam full scan, view angle t and t + pi see the same rays reversed (u -> -u). A
+    change of view t's image that its conjugate view can mirror moves each ray and its conjugate
+    alike, so the data stay consistent and no consistency metric sees it: a detector shift along
+    u or an in-plane roll that is odd under the half turn (odd angular harmonics cos(k t),
+    sin(k t)), and a magnification that is even under it. A cone beam pairs rays only on the
+    central ray, and the loop sees such modes weakly (docs/calibration.md, "What the data cannot
+    tell"). Such modes still blur the image, so each
     coefficient is chosen (coordinate-wise parabola through three reconstructions, ``sweeps``
     rounds, the step halving each round) to minimise :func:`image_entropy` of an FDK of the
     central ``focus_slices`` slices of ``grid``, within ``inner_fraction`` of its half width.

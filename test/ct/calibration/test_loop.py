@@ -352,7 +352,8 @@ def test_coarse_sirt_correction_makes_the_fine_fdk_consistent():
 
 
 def test_focus_finds_an_odd_detector_shift_mode():
-    """A cos(3t) detector shift (invisible to conjugate-view consistency) is found by sharpness."""
+    """A cos(3t) detector shift (odd under the half turn, which conjugate views see only weakly) is found by
+    sharpness."""
     nominal = circular_scan(60, 60.0, 150.0, 48, 48, 32.0 / 48, 32.0 / 48)
     grid = VolumeGrid.centered((16, 32, 32), 12.0 / 32)
     phantom = mouse_phantom(body_width_mm=9.0, length_mm=10.0)
