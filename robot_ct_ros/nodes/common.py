@@ -26,8 +26,15 @@ def run_node(node_factory: Callable[[], "object"], description: str, argv: list[
 
     import rclpy
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.impl.implementation_singleton import rclpy_implementation
 
-    rclpy.init(args=argv)
+    try:
+        rclpy.init(args=argv)
+    except rclpy_implementation.RCLError as exc:  # rcl refused a ROS argument, e.g. "-p name:=" (no value)
+        reason = " ".join(str(exc).split("\n")[0].split())
+        print(f"{prog}: bad ROS arguments ({reason}); an empty string value is written -p \"name:=''\"",
+              file=sys.stderr)
+        return 2
     node = None
     try:
         node = node_factory()

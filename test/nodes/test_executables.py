@@ -92,3 +92,14 @@ def test_a_publish_that_loses_the_race_with_the_sigint_handler_is_skipped():
         raise rclpy_implementation.RCLError("Failed to publish: some other error")
     with pytest.raises(rclpy_implementation.RCLError, match="other error"):
         publish_while_up(node, SimpleNamespace(publish=broken), "d")
+
+
+def test_a_ros_argument_rcl_cannot_parse_is_one_reason_and_exit_2():
+    """``-p name:=`` (no value) made rclpy.init raise: a traceback and exit 1. rcl logs its own line first."""
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_DOMAIN_ID=str(150 + os.getpid() % 50),
+               PYTHONPATH=str(REPO))
+    proc = subprocess.run([sys.executable, "-m", "robot_ct_ros.nodes.recorder", "--ros-args", "-p", "output_dir:="],
+                          capture_output=True, text=True, env=env, timeout=60)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
+    last = proc.stderr.strip().splitlines()[-1]
+    assert "bad ROS arguments" in last and "output_dir:=" in last and "name:=''" in last, proc.stderr
