@@ -99,6 +99,17 @@ class SettingSpec:
             return bool(value)
         return str(value)
 
+    def coerce(self, value):
+        """``value`` as this field stores it: a numpy scalar as the Python number it holds (a notebook's
+        ``np.int64(3)``), a whole float as an int for an int field (``iterations=2.0``); unchecked."""
+        if hasattr(value, "dtype") and hasattr(value, "item") and getattr(value, "ndim", None) == 0:
+            value = value.item()
+        if self.kind is tuple and isinstance(value, (list, tuple)):
+            return tuple(x.item() if hasattr(x, "dtype") and hasattr(x, "item") else x for x in value)
+        if self.kind is int and isinstance(value, float) and value.is_integer():
+            return int(value)
+        return value
+
     def check(self, value) -> None:
         """Raise ValueError unless ``value`` is acceptable for this field."""
         if value is None:
@@ -108,6 +119,8 @@ class SettingSpec:
         if self.kind is tuple:
             self._check_items(value)
             return
+        if self.kind is bool and not isinstance(value, bool):  # "false" or "off" would count as true
+            raise ValueError(f"{self.name} must be True or False, got {value!r}")
         if self.kind in (int, float) and (isinstance(value, bool) or not isinstance(value, (int, float))):
             raise ValueError(f"{self.name} must be a number, got {value!r}")
         if self.kind is int and isinstance(value, float) and not value.is_integer():
@@ -162,9 +175,14 @@ def specs(cls_or_obj) -> tuple[SettingSpec, ...]:
 
 
 def validate(obj) -> None:
-    """Check every field of a settings instance (:meth:`SettingSpec.check`)."""
+    """Check every field of a settings instance (:meth:`SettingSpec.check`), each first stored as the field
+    keeps it (:meth:`SettingSpec.coerce`; the instance may be frozen)."""
     for s in specs(obj):
-        s.check(getattr(obj, s.name))
+        value = getattr(obj, s.name)
+        coerced = s.coerce(value)
+        s.check(coerced)
+        if coerced is not value:
+            object.__setattr__(obj, s.name, coerced)
 
 
 def to_dict(obj) -> dict:

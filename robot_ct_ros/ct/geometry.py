@@ -92,13 +92,17 @@ class VolumeGrid:
     direction: tuple = _IDENTITY
 
     def __post_init__(self):
+        if any(float(x) != int(float(x)) for x in self.shape_zyx if np.isfinite(float(x))):
+            raise ValueError(f"shape_zyx must be 3 positive whole numbers, got {self.shape_zyx}")
         object.__setattr__(self, "shape_zyx", tuple(int(s) for s in self.shape_zyx))
         object.__setattr__(self, "voxel_size_mm", tuple(float(s) for s in self.voxel_size_mm))
         object.__setattr__(self, "origin_mm", tuple(float(s) for s in self.origin_mm))
         if len(self.shape_zyx) != 3 or min(self.shape_zyx) < 1:
             raise ValueError(f"shape_zyx must be 3 positive ints, got {self.shape_zyx}")
-        if len(self.voxel_size_mm) != 3 or min(self.voxel_size_mm) <= 0:
-            raise ValueError(f"voxel_size_mm must be 3 positive numbers, got {self.voxel_size_mm}")
+        if len(self.voxel_size_mm) != 3 or not all(0 < x < np.inf for x in self.voxel_size_mm):
+            raise ValueError(f"voxel_size_mm must be 3 positive finite numbers, got {self.voxel_size_mm}")
+        if len(self.origin_mm) != 3 or not np.all(np.isfinite(self.origin_mm)):
+            raise ValueError(f"origin_mm must be 3 finite numbers, got {self.origin_mm}")
         D = np.asarray(self.direction, dtype=np.float64).reshape(-1)
         if D.size != 9 or not np.all(np.isfinite(D)):
             raise ValueError("direction must be a 3 x 3 rotation matrix")
@@ -246,8 +250,12 @@ class ConeGeometry:
             raise ValueError("u and v must be unit vectors")
         if np.any(np.abs(np.einsum("ij,ij->i", u, v)) > 1e-6):
             raise ValueError("u and v must be orthogonal")
-        if self.n_rows < 1 or self.n_cols < 1 or self.row_pitch_mm <= 0 or self.col_pitch_mm <= 0:
-            raise ValueError("detector shape and pitch must be positive")
+        if any(float(n) != int(float(n)) for n in (self.n_rows, self.n_cols)):
+            raise ValueError(f"n_rows and n_cols must be whole numbers, got {self.n_rows}, {self.n_cols}")
+        if (self.n_rows < 1 or self.n_cols < 1
+                or not (0 < self.row_pitch_mm < np.inf) or not (0 < self.col_pitch_mm < np.inf)):
+            raise ValueError(f"detector shape and pitch must be positive and finite, got {self.n_rows} x "
+                             f"{self.n_cols} pixels of {self.row_pitch_mm} x {self.col_pitch_mm} mm")
         w = np.cross(u, v)
         w.setflags(write=False)
         for name, val in (("source_mm", src), ("detector_mm", det), ("u", u), ("v", v), ("_w", w)):

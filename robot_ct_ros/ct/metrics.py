@@ -155,19 +155,35 @@ def projection_rmse(a, b, mask=None, per_view: bool = False):
 
 
 # ----------------------------------------------------------------------------- volumes
+def _data_range(b: np.ndarray, data_range: float | None) -> float:
+    """``data_range``, default the reference ``b``'s range; a constant reference has none to default to."""
+    rng = float(b.max() - b.min()) if data_range is None else float(data_range)
+    if not rng > 0 or not np.isfinite(rng):
+        raise ValueError(f"data_range must be positive and finite, got {rng!r}"
+                         + (" (the reference is constant or not finite: give data_range)" if data_range is None else ""))
+    return rng
+
+
 def psnr(a, b, data_range: float | None = None) -> float:
+    """Peak signal-to-noise ratio (dB) of ``a`` against the reference ``b`` (same shape); ``data_range``
+    defaults to ``b``'s range. Identical images give inf."""
     a = np.asarray(a, np.float64)
     b = np.asarray(b, np.float64)
-    rng = float(b.max() - b.min()) if data_range is None else float(data_range)
+    if a.shape != b.shape:
+        raise ValueError(f"shapes differ: {a.shape} vs {b.shape}")
     mse = float(np.mean((a - b) ** 2))
-    return float("inf") if mse == 0 else 10.0 * np.log10(rng * rng / mse)
+    if mse == 0:
+        return float("inf")
+    rng = _data_range(b, data_range)
+    return 10.0 * np.log10(rng * rng / mse)
 
 
 def ssim(a, b, data_range: float | None = None, sigma_vox: float = 1.5, window: str = "gaussian",
          win_size: int = 7) -> float:
     """Mean structural similarity of two volumes (or images) (Wang et al. 2004, K1 = 0.01, K2 = 0.03).
 
-    ``b`` is the reference; ``data_range`` defaults to its range. Window: ``"gaussian"``
+    ``b`` is the reference; ``data_range`` defaults to its range (a constant reference needs it given;
+    identical images give 1 regardless). Window: ``"gaussian"``
     (sigma ``sigma_vox``, truncated at 3.5 sigma) or ``"uniform"`` (``win_size`` voxels a
     side); local statistics by separable scipy.ndimage filters; border voxels included
     (reflected).
@@ -176,7 +192,9 @@ def ssim(a, b, data_range: float | None = None, sigma_vox: float = 1.5, window: 
     b = np.asarray(b, np.float64)
     if a.shape != b.shape:
         raise ValueError(f"shapes differ: {a.shape} vs {b.shape}")
-    L = float(b.max() - b.min()) if data_range is None else float(data_range)
+    if data_range is None and np.array_equal(a, b) and np.isfinite(a).all():
+        return 1.0
+    L = _data_range(b, data_range)
     c1, c2 = (0.01 * L) ** 2, (0.03 * L) ** 2
     if window == "gaussian":
         f = lambda x: ndimage.gaussian_filter(x, sigma_vox, truncate=3.5)  # noqa: E731

@@ -447,11 +447,15 @@ def back_project(proj: np.ndarray, geom: ConeGeometry, grid: VolumeGrid,
     unfiltered, unnormalised back-projection (mm x projection units per voxel), the
     building block of SIRT/CGLS and gradients; FDK uses its own weighted back-projector.
     ``out``, if given, must be C-contiguous float32 of ``grid.shape_zyx``; it is overwritten.
+    ``proj`` must be finite: the fast-math kernel would take a NaN for 0 (set unusable pixels to 0).
     """
     shape = (geom.n_views, geom.n_rows, geom.n_cols)
     if tuple(proj.shape) != shape:
         raise ValueError(f"proj shape {proj.shape} does not match geometry {shape}")
     p = np.ascontiguousarray(proj, dtype=np.float32)
+    if not np.isfinite(p).all():
+        raise ValueError(f"proj holds {int((~np.isfinite(p)).sum())} NaN or infinite values; back_project needs "
+                         "finite ones (set unusable pixels to 0)")
     n_vox = int(np.prod(grid.shape_zyx))
     if out is None:
         out = np.empty(grid.shape_zyx, dtype=np.float32)

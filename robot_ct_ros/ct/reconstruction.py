@@ -323,6 +323,8 @@ def fdk_filter_projections(line_integrals: np.ndarray, geom: ConeGeometry, *, ce
     p = np.asarray(line_integrals)
     if p.shape != (geom.n_views,) + geom.det_shape:
         raise ValueError(f"projections must have shape {(geom.n_views,) + geom.det_shape}, got {p.shape}")
+    if geom.n_views == 0:
+        raise ValueError("FDK needs at least one view, got none")
     if valid_mask is not None:
         p = fill_invalid_pixels(p, valid_mask)
     nv, nr, nc = p.shape

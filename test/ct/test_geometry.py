@@ -254,3 +254,19 @@ def test_binning_never_reduces_a_dimension_to_zero(factor):
     assert gb.shape_zyx == (1, 8 // factor, 12 // factor)
     assert gb.voxel_size_mm == (0.5 * factor, 0.5 * factor, 0.2)
     np.testing.assert_allclose(gb.center_mm, grid.center_mm)
+
+
+def test_sizes_that_are_not_finite_or_not_whole_are_refused():
+    """A NaN pitch, voxel size or origin passed the "<= 0" checks and made the projector return zeros; a
+    fractional detector or grid size was truncated without a word."""
+    from robot_ct_ros.ct.trajectory import circular_scan
+
+    for make in (lambda: VolumeGrid.centered((4, 4, 4), np.nan), lambda: VolumeGrid.centered((4, 4, 4), np.inf),
+                 lambda: VolumeGrid((4, 4, 4), (1.0, 1.0, 1.0), (np.nan, 0.0, 0.0)),
+                 lambda: VolumeGrid((4, 4, 4.9), (1.0, 1.0, 1.0)),
+                 lambda: circular_scan(4, 60.0, 150.0, 8, 8, np.nan, 1.0),
+                 lambda: circular_scan(4, 60.0, 150.0, 8, 8, 1.0, np.inf),
+                 lambda: circular_scan(4, 60.0, 150.0, 2.7, 8, 1.0, 1.0)):
+        with pytest.raises(ValueError):
+            make()
+    assert VolumeGrid((4.0, 4, 4), (1, 1, 1)).shape_zyx == (4, 4, 4)  # a whole float is a size

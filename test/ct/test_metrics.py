@@ -186,3 +186,20 @@ def test_cap_thickness_drops_lines_outside_the_grid_and_needs_one():
     away = VolumeGrid(grid.shape_zyx, grid.voxel_size_mm, np.asarray(grid.origin_mm) + [0.0, 0.0, 10.0])
     with pytest.raises(ValueError, match="inside the grid"):
         cap_thickness_mm(vol, away, cap)
+
+
+def test_ssim_and_psnr_on_constant_and_mismatched_images():
+    """ssim(c, c) of a constant image was NaN and psnr of a constant reference -inf (its range, the default
+    data_range, is 0); psnr broadcast images of different shapes."""
+    import pytest
+
+    from robot_ct_ros.ct.metrics import psnr, ssim
+
+    c = np.ones((6, 6, 6))
+    assert ssim(c, c) == 1.0 and psnr(c, c) == float("inf")
+    for f in (lambda: psnr(c + 0.1, c), lambda: ssim(2 * c, c)):
+        with pytest.raises(ValueError, match="data_range"):
+            f()
+    assert ssim(2 * c, c, data_range=1.0) < 1.0 and np.isfinite(psnr(c + 0.1, c, data_range=1.0))
+    with pytest.raises(ValueError, match="shapes differ"):
+        psnr(c[0], c)

@@ -226,3 +226,20 @@ def test_back_projection_matches_rtk_joseph_inside():
     rel_rmse = np.sqrt(np.mean((ours[inner] - ref[inner]) ** 2) / np.mean(ref[inner] ** 2))
     assert np.mean(ref[inner] > 0) > 0.5  # most inner voxels are seen
     assert rel_rmse < 1e-5  # measured ~4e-7
+
+
+def test_back_project_refuses_values_that_are_not_finite():
+    """With fast-math a NaN pixel was taken for 0 without a word (the adjoint of forward_project spreads it)."""
+    import pytest
+
+    from robot_ct_ros.ct.geometry import VolumeGrid
+    from robot_ct_ros.ct.projector import back_project
+    from robot_ct_ros.ct.trajectory import circular_scan
+
+    geom = circular_scan(4, 60.0, 150.0, 6, 8, 1.0, 1.0)
+    grid = VolumeGrid.centered((4, 4, 4), 1.0)
+    proj = np.ones((4, 6, 8), np.float32)
+    assert np.isfinite(back_project(proj, geom, grid)).all()
+    proj[1, 2, 3] = np.nan
+    with pytest.raises(ValueError, match="1 NaN or infinite"):
+        back_project(proj, geom, grid)

@@ -532,3 +532,20 @@ def test_one_row_fan_beam_fdk_reconstructs_the_slice_it_sees():
     vt = fdk(proj, fan, thick)
     np.testing.assert_allclose(vt[:, 2], vol[:, 0], atol=1e-6)
     assert np.all(vt[:, [0, 4]] == 0)
+
+
+def test_no_views_is_a_clear_error():
+    """FDK and the calibration of an empty view set failed deep inside with 'argmax of an empty sequence'."""
+    import pytest
+
+    from robot_ct_ros.ct import calibration
+    from robot_ct_ros.ct.geometry import VolumeGrid
+    from robot_ct_ros.ct.trajectory import circular_scan
+
+    geom = circular_scan(4, 60.0, 150.0, 6, 8, 1.0, 1.0).subset([])
+    grid = VolumeGrid.centered((4, 4, 4), 1.0)
+    empty = np.zeros((0, 6, 8), np.float32)
+    with pytest.raises(ValueError, match="at least one view"):
+        fdk(empty, geom, grid)
+    with pytest.raises(ValueError, match="at least one view"):
+        calibration.calibrate(empty, geom, grid, calibration.CalibrationSettings())

@@ -198,6 +198,8 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
     if drift_order is not None:
         fit_drift(np.zeros((nominal.n_views, 9)), drift_order, drift_times)  # validates order and times
     t_start = time.perf_counter()
+    if nominal.n_views == 0:
+        raise ValueError("calibration needs at least one view, got none")
     if np.shape(line_integrals) != (nominal.n_views,) + nominal.det_shape:
         raise ValueError(f"{np.shape(line_integrals)[0]} frames but {nominal.n_views} geometries, or detector "
                          f"shape mismatch")

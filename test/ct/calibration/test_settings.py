@@ -126,3 +126,22 @@ def test_each_arm_may_state_its_own_translation_error():
     for bad in (0.0, -1.0, float("inf")):
         with pytest.raises(ValueError, match="prior_detector_mm"):
             CalibrationSettings(prior_detector_mm=bad)
+
+
+def test_yes_no_fields_take_bools_only_and_numbers_are_stored_as_their_fields_keep_them():
+    """guard="false" was stored and counted as true; iterations=2.0 was stored as a float and crashed the loop;
+    numpy's np.int64(3) was refused as 'not a number'."""
+    import numpy as np
+
+    for name in ("guard", "exterior_reach_guess", "undo_inconsistent"):
+        for value in ("false", "off", 0, None):
+            with pytest.raises(ValueError, match=name):
+                CalibrationSettings(**{name: value})
+    assert CalibrationSettings(guard=np.bool_(False)).guard is False
+    s = CalibrationSettings(iterations=2.0, seed=np.int64(3), padding=np.float32(1.5), ensemble=np.int32(2))
+    assert (s.iterations, s.seed, s.ensemble) == (2, 3, 2) and all(
+        type(x) is int for x in (s.iterations, s.seed, s.ensemble))
+    assert s.padding == 1.5 and type(s.padding) is float
+    assert s.replace(seed=np.int64(4)).seed == 4 and type(s.replace(seed=np.int64(4)).seed) is int
+    with pytest.raises(ValueError, match="whole number"):
+        CalibrationSettings(iterations=2.5)
