@@ -16,7 +16,7 @@ REPO = Path(__file__).resolve().parents[1]
 ROSDEP_PYTHON_KEYS_NOBLE = {"python3-numpy", "python3-scipy", "python3-yaml", "python3-matplotlib", "python3-tqdm",
                             "python3-pil", "python3-pytest", "python3-psutil", "python3-lxml"}
 ROS_PACKAGES = {"rclpy", "rcl_interfaces", "builtin_interfaces", "lifecycle_msgs", "std_msgs", "std_srvs",
-                "sensor_msgs", "geometry_msgs", "diagnostic_msgs", "ament_copyright"}
+                "sensor_msgs", "geometry_msgs", "diagnostic_msgs", "ament_copyright", "ament_index_python"}
 NOT_ROSDEP_KEYS = {"python3-threadpoolctl", "python3-tifffile", "python3-numba", "python3-rosbags-pip",
                    "python3-mcap-pip", "python3-mcap-ros2-support-pip", "python3-ur-rtde-pip"}
 
