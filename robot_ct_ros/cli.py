@@ -456,6 +456,10 @@ def main(argv: list[str] | None = None) -> int:
     except (ScanBagError, ValueError) as exc:
         print(f"robot-ct {args.command}: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # Ctrl-C: the job's own cleanup has run; no traceback
+        print(f"robot-ct {args.command}: interrupted (an output folder it was writing holds no report.json of "
+              "this run)", file=sys.stderr)
+        return 130
     except MemoryError as exc:  # the estimate before allocating was too optimistic
         print(f"robot-ct {args.command}: out of memory ({exc or 'allocation failed'}); use a smaller --shape or a "
               "larger --voxel-mm", file=sys.stderr)

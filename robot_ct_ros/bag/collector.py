@@ -29,6 +29,7 @@ class ScanCollector:
         self.per_frame: dict[str, dict[int, bytes]] = {t: {} for t in PER_FRAME}
         self.scan_id = ""
         self.new_pairs: list[int] = []  # stamps paired since the last take_new_pairs, in pairing order
+        self.duplicates: dict[str, int] = {t: 0 for t in PER_FRAME}  # messages dropped for a stamp already held
 
     def add_latched(self, topic: str, data: bytes) -> bool:
         """Keep a latched message (scan_info, flat field, dead pixels); True when it is a
@@ -56,6 +57,7 @@ class ScanCollector:
         except Exception:  # noqa: BLE001 - a damaged message is not collected
             return False
         if stamp in self.per_frame[topic]:
+            self.duplicates[topic] += 1  # the bag written holds the first one: say so (warnings)
             return True
         self.per_frame[topic][stamp] = data
         other = {fmt.TOPIC_PROJECTION: fmt.TOPIC_GEOMETRY, fmt.TOPIC_GEOMETRY: fmt.TOPIC_PROJECTION}.get(topic)
@@ -74,6 +76,13 @@ class ScanCollector:
         for d in self.per_frame.values():
             d.clear()
         self.new_pairs = []
+        self.duplicates = {t: 0 for t in PER_FRAME}
+
+    @property
+    def warnings(self) -> list[str]:
+        """What the collection dropped, as the bag reader words it for a bag (the bag written cannot show it)."""
+        return [f"{n} {topic} messages with a stamp already seen were dropped (the first one is used; header.stamp "
+                "is the pairing key and must differ from frame to frame)" for topic, n in self.duplicates.items() if n]
 
     @property
     def n_frames(self) -> int:

@@ -19,7 +19,7 @@ from robot_ct_ros.bag.reader import ScanData, read_scan
 from robot_ct_ros.ct.calibration import CalibrationResult, CalibrationSettings, calibrate
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
 from robot_ct_ros.jobs.output import say as _say
-from robot_ct_ros.jobs.output import write_json, write_volume
+from robot_ct_ros.jobs.output import start_output, write_json, write_volume
 
 __all__ = ["Correction", "correct_scan", "write_correction", "calibrate_bag", "scan_grid", "drift_times",
            "geometry_error", "truth_metrics", "markdown_report"]
@@ -182,12 +182,12 @@ def write_correction(correction: Correction, out, *, markdown: bool = False, say
     ``<bag name>_corrected``: every message of the scan bag plus /ct/geometry_corrected (copied
     from the messages read with the scan when it was read with ``keep_raw``);
     ``volume.npy``/``.tif``/``_grid.json``; ``report.json`` (the report with ``files`` and
-    ``paths``); with ``markdown`` also ``report.md``. Returns the report as written.
+    ``paths``); with ``markdown`` also ``report.md``. The reports are written last and a previous run's are
+    removed first, so an interrupted run leaves no report.json. Returns the report as written.
     """
     from robot_ct_ros.bag.writer import write_corrected_bag
 
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = start_output(out)  # report.json is written last: without it, the folder holds an unfinished run
     scan, report = correction.scan, dict(correction.report)
     name = scan.path.name.removesuffix(".mcap")
     corrected_bag = out / f"{name}_corrected"

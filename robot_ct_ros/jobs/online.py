@@ -6,7 +6,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 
-from robot_ct_ros.parameters import setting
+from robot_ct_ros.parameters import setting, validate
 
 __all__ = ["RunPlanner", "ServiceSettings"]
 
@@ -80,6 +80,12 @@ class ServiceSettings:
     evaluate_truth: bool = setting(True, "simulated scans: error against /ct/geometry_true in the report")
     roi_shape: tuple = setting((0, 0, 0), "reconstruction grid nx, ny, nz (zeros: scan_info's ROI or the field of "
                                "view)", unit="voxels", minimum=0)
+
+    def __post_init__(self):
+        validate(self)
+        if 0 in self.roi_shape and any(self.roi_shape):  # a zero among sizes is no grid, not "the default"
+            raise ValueError(f"roi_shape must be three positive sizes, or all zeros for the scan's own grid; got "
+                             f"{list(self.roi_shape)}")
 
     @property
     def shape_xyz(self):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from pathlib import Path
 
 import numpy as np
@@ -127,10 +128,26 @@ def clean_json(obj):
 
 
 def write_json(path, obj) -> Path:
-    """Write ``obj`` as indented strict JSON; returns the path."""
+    """Write ``obj`` as indented strict JSON, whole or not at all (a temporary file renamed); returns the path."""
     path = Path(path)
-    path.write_text(json.dumps(clean_json(obj), indent=2, default=json_default))
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(clean_json(obj), indent=2, default=json_default))
+    os.replace(tmp, path)
     return path
+
+
+REPORT_FILES = ("report.json", "report.md")
+"""A job's report, written after every other output: a folder without report.json holds an unfinished run."""
+
+
+def start_output(out) -> Path:
+    """Make the folder ``out`` and remove the reports a previous run left there, before a job rewrites its other
+    files: interrupted or failed, the job then leaves no report.json that would vouch for a mix of two runs."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    for name in REPORT_FILES:
+        (out / name).unlink(missing_ok=True)
+    return out
 
 
 def write_volume(volume: np.ndarray, grid, out, stem: str = "volume") -> list[str]:

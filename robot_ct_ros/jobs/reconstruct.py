@@ -11,7 +11,7 @@ from robot_ct_ros.bag.reader import read_scan
 from robot_ct_ros.bag.format import ScanBagError
 from robot_ct_ros.jobs.calibrate import base_report, geometry_error, scan_grid
 from robot_ct_ros.jobs.output import say as _say
-from robot_ct_ros.jobs.output import check_memory, write_json, write_volume
+from robot_ct_ros.jobs.output import check_memory, start_output, write_json, write_volume
 
 __all__ = ["reconstruct_bag", "GEOMETRIES"]
 
@@ -51,6 +51,7 @@ def reconstruct_bag(bag, out, *, geometry: str = "auto", voxel_mm=None, shape_xy
     say(f"{scan.n_views} views, detector {geom.n_rows}x{geom.n_cols}; FDK on {grid.shape_zyx[::-1]} voxels of "
         f"{grid.voxel_size_mm[0] * 1000:.1f} um ({'corrected' if use_corrected else 'nominal'} geometry)")
     vol = fdk(li, geom, grid, valid_mask=mask)
+    out = start_output(out)  # report.json is written last: without it, the folder holds an unfinished run
     outside = 1.0 - float(np.mean(field_of_view_mask(geom, grid)))
     if outside > 0.3:  # beyond a square grid's corners (21 %): FDK puts streaks there, not the object
         say(f"note: {100 * outside:.0f} % of the grid lies outside the field of view (voxels that the measured rays "

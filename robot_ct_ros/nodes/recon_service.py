@@ -214,6 +214,10 @@ class ReconServiceNode(Node):
                                        shape_xyz=self.service.shape_xyz,
                                        evaluate_truth=self.service.evaluate_truth, markdown=True, say=say)
             report = correction.report | {"partial": partial, "scan_id": self.scan.scan_id}
+            if not self.service.bag_path or partial:  # the scan as received: what the collection dropped
+                report["bag_warnings"] = list(self.scan.warnings) + list(report.get("bag_warnings", []))
+                for warning in self.scan.warnings:
+                    self.get_logger().warning(warning)
             if self.stream is not None:
                 report["live"] = self.stream.summary()
             result = (run, report, correction, None)

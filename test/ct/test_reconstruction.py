@@ -549,3 +549,20 @@ def test_no_views_is_a_clear_error():
         fdk(empty, geom, grid)
     with pytest.raises(ValueError, match="at least one view"):
         calibration.calibrate(empty, geom, grid, calibration.CalibrationSettings())
+
+
+def test_a_one_column_detector_is_refused_by_the_calibration_in_one_line():
+    """An 8 x 1 detector crashed the truncation check with an IndexError; its edges are now its column, and the
+    calibration, which has no row to register along, says so."""
+    import pytest
+
+    from robot_ct_ros.ct import calibration
+    from robot_ct_ros.ct.calibration.volume import truncation_level
+    from robot_ct_ros.ct.geometry import VolumeGrid
+    from robot_ct_ros.ct.trajectory import circular_scan
+
+    geom = circular_scan(8, 60.0, 150.0, 8, 1, 1.0, 1.0)
+    li = np.ones((8, 8, 1), np.float32)
+    assert truncation_level(li) == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="at least 2 columns"):
+        calibration.calibrate(li, geom, VolumeGrid.centered((4, 4, 4), 1.0), calibration.CalibrationSettings())

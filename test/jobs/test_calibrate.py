@@ -93,3 +93,25 @@ def test_a_one_row_bag_reconstructs_and_calibrates(tmp_path):
     held = [PARAM_NAMES.index(p) for p in PARAM_NAMES if p not in FAN_BEAM_PARAMS]
     assert np.abs(correction.result.params[:, held]).max() < 1e-9
     assert read_scan(correction.report["corrected_bag"]).geom_corrected.det_shape == (1, 64)
+
+
+def test_an_interrupted_rerun_leaves_no_report_that_vouches_for_a_mix(tmp_path, monkeypatch, capsys):
+    """A second run into the same folder, stopped while it wrote its volume, left the first run's report.json
+    beside the second run's volume (a folder that looked complete); Ctrl-C printed a traceback."""
+    from robot_ct_ros.cli import main
+    from robot_ct_ros.jobs import calibrate as job
+
+    bag = _bag(tmp_path / "z", np.eye(3))
+    out = tmp_path / "out"
+    assert main(["calibrate", str(bag), "--method", "none", "--shape", "16,16,16", "--out", str(out)]) == 0
+    assert (out / "report.json").is_file()
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(job, "write_volume", interrupted)
+    assert main(["calibrate", str(bag), "--method", "none", "--shape", "24,24,24", "--out", str(out)]) == 130
+    assert not (out / "report.json").exists() and not (out / "report.md").exists()
+    err = capsys.readouterr().err
+    assert "interrupted" in err and "Traceback" not in err
+    assert not list(out.glob("*.tmp"))

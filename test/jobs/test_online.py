@@ -44,3 +44,13 @@ def test_service_settings_defaults_and_units():
     assert s.shape_xyz is None and s.voxel_mm is None
     s = ServiceSettings(voxel_size_m=5e-5, roi_shape=(64, 64, 32))
     assert s.shape_xyz == (64, 64, 32) and abs(s.voxel_mm - 0.05) < 1e-12
+
+
+def test_a_zero_among_the_roi_sizes_is_refused_not_taken_for_the_default():
+    """roi_shape [0, 10, 10] silently became the scan's default grid; only all zeros mean that."""
+    import pytest
+
+    for shape in ((0, 10, 10), (64, 64, 0)):
+        with pytest.raises(ValueError, match="roi_shape must be three positive sizes"):
+            ServiceSettings(roi_shape=shape)
+    assert ServiceSettings(roi_shape=(0, 0, 0)).shape_xyz is None

@@ -61,3 +61,14 @@ def test_a_short_scan_from_simulate_reconstructs_as_the_full_circle(tmp_path):
     assert v_short[inner].mean() == pytest.approx(v_full[inner].mean(), rel=0.01)  # 1e-5 here
     assert np.corrcoef(v_short[inner], v_full[inner])[0, 1] > 0.9  # 0.96: the truncation's artefacts differ
     assert v_plain[inner].mean() < 0.7 * v_full[inner].mean()
+
+
+def test_a_one_row_detector_of_common_width_simulates(tmp_path):
+    """1 x 256 and 1 x 560 were refused ("fine ROI grid ... exceeds max_voxels"): the default phantom voxel was sized
+    from the one-row ROI alone while the fine grid adds a margin of millimetres on every side."""
+    from robot_ct_ros.bag import read_scan
+    from robot_ct_ros.cli import main
+
+    assert main(["simulate", "--rows", "1", "--cols", "560", "--views", "4", "--out", str(tmp_path / "fan")]) == 0
+    scan = read_scan(tmp_path / "fan")
+    assert scan.geom.det_shape == (1, 560) and scan.n_views == 4

@@ -69,8 +69,12 @@ def test_the_collector_hands_each_pair_over_once_and_forgets_them_with_a_new_sca
     collector.add_frame_message(fmt.TOPIC_GEOMETRY, geoms[0].data)  # a repeat pairs nothing new
     (pair,) = collector.take_new_pairs()
     assert pair[1] == frames[0].data and pair[2] == geoms[0].data and collector.take_new_pairs() == []
+    # the repeat is dropped, and said (the bag written from the collection cannot show it)
+    (warning,) = collector.warnings
+    assert warning.startswith(f"1 {fmt.TOPIC_GEOMETRY} messages with a stamp already seen were dropped")
     collector.add_frame_message(fmt.TOPIC_GEOMETRY, geoms[1].data)
     collector.reset()
+    assert collector.warnings == []
     collector.add_frame_message(fmt.TOPIC_PROJECTION, frames[1].data)
     assert collector.take_new_pairs() == []
 

@@ -147,7 +147,9 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
                   focus_modes=focus_modes, fdk_kwargs=fdk_kwargs, progress=progress, on_iteration=on_iteration,
                   accuracy=accuracy, executor=executor, final_volume=final_volume)
         if settings.ensemble <= 1 or not method.samples or configs is not None:
-            return _calibrate_once(line_integrals, nominal, grid, settings, **kw)
+            result = _calibrate_once(line_integrals, nominal, grid, settings, **kw)
+            unused = _unused_settings(method, settings)
+            return replace(result, notes=result.notes + (unused,)) if unused else result
         runs = []
         kw["reach_memo"] = {}  # the reach guess (nominal geometry, no sampling) is the same for every member
         for k, seed in enumerate(member_seeds(settings.seed, settings.ensemble)):
@@ -157,6 +159,19 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
                                fdk_kwargs=fdk_kwargs)
     say(f"ensemble of {settings.ensemble}: the members lie {result.spread_px:.3f} px from their mean")
     return result
+
+
+def _unused_settings(method, settings) -> str:
+    """The note for settings that ``method`` ignores (given, yet the result would be the same without them)."""
+    if method.estimate is None:
+        given = [f"{name} {value}" for name, value, off in (("ensemble", settings.ensemble, 1),
+                                                              ("drift_order", settings.drift_order, None))
+                 if value != off]
+        return (f"no correction ({method.name}): {', '.join(given)} did not apply" if given else "")
+    if settings.ensemble > 1 and not method.samples:
+        return (f"ensemble {settings.ensemble} did not apply: {method.name} draws no samples, so its runs would be "
+                "identical (one run)")
+    return ""
 
 
 @blas_single_threaded
@@ -200,6 +215,8 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
     t_start = time.perf_counter()
     if nominal.n_views == 0:
         raise ValueError("calibration needs at least one view, got none")
+    if nominal.n_cols < 2:  # a column alone shows no shift along the row: nothing to register
+        raise ValueError(f"calibration needs a detector at least 2 columns wide, got {nominal.n_rows} x {nominal.n_cols}")
     if np.shape(line_integrals) != (nominal.n_views,) + nominal.det_shape:
         raise ValueError(f"{np.shape(line_integrals)[0]} frames but {nominal.n_views} geometries, or detector "
                          f"shape mismatch")

@@ -226,6 +226,10 @@ class CalibrationSettings:
             value = getattr(self, name)
             if value is not None and not (value > 0 and math.isfinite(value)):
                 raise ValueError(f"{name} must be positive (or off: the same as prior_translation_mm); got {value!r}")
+        coarse, fine = self.coarse_binning, self.fine_binning  # both set here, or by resolved() for a run
+        if coarse is not None and fine is not None and coarse < fine:
+            raise ValueError(f"coarse_binning ({coarse}) must be at least fine_binning ({fine}): the coarse level is "
+                             f"the more binned one (a field left off takes the schedule's {self.schedule!r} value)")
         if self.scheduler not in ("", "local") and "://" not in self.scheduler:
             raise ValueError(f"scheduler must be empty (in-process), local or a Dask scheduler address such as "
                              f"tcp://host:8786; got {self.scheduler!r}")

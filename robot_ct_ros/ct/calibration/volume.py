@@ -99,7 +99,9 @@ def truncation_level(line_integrals: np.ndarray, valid_mask=None, edge_px: int =
     view (noise averages out), a few per cent and more for an interior scan."""
     li = np.asarray(line_integrals, dtype=np.float32)
     mask = as_view_mask(valid_mask, li.shape) & np.isfinite(li)
-    cols = np.r_[0:edge_px, li.shape[-1] - edge_px:li.shape[-1]]
+    n_cols = li.shape[-1]
+    edge_px = max(1, min(edge_px, n_cols // 2))  # a narrow detector: its edges are its own columns
+    cols = np.unique(np.r_[0:edge_px, n_cols - edge_px:n_cols])
     edge, m = li[..., cols], mask[..., cols]
     per_view = (np.where(m, edge, 0.0).sum(axis=(1, 2)) / np.maximum(m.sum(axis=(1, 2)), 1))
     peak = float(np.percentile(li[mask], 99.9)) if mask.any() else 0.0

@@ -69,7 +69,7 @@ def scan_volumes(phantom: Phantom, geom: ConeGeometry, voxel_size_mm, roi_grid: 
     if roi_grid is None or outer_voxel_size_mm is None:
         n = np.maximum(1, np.ceil((hi - lo) / vs).astype(int))
         if np.prod(n) > max_voxels:
-            raise ValueError(f"fine grid {tuple(n)} exceeds max_voxels; pass roi_grid and outer_voxel_size_mm")
+            raise ValueError(f"fine grid {tuple(int(x) for x in n)} exceeds max_voxels; pass roi_grid and outer_voxel_size_mm")
         g = VolumeGrid.centered(tuple(n[::-1]), vs, 0.5 * (lo + hi))
         return [(voxelize(phantom, g, supersample), g)]
     # both lattices share the node c0 and the coarse pitch is a multiple of the fine one, so
@@ -87,11 +87,11 @@ def scan_volumes(phantom: Phantom, geom: ConeGeometry, voxel_size_mm, roi_grid: 
     k_hi = np.ceil((hi - c0) / ovs + 0.5).astype(int)
     nc = k_hi - k_lo + 1
     if np.prod(nc) > max_voxels:
-        raise ValueError(f"coarse grid {tuple(nc)} exceeds max_voxels; raise outer_voxel_size_mm")
+        raise ValueError(f"coarse grid {tuple(int(x) for x in nc)} exceeds max_voxels; raise outer_voxel_size_mm")
     cg = VolumeGrid(tuple(nc[::-1]), tuple(ovs), tuple(c0 + k_lo * ovs))
     nf = np.round((out_hi - out_lo) / vs).astype(int) + 1
     if np.prod(nf) > max_voxels:
-        raise ValueError(f"fine ROI grid {tuple(nf)} exceeds max_voxels")
+        raise ValueError(f"fine ROI grid {tuple(int(x) for x in nf)} exceeds max_voxels")
     fg = VolumeGrid(tuple(nf[::-1]), tuple(vs), tuple(out_lo))
     blend = nb * ovs
     coarse = voxelize(phantom, cg, supersample)

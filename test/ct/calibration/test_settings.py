@@ -145,3 +145,34 @@ def test_yes_no_fields_take_bools_only_and_numbers_are_stored_as_their_fields_ke
     assert s.replace(seed=np.int64(4)).seed == 4 and type(s.replace(seed=np.int64(4)).seed) is int
     with pytest.raises(ValueError, match="whole number"):
         CalibrationSettings(iterations=2.5)
+
+
+def test_settings_a_method_ignores_are_named_in_its_notes():
+    """--method none --ensemble 3 --drift-order 1 and gdc --ensemble 2 ran without a word, while report.json's
+    settings said ensemble 3 and 2."""
+    import numpy as np
+
+    from robot_ct_ros.ct.calibration import calibrate
+    from robot_ct_ros.ct.geometry import VolumeGrid
+    from robot_ct_ros.ct.trajectory import circular_scan
+
+    geom = circular_scan(8, 60.0, 150.0, 8, 12, 1.0, 1.0)
+    li = np.random.default_rng(0).random((8, 8, 12)).astype(np.float32)
+    grid = VolumeGrid.centered((4, 6, 6), 1.0)
+    none = calibrate(li, geom, grid, CalibrationSettings(method="none", ensemble=3, drift_order=1))
+    assert any("no correction (none): ensemble 3, drift_order 1 did not apply" in n for n in none.notes), none.notes
+    assert calibrate(li, geom, grid, CalibrationSettings(method="none")).notes == ()
+    from robot_ct_ros.ct.calibration.loop import _unused_settings
+
+    assert "ensemble 2 did not apply: gdc draws no samples" in _unused_settings(
+        get_method("gdc"), CalibrationSettings(method="gdc", ensemble=2))
+    assert _unused_settings(get_method("ncc-lle-exact"), CalibrationSettings(ensemble=2)) == ""
+
+
+def test_a_coarse_level_finer_than_the_fine_one_is_refused():
+    """--coarse-binning 2 --fine-binning 4 ran with its "coarse" level finer than its "fine" one."""
+    with pytest.raises(ValueError, match="coarse_binning"):
+        CalibrationSettings(coarse_binning=2, fine_binning=4)
+    with pytest.raises(ValueError, match="coarse_binning"):  # the schedule's coarse level (2) under accurate
+        CalibrationSettings(fine_binning=4).resolved(False)
+    assert CalibrationSettings(coarse_binning=1).resolved(False).plan()["fine_binning"] == 1  # one level
