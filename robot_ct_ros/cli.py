@@ -317,10 +317,18 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     whole = _positive("a count", int)
 
+    def scan_views(text: str) -> int:  # a bag with fewer views is no scan (bag.reader.MIN_VIEWS)
+        from robot_ct_ros.bag.reader import MIN_VIEWS
+
+        n = whole(text)
+        if n < MIN_VIEWS:
+            raise argparse.ArgumentTypeError(f"a scan needs at least {MIN_VIEWS} views, got {n}")
+        return n
+
     p = sub.add_parser("demo", help="scan, record and correct a simulated robotic interior scan end to end")
     p.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
     p.add_argument("--quick", action="store_true", help="a tiny run: 12 views, 32 x 64 detector, 1 iteration")
-    p.add_argument("--views", type=whole, default=None, help=f"number of views (default {DEMO['views']})")
+    p.add_argument("--views", type=scan_views, default=None, help=f"number of views (default {DEMO['views']})")
     p.add_argument("--rows", type=whole, default=None, help=f"detector rows, binned (default {DEMO['rows']})")
     p.add_argument("--cols", type=whole, default=None, help=f"detector columns, binned (default {DEMO['cols']})")
     p.add_argument("--phantom", choices=PHANTOMS, default=None, help=f"simulated object (default {DEMO['phantom']})")
@@ -334,7 +342,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("simulate", help="simulate a robotic ROI scan of a phantom into a scan bag")
     p.add_argument("--phantom", choices=PHANTOMS, default="carotid")
-    p.add_argument("--views", type=whole, default=360, help="number of views (default 360)")
+    p.add_argument("--views", type=scan_views, default=360, help="number of views (default 360)")
     p.add_argument("--rows", type=whole, default=272, help="detector rows after binning (default 272)")
     p.add_argument("--cols", type=whole, default=636, help="detector columns after binning (default 636)")
     p.add_argument("--binning", type=whole, default=2, help="readout binning of the 55 um pixels (default 2)")
@@ -442,7 +450,28 @@ def _negative_lists_attached(argv: list[str]) -> list[str]:
     return out
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (``kill``, ``timeout``), raised in the main thread so that a command cleans up as after Ctrl-C."""
+
+
+def _raise_terminated(signum, frame):
+    raise Terminated()
+
+
 def main(argv: list[str] | None = None) -> int:
+    import signal
+    import threading
+
+    on_main = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _raise_terminated) if on_main else None
+    try:
+        return _main(argv)
+    finally:
+        if on_main:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(_negative_lists_attached(list(sys.argv[1:] if argv is None else argv)))
     from robot_ct_ros.bag import ScanBagError
 
@@ -456,10 +485,11 @@ def main(argv: list[str] | None = None) -> int:
     except (ScanBagError, ValueError) as exc:
         print(f"robot-ct {args.command}: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:  # Ctrl-C: the job's own cleanup has run; no traceback
-        print(f"robot-ct {args.command}: interrupted (an output folder it was writing holds no report.json of "
-              "this run)", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: the job's own cleanup has run; no traceback
+        terminated = isinstance(exc, Terminated)
+        print(f"robot-ct {args.command}: {'terminated (SIGTERM)' if terminated else 'interrupted'} (an output folder "
+              "it was writing holds no report.json of this run)", file=sys.stderr)
+        return 143 if terminated else 130
     except MemoryError as exc:  # the estimate before allocating was too optimistic
         print(f"robot-ct {args.command}: out of memory ({exc or 'allocation failed'}); use a smaller --shape or a "
               "larger --voxel-mm", file=sys.stderr)

@@ -42,3 +42,26 @@ def test_a_truncated_demo_models_the_phantom_around_the_roi():
     # the 25 mm wide mouse, its spine (6.6 mm off its centre) in the ROI: its far side 17 mm away
     assert truncated["exterior_half_width_mm"] == pytest.approx(17.0, abs=0.1)
     assert "exterior" not in recon_parameters(demo_settings())
+
+
+def test_the_demo_replaces_only_its_own_outputs(tmp_path, capsys):
+    """demo --out DIR deleted DIR/bags and DIR/recon whatever they held (robot-ct demo --out . in the repository
+    would have taken the sample bags), and a failed run kept the earlier run's summary.json."""
+    from robot_ct_ros.cli import main
+    from robot_ct_ros.testing.demo import DEMO_MARK, claim_output
+
+    mine = tmp_path / "lab"
+    (mine / "bags" / "my_scan").mkdir(parents=True)
+    (mine / "bags" / "my_scan" / "data.mcap").write_bytes(b"x")
+    assert main(["demo", "--out", str(mine), "--quick"]) == 2
+    assert "holds files an earlier demo did not write" in capsys.readouterr().err
+    assert (mine / "bags" / "my_scan" / "data.mcap").exists()
+    earlier = tmp_path / "demo"
+    (earlier / "recon").mkdir(parents=True)
+    (earlier / "summary.json").write_text("{}")  # an earlier demo's, from before the mark
+    claim_output(earlier)
+    assert (earlier / DEMO_MARK).exists() and not (earlier / "summary.json").exists()
+    assert not (earlier / "recon").exists()
+    with pytest.raises(SystemExit):
+        main(["demo", "--views", "3"])  # a bag with fewer than 4 views is no scan: refused before any work
+    assert "at least 4 views" in capsys.readouterr().err

@@ -8,6 +8,7 @@ recon_service and replay nodes and the demo all run this job.
 
 from __future__ import annotations
 
+import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -187,9 +188,10 @@ def write_correction(correction: Correction, out, *, markdown: bool = False, say
     """
     from robot_ct_ros.bag.writer import write_corrected_bag
 
-    out = start_output(out)  # report.json is written last: without it, the folder holds an unfinished run
     scan, report = correction.scan, dict(correction.report)
     name = scan.path.name.removesuffix(".mcap")
+    _refuse_another_bags_folder(Path(out), name)
+    out = start_output(out)  # report.json is written last: without it, the folder holds an unfinished run
     corrected_bag = out / f"{name}_corrected"
     if corrected_bag.exists():
         import shutil
@@ -209,11 +211,30 @@ def write_correction(correction: Correction, out, *, markdown: bool = False, say
     return report
 
 
+def _refuse_another_bags_folder(out: Path, name: str) -> None:
+    """A folder holds one bag's calibration: refuse ``out`` where report.json or a ``*_corrected`` bag is of a bag
+    other than ``name`` (two runs would mix there, and export could take the other bag's correction)."""
+    others = ([p.name.removesuffix("_corrected") for p in out.glob("*_corrected") if p.name != f"{name}_corrected"]
+              if out.is_dir() else [])
+    previous = out / "report.json"
+    if previous.is_file():
+        try:
+            earlier = Path(json.loads(previous.read_text()).get("paths", {}).get("input_bag", "")).name
+        except (ValueError, AttributeError):
+            earlier = ""
+        if earlier and earlier.removesuffix(".mcap") != name:
+            others.append(earlier)
+    if others:
+        raise ValueError(f"{out} holds the calibration of another bag ({', '.join(sorted(set(others)))}); give each "
+                         "bag its own --out folder")
+
+
 def calibrate_bag(bag, out, settings: CalibrationSettings | None = None, *, voxel_mm=None, shape_xyz=None,
                   evaluate_truth: bool = False, markdown: bool = False, say=_say) -> Correction:
     """:func:`correct_scan` of the bag at ``bag`` (read once), written by :func:`write_correction`
     into ``out``. Returns the correction, its report as written."""
     scan = read_scan(bag, keep_raw=True)
+    _refuse_another_bags_folder(Path(out), scan.path.name.removesuffix(".mcap"))  # before the work, not after it
     correction = correct_scan(scan, settings, scan_grid(scan, voxel_mm, shape_xyz), evaluate_truth=evaluate_truth,
                               say=say)
     report = write_correction(correction, out, markdown=markdown, say=say)

@@ -53,7 +53,7 @@ def corrected_geometry(path, nominal_scan=None) -> ConeGeometry:
     ``path`` is the folder ``robot-ct calibrate --out`` wrote, its ``report.json`` (whose
     ``corrected_bag`` names the bag with /ct/geometry_corrected), or such a corrected bag itself.
     With ``nominal_scan`` (a :class:`~robot_ct_ros.bag.reader.ScanData`), the corrected bag must
-    hold the same views (same stamps).
+    hold the same views (same stamps) and the same projections.
     """
     path = Path(path)
     report = path / "report.json" if path.is_dir() and (path / "report.json").exists() else path
@@ -75,6 +75,10 @@ def corrected_geometry(path, nominal_scan=None) -> ConeGeometry:
     if nominal_scan is not None and not np.array_equal(scan.stamps_ns, nominal_scan.stamps_ns):
         raise ValueError(f"{bag} holds other views than {nominal_scan.path} ({scan.n_views} and "
                          f"{nominal_scan.n_views} frames, stamps differ)")
+    if nominal_scan is not None and not np.array_equal(scan.counts, nominal_scan.counts, equal_nan=True):
+        # simulated scans of one protocol share stamps: the frames tell whose correction this is
+        raise ValueError(f"{bag} is the correction of another scan than {nominal_scan.path} (same stamps, other "
+                         "projections)")
     return scan.geom_corrected
 
 

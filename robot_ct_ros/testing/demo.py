@@ -113,6 +113,32 @@ def recon_parameters(s: dict) -> dict:
     return params
 
 
+DEMO_MARK = ".robot_ct_demo"
+"""The file that marks a folder as a demo's output: only such a folder's outputs are replaced by the next run."""
+DEMO_OUTPUTS = ("bags", "recon", "summary.json", "scan_protocol.yaml")
+
+
+def claim_output(out: Path) -> None:
+    """Make ``out`` the demo's output folder: a new or empty folder, or one an earlier demo marked
+    (:data:`DEMO_MARK`, or its summary.json), whose outputs (:data:`DEMO_OUTPUTS`) are removed first, summary.json included, so a
+    failed or interrupted run leaves none of the earlier run's. Any other folder is refused (ValueError): the
+    demo never deletes what it did not write."""
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out} is a file")
+    earlier_demo = (out / DEMO_MARK).exists() or (out / "summary.json").exists()  # summary.json: before the mark
+    if out.is_dir() and any(out.iterdir()) and not earlier_demo:
+        raise ValueError(f"--out {out} holds files an earlier demo did not write; give a new or empty folder (the "
+                         "demo replaces its own outputs there)")
+    for name in DEMO_OUTPUTS:
+        path = out / name
+        if path.is_dir():
+            shutil.rmtree(path)
+        elif path.exists():
+            path.unlink()
+    out.mkdir(parents=True, exist_ok=True)
+    (out / DEMO_MARK).write_text("robot-ct demo output: the next demo run into this folder replaces its outputs\n")
+
+
 def run_demo(out="out/demo", *, quick: bool = False, **given) -> int:
     """Run the demo into ``out`` (``given``: views, rows, cols, phantom, method, iterations,
     truncated; None keeps the default); 0 on success, 1 when the graph failed (it says why)."""
@@ -121,10 +147,7 @@ def run_demo(out="out/demo", *, quick: bool = False, **given) -> int:
     t0 = time.monotonic()
     s = demo_settings(quick=quick, **given)
     out = Path(out)
-    for sub in ("bags", "recon"):  # this demo's own outputs of an earlier run
-        if (out / sub).exists():
-            shutil.rmtree(out / sub)
-    out.mkdir(parents=True, exist_ok=True)
+    claim_output(out)
     protocol, grabber = demo_setup(s)
 
     def say(msg: str) -> None:

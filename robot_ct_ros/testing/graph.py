@@ -83,6 +83,30 @@ def _load_protocol(protocol, out_dir: Path) -> tuple[Path, object]:
     return path, proto
 
 
+def _beam_off_first(nodes: list, executor, say) -> None:
+    """A graph stopped while its source is up (interrupted, failed): abort the scan, switch the beam off and let the
+    other nodes, the recorder among them, hear it before they stop. ``nodes`` loses the source."""
+    from robot_ct_ros.nodes.scan_orchestrator import ScanOrchestratorNode
+    from robot_ct_ros.nodes.source_control import SourceControlNode
+
+    source = next((nd for nd in nodes if isinstance(nd, SourceControlNode)), None)
+    if source is None:
+        return
+    try:
+        for orch in (nd for nd in nodes if isinstance(nd, ScanOrchestratorNode)):
+            if orch.running:
+                orch.abort("the graph is stopping")
+        executor.remove_node(source)
+        source.destroy_node()  # the beam off, published (beam_on false) before the node goes
+        nodes.remove(source)
+        end = time.monotonic() + 0.3
+        while time.monotonic() < end:  # the recorder records beam_on false
+            executor.spin_once(timeout_sec=0.02)
+        say("stopping the graph: scan aborted, beam off (source_control stopped)")
+    except Exception as exc:  # noqa: BLE001 - best effort; the source's own teardown switches the beam off too
+        say(f"stopping the graph: {type(exc).__name__}: {exc}")
+
+
 def run_scan_graph(out_dir, protocol="quick", *, grabber: dict | None = None, arms: dict | None = None,
                    arm_errors: dict | None = None, recon: dict | None = None, recorder: dict | None = None,
                    orchestrator: dict | None = None,
@@ -303,6 +327,7 @@ def run_scan_graph(out_dir, protocol="quick", *, grabber: dict | None = None, ar
                            report_md=path("report_md"), report=report, frames=frames, corrected=dict(corrected),
                            slices=dict(slices), progress=list(progress), timings_s=timings, live=dict(live))
     finally:
+        _beam_off_first(nodes, executor, say)
         for node in reversed(nodes):
             try:
                 executor.remove_node(node)

@@ -115,3 +115,26 @@ def test_an_interrupted_rerun_leaves_no_report_that_vouches_for_a_mix(tmp_path, 
     err = capsys.readouterr().err
     assert "interrupted" in err and "Traceback" not in err
     assert not list(out.glob("*.tmp"))
+
+
+def test_a_folder_holds_one_bags_calibration_and_export_takes_only_its_own(tmp_path, capsys):
+    """Two simulated bags of one protocol (same stamps) calibrated into one folder left both corrected bags and the
+    second's report.json; export of the first bag with that folder took the second's correction."""
+    from robot_ct_ros.cli import main
+
+    a = write_scan(tmp_path / "a", np.ones((4, 6, 8), np.float32), circular_scan(4, 60.0, 150.0, 6, 8, 1.0, 1.0),
+                   projection_units="line_integral")
+    b = write_scan(tmp_path / "b", np.full((4, 6, 8), 2.0, np.float32), circular_scan(4, 60.0, 150.0, 6, 8, 1.0, 1.0),
+                   projection_units="line_integral")
+    out = tmp_path / "out"
+    assert main(["calibrate", str(a), "--method", "none", "--shape", "8,8,8", "--out", str(out)]) == 0
+    assert main(["calibrate", str(a), "--method", "none", "--shape", "8,8,8", "--out", str(out)]) == 0  # a rerun
+    capsys.readouterr()
+    assert main(["calibrate", str(b), "--method", "none", "--shape", "8,8,8", "--out", str(out)]) == 2
+    assert "holds the calibration of another bag (a)" in capsys.readouterr().err
+    assert main(["calibrate", str(b), "--method", "none", "--shape", "8,8,8", "--out", str(tmp_path / "out_b")]) == 0
+    capsys.readouterr()
+    assert main(["export", str(a), "--corrected", str(tmp_path / "out_b"), "--format", "astra", "--out",
+                 str(tmp_path / "v.txt")]) == 2
+    assert "correction of another scan" in capsys.readouterr().err
+    assert main(["export", str(a), "--corrected", str(out), "--format", "astra", "--out", str(tmp_path / "v.txt")]) == 0
