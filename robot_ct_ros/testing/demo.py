@@ -155,9 +155,11 @@ def run_demo(out="out/demo", *, quick: bool = False, **given) -> int:
 
     say(f"{s['phantom']} phantom{' (whole, truncated projections)' if s['truncated'] else ' inside the field of view'}"
         f", {s['views']} views, detector {s['rows']}x{s['cols']} binned pixels of 110 um, robot errors "
-        f"{s['sigma_mm']} mm / {s['sigma_deg']} deg per move and axis; correction {s['method']}, "
-        + (f"{s['iterations']} iteration(s)" if s["iterations"] else "its schedule's iterations")
-        + ", with the arms' accuracy as its prior")
+        f"{s['sigma_mm']} mm / {s['sigma_deg']} deg per move and axis; "
+        + ("no correction (method none: the nominal geometry)" if s["method"] == "none" else
+           f"correction {s['method']}, "
+           + (f"{s['iterations']} iteration(s)" if s["iterations"] else "its schedule's iterations")
+           + ", with the arms' accuracy as its prior"))
     try:
         r = run_scan_graph(out, protocol, grabber=grabber,
                            arm_errors={"sim_sigma_mm": s["sigma_mm"], "sim_sigma_deg": s["sigma_deg"]},
