@@ -172,6 +172,10 @@ def device_position_sigma_mm(mount: Mount, tcp_sigma_mm: float, tcp_sigma_rad: f
     return np.sqrt(tcp_sigma_mm ** 2 + tcp_sigma_rad ** 2 * across)
 
 
+MAX_MOUNT_M = 2.0
+"""The farthest a device may sit from its flange (m): beyond it a hand-eye translation is taken for millimetres."""
+
+
 def mount_from_si(translation_m, rotvec_rad=None, rpy_rad=None, what: str = "mount") -> Mount:
     """A :class:`Mount` from SI parameters; the rotation as a rotation vector or roll-pitch-yaw, not both.
 
@@ -179,14 +183,23 @@ def mount_from_si(translation_m, rotvec_rad=None, rpy_rad=None, what: str = "mou
     """
     t = np.asarray(translation_m, dtype=float).reshape(-1)
     if t.shape != (3,):
-        raise ValueError(f"{what}: translation_m needs 3 numbers, got {list(t)}")
+        raise ValueError(f"{what}: translation_m needs 3 numbers, got {t.tolist()}")
+    if not np.all(np.isfinite(t)):
+        raise ValueError(f"{what}: translation_m must be finite, got {t.tolist()}")
+    if np.linalg.norm(t) > MAX_MOUNT_M:
+        raise ValueError(f"{what}: translation_m {t.tolist()} puts the device {np.linalg.norm(t):g} m from the flange "
+                         f"(more than {MAX_MOUNT_M:g} m: millimetres given for metres?)")
     rv = None if rotvec_rad is None or len(rotvec_rad) == 0 else np.asarray(rotvec_rad, float).reshape(-1)
     rpy = None if rpy_rad is None or len(rpy_rad) == 0 else np.asarray(rpy_rad, float).reshape(-1)
     if rv is not None and rpy is not None:
         raise ValueError(f"{what}: give the rotation as rotvec_rad or rpy_rad, not both")
     for name, val in (("rotvec_rad", rv), ("rpy_rad", rpy)):
         if val is not None and val.shape != (3,):
-            raise ValueError(f"{what}: {name} needs 3 numbers, got {list(val)}")
+            raise ValueError(f"{what}: {name} needs 3 numbers, got {val.tolist()}")
+        if val is not None and not np.all(np.isfinite(val)):
+            raise ValueError(f"{what}: {name} must be finite, got {val.tolist()}")
+        if val is not None and np.abs(val).max() > 2 * np.pi:  # a rotation needs no angle beyond a turn
+            raise ValueError(f"{what}: {name} {val.tolist()} exceeds a full turn (2 pi): degrees given for radians?")
     if rpy is not None:
         return Mount.from_rpy(t * 1e3, rpy)
     return Mount(t * 1e3, (0.0, 0.0, 0.0) if rv is None else rv)

@@ -239,7 +239,9 @@ def _write(out, proj, geom: ConeGeometry, *, counts: bool, flat, dark, notes: di
     info = scan_info_for(geom, projection_units=units, notes=notes)
     write_scan(out, frames, geom, info=info, flat=flat_frame)
     bad = int(np.isnan(frames).sum()) if counts else 0
-    empty = int((~usable.any(axis=(1, 2))).sum()) if counts else 0
+    if not counts:  # line integrals: a frame with no finite value is no view either
+        usable = np.isfinite(frames)
+    empty = int((~usable.any(axis=(1, 2))).sum())
     say(f"wrote {out}: {geom.n_views} views, {geom.n_rows} x {geom.n_cols} detector of {geom.row_pitch_mm:g} x "
         f"{geom.col_pitch_mm:g} mm, {units}"
         f"{f' ({bad} pixel values at or below the dark, or not finite, marked unusable)' if bad else ''}"

@@ -75,6 +75,7 @@ class GeometryPublisherNode(Node):
         self.last_refused = ""
         self.last_problem = ""
         self._last_frame_ok = True
+        self._skipped_since_report = 0
 
     def _on_pose(self, role: str, msg: PoseStamped) -> None:
         try:  # checked at the boundary: a broken pose must never shadow the good ones around it
@@ -88,8 +89,12 @@ class GeometryPublisherNode(Node):
             return
         t = stamp_to_ns(msg.header.stamp)
         hist = self._history[role]
+        # a stamp far ahead of the arm's others does not age them out (one broken pose must not shadow the good
+        # ones); the next pose as far ahead, a real jump, does
+        newest = hist[-1][0] if hist else t
+        reference = t if t <= newest + self._history_ns else newest
         hist.append((t, msg.header.frame_id, msg.pose))
-        while hist and hist[0][0] < t - self._history_ns:
+        while hist and hist[0][0] < reference - self._history_ns:
             hist.popleft()
 
     def _nearest(self, role: str, stamp_ns: int):
@@ -121,6 +126,7 @@ class GeometryPublisherNode(Node):
             self.skipped += 1
             self.last_problem = "; ".join(problems)
             self._last_frame_ok = False
+            self._skipped_since_report += 1
             self.get_logger().warn(f"no geometry for the frame stamped {stamp * 1e-9:.6f}: {self.last_problem}")
             return
         out = fmt.view_pose_array(g.source_mm[0], g.detector_mm[0], g.u[0], g.v[0], stamp, self.world_frame)
@@ -129,8 +135,13 @@ class GeometryPublisherNode(Node):
         self._last_frame_ok = True
 
     def _publish_diagnostics(self) -> None:
-        level = DiagnosticStatus.OK if self._last_frame_ok and not self.poses_refused else DiagnosticStatus.WARN
-        message = "ok" if self._last_frame_ok else f"last frame without geometry: {self.last_problem}"
+        # a skip since the last report is a WARN even when a good frame followed it within the period
+        skipped, self._skipped_since_report = self._skipped_since_report, 0
+        ok = self._last_frame_ok and not skipped and not self.poses_refused
+        level = DiagnosticStatus.OK if ok else DiagnosticStatus.WARN
+        message = ("ok" if self._last_frame_ok and not skipped else
+                   f"last frame without geometry: {self.last_problem}" if not self._last_frame_ok else
+                   f"{skipped} frame(s) without geometry since the last report (last: {self.last_problem})")
         if self.poses_refused:
             message += f"; {self.poses_refused} tool poses refused (last: {self.last_refused})"
         ages = {r: (f"{(self.get_clock().now().nanoseconds - self._history[r][-1][0]) * 1e-9:.3f}"

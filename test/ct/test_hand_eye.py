@@ -124,3 +124,21 @@ def test_device_position_sigma_matches_the_simulated_arms_errors_at_the_device(m
     assert predicted.max() > 1.2 * sigma_mm  # the lever arm matters at these mounts
     with pytest.raises(ValueError, match="non-negative"):
         device_position_sigma_mm(mount, -0.1, 0.0)
+
+
+def test_a_mount_in_millimetres_or_degrees_is_refused():
+    """translation_m [0, 0, 120] (a focal spot 120 m from the flange) and rotvec_rad [180, 0, 0] started the nodes
+    without a word; lists were shown as numpy reprs."""
+    import pytest
+
+    from robot_ct_ros.ct.hand_eye import mount_from_si
+
+    with pytest.raises(ValueError, match="millimetres given for metres"):
+        mount_from_si([0.0, 0.0, 120.0], what="hand_eye.source")
+    with pytest.raises(ValueError, match="degrees given for radians"):
+        mount_from_si([0.0, 0.0, 0.12], [180.0, 0.0, 0.0], what="hand_eye.source")
+    with pytest.raises(ValueError, match=r"rotvec_rad needs 3 numbers, got \[3.14, 0.0\]"):
+        mount_from_si([0.0, 0.0, 0.12], [3.14, 0.0], what="hand_eye.source")
+    with pytest.raises(ValueError, match="translation_m must be finite"):
+        mount_from_si([0.0, float("nan"), 0.12], what="hand_eye.source")
+    assert mount_from_si([0.0, 0.0, 0.12], [0.0, 0.0, 3.0]) is not None

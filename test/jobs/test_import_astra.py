@@ -220,3 +220,15 @@ def test_raw_counts_brighter_than_their_flat_or_a_dead_flat_are_warned(tmp_path,
     dead[1, 2], dead[3, 4] = np.nan, 0.0
     out = run("dead", counts, dead)
     assert "1 pixels that are NaN or infinite and 1 at or below the dark" in out, out
+
+
+def test_a_frame_of_line_integrals_with_no_finite_value_is_warned(tmp_path, capsys):
+    """An all-NaN frame of line integrals was imported without a word (info said so only later)."""
+    g = _geometry()
+    proj = _proj((g.n_views,) + g.det_shape)
+    proj[2] = np.nan
+    np.save(tmp_path / "p.npy", proj)
+    np.savetxt(tmp_path / "v.txt", g.to_astra_vec())
+    assert main(["import", "astra", "--projections", str(tmp_path / "p.npy"), "--vectors", str(tmp_path / "v.txt"),
+                 "--out", str(tmp_path / "bag")]) == 0
+    assert "warning: 1 frames have no usable pixel" in capsys.readouterr().out

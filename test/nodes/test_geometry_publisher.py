@@ -159,3 +159,31 @@ def test_broken_tool_poses_are_refused_and_never_shadow_good_ones(ros):
     np.testing.assert_allclose(s, GEOM.source_mm[1], atol=1e-6)
     assert node.published == 1 and node.skipped == 0
     assert ros.spin_until(lambda: probe.level() == DiagnosticStatus.WARN)
+
+
+def test_a_pose_stamped_far_ahead_does_not_age_out_the_good_ones_and_a_skip_is_reported(ros):
+    """One source pose stamped 100 s ahead emptied that arm's history, so the frame got no geometry although a
+    pose at its very stamp had arrived; a skipped frame followed within the diagnostics period by a good one left
+    every status OK."""
+    node = _node(ros)
+    probe = Probe(ros)
+    S, D = tool_goals_from_geometry(GEOM, HandEye())
+    t = probe.now_ns()
+    probe.pose(ros, "source", S[1], t)
+    probe.pose(ros, "detector", D[1], t)
+    probe.pose(ros, "source", S[1], t + 100_000_000_000)
+    ros.spin_for(0.2)
+    probe.frame(ros, t)
+    assert ros.spin_until(lambda: probe.geoms)
+    np.testing.assert_allclose(fmt.view_from_pose_array(probe.geoms[-1])[0], GEOM.source_mm[1], atol=1e-6)
+    # a frame with no pose near it, then a good one: the report between them still says WARN
+    probe.diag.clear()
+    node._publish_diagnostics()  # the period's report: a clean start
+    probe.frame(ros, t - 3_000_000_000)
+    assert ros.spin_until(lambda: node.skipped == 1)
+    probe.frame(ros, t)
+    assert ros.spin_until(lambda: node.published == 2)
+    node._publish_diagnostics()
+    assert ros.spin_until(lambda: probe.level() == DiagnosticStatus.WARN)
+    status = [s for a in probe.diag for s in a.status if s.name.endswith(": geometry")][-1]
+    assert "1 frame(s) without geometry since the last report" in status.message, status.message
