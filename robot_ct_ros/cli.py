@@ -19,6 +19,7 @@ import json
 import re
 import sys
 import warnings
+from pathlib import Path
 
 import numpy as np
 
@@ -473,30 +474,52 @@ def main(argv: list[str] | None = None) -> int:
 
 def _main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(_negative_lists_attached(list(sys.argv[1:] if argv is None else argv)))
-    from robot_ct_ros.bag import ScanBagError
-
     commands = {"demo": _cmd_demo, "simulate": _cmd_simulate, "info": _cmd_info, "reconstruct": _cmd_reconstruct,
                 "calibrate": _cmd_calibrate, "report": _cmd_report, "import": _cmd_import,
                 "export": _cmd_export}
+    out = Path(args.out) if isinstance(getattr(args, "out", None), str) else None
+    out_is_new = out is not None and not out.exists()
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # numpy's on masked pixels; the jobs report what counts
-            return commands[args.command](args)
+            code = commands[args.command](args)
+    except BaseException:
+        _remove_if_empty(out if out_is_new else None)  # a refused or stopped command leaves no empty --out behind
+        return _failed(args.command)
+    if code:
+        _remove_if_empty(out if out_is_new else None)
+    return code
+
+
+def _remove_if_empty(folder) -> None:
+    try:
+        if folder is not None and folder.is_dir() and not any(folder.iterdir()):
+            folder.rmdir()
+    except OSError:
+        pass
+
+
+def _failed(command: str) -> int:
+    """The exit status and one line for the exception being handled (no traceback for the expected ones)."""
+    from robot_ct_ros.bag import ScanBagError
+
+    try:
+        raise
     except (ScanBagError, ValueError) as exc:
-        print(f"robot-ct {args.command}: {exc}", file=sys.stderr)
+        print(f"robot-ct {command}: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: the job's own cleanup has run; no traceback
         terminated = isinstance(exc, Terminated)
-        print(f"robot-ct {args.command}: {'terminated (SIGTERM)' if terminated else 'interrupted'} (an output folder "
+        print(f"robot-ct {command}: {'terminated (SIGTERM)' if terminated else 'interrupted'} (an output folder "
               "it was writing holds no report.json of this run)", file=sys.stderr)
         return 143 if terminated else 130
     except MemoryError as exc:  # the estimate before allocating was too optimistic
-        print(f"robot-ct {args.command}: out of memory ({exc or 'allocation failed'}); use a smaller --shape or a "
+        print(f"robot-ct {command}: out of memory ({exc or 'allocation failed'}); use a smaller --shape or a "
               "larger --voxel-mm", file=sys.stderr)
         return 2
     except OSError as exc:  # a file that cannot be read or written, with its name
         where = f" {exc.filename}" if getattr(exc, "filename", None) else ""
-        print(f"robot-ct {args.command}: cannot access{where}: {exc.strerror or exc}", file=sys.stderr)
+        print(f"robot-ct {command}: cannot access{where}: {exc.strerror or exc}", file=sys.stderr)
         return 2
 
 

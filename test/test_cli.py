@@ -380,3 +380,14 @@ def test_simulate_takes_a_short_arc_and_info_says_so(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["simulate", "--arc-deg", "361", "--out", str(tmp_path / "x")])
     assert "arc-deg must be at most 360" in capsys.readouterr().err
+
+
+def test_a_refused_command_leaves_no_empty_out_folder(tmp_path, capsys):
+    """calibrate of a bag that does not exist created --out (to check it could be written) and left it empty."""
+    out = tmp_path / "new" / "out"
+    assert main(["calibrate", str(tmp_path / "nonexistent"), "--out", str(out)]) == 2
+    assert not out.exists() and "nonexistent" in capsys.readouterr().err
+    kept = tmp_path / "kept"
+    kept.mkdir()
+    assert main(["calibrate", str(tmp_path / "nonexistent"), "--out", str(kept)]) == 2
+    assert kept.is_dir()  # a folder that was there before stays
