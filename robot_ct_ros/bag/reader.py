@@ -71,6 +71,9 @@ class RawBag:
 
 # ------------------------------------------------------------------------------ raw layer
 def _mcap_files(path: Path) -> list:
+    if path.is_file() and path.suffix == ".db3":  # rosbag2's sqlite3 storage: only rosbags reads it
+        raise ScanBagError(f"{path}: an sqlite3 bag file is read through its bag folder's metadata.yaml; give the "
+                           "folder")
     if path.is_file():
         return [path]
     if path.is_dir():
@@ -78,14 +81,16 @@ def _mcap_files(path: Path) -> list:
     raise ScanBagError(f"{path}: no such bag (neither a bag directory nor an .mcap file)")
 
 
-def _read_with_rosbags(path: Path) -> list:
+def _read_with_rosbags(path: Path) -> tuple[list, int]:
+    """The messages rosbags reads through metadata.yaml, and how many metadata.yaml announces."""
     from rosbags.rosbag2 import Reader
 
     out = []
     with Reader(path) as reader:
         for conn, t, data in reader.messages():
             out.append(RawMessage(conn.topic, conn.msgtype, int(t), bytes(data)))
-    return out
+        announced = int(reader.message_count)
+    return out, announced
 
 
 def _decompress(compression: str, data: bytes, size: int) -> bytes:
@@ -201,6 +206,7 @@ def _recover_mcap(path: Path) -> tuple[list, list]:
     schemas: dict[int, str] = {}
     channels: dict[int, tuple[str, str]] = {}
     orphans: list = []  # messages whose channel record was lost (kept until the end)
+    foreign: dict[str, str] = {}  # topic -> a message encoding other than CDR
     out: list[RawMessage] = []
     damaged = 0
     bad_chunks = 0
@@ -216,6 +222,10 @@ def _recover_mcap(path: Path) -> tuple[list, list]:
         elif opcode == 0x04:
             c = Channel.read(stream(content))
             channels[c.id] = (c.topic, schemas.get(c.schema_id, ""))
+            if c.message_encoding not in ("cdr", "") and c.topic not in foreign:  # the contract: CDR
+                foreign[c.topic] = c.message_encoding
+                warnings.append(f"{path.name}: {c.topic} is encoded as {c.message_encoding!r}; the scan bag "
+                                "contract reads CDR only")
         elif opcode == 0x05:
             m = Message.read(stream(content), len(content))
             ch = channels.get(m.channel_id)
@@ -301,6 +311,19 @@ def _recover_mcap(path: Path) -> tuple[list, list]:
     return out, warnings
 
 
+def _scan_mcaps(files: list, warnings: list) -> list:
+    """Every message :func:`_recover_mcap` finds in ``files``; its warnings appended to ``warnings``."""
+    msgs: list[RawMessage] = []
+    for f in files:
+        try:
+            got, warn = _recover_mcap(f)
+        except OSError as exc:
+            raise ScanBagError(f"{f}: cannot read: {exc}") from None
+        msgs.extend(got)
+        warnings.extend(warn)
+    return msgs
+
+
 def read_raw_messages(path) -> RawBag:
     """Every message of the bag at ``path`` (bag directory or ``.mcap`` file), in log-time order.
 
@@ -311,9 +334,22 @@ def read_raw_messages(path) -> RawBag:
     warnings: list[str] = []
     if path.is_dir() and (path / "metadata.yaml").is_file():
         try:
-            msgs = _read_with_rosbags(path)
+            msgs, announced = _read_with_rosbags(path)
             msgs.sort(key=lambda m: m.log_time_ns)
-            return RawBag(path, msgs, warnings, False, "rosbags")
+            short = len(msgs) < announced and _mcap_files(path)
+            if not short:
+                return RawBag(path, msgs, warnings, False, "rosbags")
+            # rosbags matches metadata.yaml's topics to the MCAP's channels, QoS included: a mismatch drops a
+            # topic without an error. The MCAP itself holds the messages (readers ignore QoS: the contract)
+            scanned = _scan_mcaps(_mcap_files(path), [])
+            if len(scanned) <= len(msgs):
+                return RawBag(path, msgs, warnings, False, "rosbags")
+            warnings.append(f"rosbags read {len(msgs)} of the {announced} messages metadata.yaml announces (its "
+                            "topics, QoS or types do not match the MCAP's channels); read from the MCAP file instead")
+            scanned.sort(key=lambda m: m.log_time_ns)
+            return RawBag(path, scanned, warnings, False, "mcap-scan")
+        except ScanBagError:
+            raise
         except Exception as exc:  # noqa: BLE001 - any failure: fall back to scanning the MCAP
             warnings.append(f"rosbags could not read {path.name} ({type(exc).__name__}: {exc}); "
                             "recovering from the MCAP file")
@@ -323,14 +359,7 @@ def read_raw_messages(path) -> RawBag:
     if not files:
         raise ScanBagError(f"{path}: no .mcap file found (the bag directory holds "
                            f"{sorted(p.name for p in path.iterdir()) if path.is_dir() else []})")
-    msgs: list[RawMessage] = []
-    for f in files:
-        try:
-            got, warn = _recover_mcap(f)
-        except OSError as exc:
-            raise ScanBagError(f"{f}: cannot read: {exc}") from None
-        msgs.extend(got)
-        warnings.extend(warn)
+    msgs = _scan_mcaps(files, warnings)
     if not msgs:
         raise ScanBagError(f"{path}: no readable message in {', '.join(f.name for f in files)}"
                            + (f" ({'; '.join(warnings)})" if warnings else ""))
@@ -487,15 +516,20 @@ def _by_stamp(items, what: str, warnings: list) -> dict:
 
 
 def _geometries(raw: RawBag, topic: str, warnings: list) -> dict:
-    items, bad = [], 0
+    items, bad, frames = [], 0, {}
     for _, msg in _decode(raw, topic, fmt.POSE_ARRAY, warnings):
         try:
             items.append((fmt.stamp_to_ns(msg.header.stamp), fmt.view_from_pose_array(msg)))
+            frames[msg.header.frame_id] = frames.get(msg.header.frame_id, 0) + 1
         except ValueError as exc:
             bad += 1
             last = str(exc)
     if bad:
         warnings.append(f"{bad} geometries on {topic} are unusable and were dropped (e.g. {last})")
+    if len(frames) > 1:  # the contract: one frame for every geometry of a bag; the views may not fit together
+        warnings.append(f"the geometries on {topic} name {len(frames)} frames ("
+                        + ", ".join(f"{name or '(empty)'!r}: {n}" for name, n in sorted(frames.items()))
+                        + "); a bag's geometries must share one frame, and they are used as if they did")
     return _by_stamp(items, f"geometries on {topic}", warnings)
 
 
@@ -557,8 +591,13 @@ def scan_from_raw(raw: RawBag, path, *, keep_raw: bool = False, min_views: int |
     infos = _decode(raw, fmt.TOPIC_SCAN_INFO, fmt.STRING, warnings)
     if not infos:
         topics = ", ".join(f"{t} ({n})" for t, (_, n) in sorted(raw.topics().items()))
-        raise ScanBagError(f"{path}: no /ct/scan_info message; a scan bag starts with one ("
-                           + (f"found: {topics})" if topics else "the bag holds no message at all)"))
+        undecodable = ([w for w in raw.warnings if fmt.TOPIC_SCAN_INFO in w and "CDR only" in w]
+                       + [w for w in warnings[len(raw.warnings):] if fmt.TOPIC_SCAN_INFO in w])
+        raise ScanBagError(f"{path}: no " + ("decodable " if undecodable else "") + "/ct/scan_info message; a scan bag "
+                           "starts with one (" + (f"found: {topics}" if topics else "the bag holds no message at all")
+                           + (f"; {undecodable[0]}" if undecodable else "")
+                           + (": not CDR? compressed per message without its metadata.yaml, or another encoding"
+                              if undecodable and "CDR only" not in undecodable[0] else "") + ")")
     info = fmt.scan_info_from_msg(infos[0][1])
     if len(infos) > 1:
         others = [m.data for _, m in infos[1:]]

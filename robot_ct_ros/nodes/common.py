@@ -258,8 +258,8 @@ def declare_settings(node, cls, *, prefix: str = "", exclude=(), **defaults):
     Each parameter is ``prefix + ros_name``, typed by its default, with a ParameterDescriptor that
     carries the field's help, unit and, for numbers, its range. Every parameter is read once, here,
     so each is declared read-only: a running node refuses ``ros2 param set`` with rclpy's reason
-    instead of reporting a value it does not use (restart the node to change one). ``exclude``: fields the node declares its own way (they keep
-    their defaults here). ``defaults`` override field defaults (core units). A value of
+    instead of reporting a value it does not use (restart the node to change one). ``exclude``:
+    fields the node declares its own way (they keep their defaults here). ``defaults`` override field defaults (core units). A value of
     the wrong type or out of range raises ValueError naming the parameter (never a traceback from
     rclpy's internals). List fields (tuple defaults) are double or integer arrays; an optional field
     (default None, no ``ros_none``) is declared by its type and stays unset unless given."""

@@ -104,3 +104,73 @@ def test_rejected_frames_are_never_projections(tmp_path, tiny_scan, check_bag):
     assert scan.geom.allclose(geom.subset(keep), atol=1e-9)
     assert any("2 frame(s) on /ct/projection_rejected" in w and "1 of them also on /ct/projection" in w
                for w in scan.warnings), scan.warnings
+
+
+def test_a_metadata_yaml_whose_qos_differs_from_the_mcaps_channels_loses_no_frame(tmp_path):
+    """rosbags pairs metadata.yaml's topics with the MCAP's channels QoS included: with /ct/projection's QoS
+    edited in metadata.yaml (as a tool regenerating it would), it returned no frame, without an error, and the
+    scan was unreadable. The contract says readers ignore QoS: the reader now reads the MCAP itself."""
+    import yaml
+
+    from robot_ct_ros.ct.trajectory import circular_scan
+
+    frames = np.random.default_rng(0).random((4, 6, 8)).astype(np.float32)
+    bag = write_scan(tmp_path / "bag", frames, circular_scan(4, 60.0, 150.0, 6, 8, 1.0, 1.0),
+                     projection_units="line_integral")
+    meta_path = bag / "metadata.yaml"
+    meta = yaml.safe_load(meta_path.read_text())
+    for topic in meta["rosbag2_bagfile_information"]["topics_with_message_count"]:
+        if topic["topic_metadata"]["name"] == "/ct/projection":
+            topic["topic_metadata"]["offered_qos_profiles"][0].update(depth=7, reliability="best_effort")
+    meta_path.write_text(yaml.safe_dump(meta))
+    scan = read_scan(bag)
+    assert scan.n_views == 4
+    np.testing.assert_array_equal(scan.counts, frames)
+    assert any("read from the MCAP file instead" in w for w in scan.warnings), scan.warnings
+
+
+def test_geometries_in_more_than_one_frame_are_warned(tmp_path):
+    """The contract: all geometry messages of one bag use the same frame. A bag alternating world and base_link was
+    read without a word."""
+    from dataclasses import replace as dc_replace
+
+    from robot_ct_ros.bag.reader import scan_from_raw
+    from robot_ct_ros.ct.trajectory import circular_scan
+
+    bag = write_scan(tmp_path / "bag", np.ones((4, 6, 8), np.float32), circular_scan(4, 60.0, 150.0, 6, 8, 1.0, 1.0),
+                     projection_units="line_integral")
+    raw = read_raw_messages(bag)
+    assert not any("frames (" in w for w in read_scan(bag).warnings)
+    messages, k = [], 0
+    for m in raw.messages:
+        if m.topic == fmt.TOPIC_GEOMETRY:
+            msg = fmt.deserialize(m.data, fmt.POSE_ARRAY)
+            if k % 2:
+                msg.header.frame_id = "base_link"
+            k += 1
+            m = dc_replace(m, data=fmt.serialize(msg, fmt.POSE_ARRAY))
+        messages.append(m)
+    scan = scan_from_raw(dc_replace(raw, messages=messages), bag)
+    assert scan.n_views == 4
+    assert any("name 2 frames ('base_link': 2, 'world': 2)" in w for w in scan.warnings), scan.warnings
+
+
+def test_a_scan_info_that_is_not_cdr_and_a_bare_sqlite_file_are_named_as_such(tmp_path):
+    """A bag compressed per message and read without its metadata.yaml failed with "no /ct/scan_info message
+    (found: ..., /ct/scan_info (1))", and an sqlite3 file given alone was described as a damaged MCAP."""
+    from dataclasses import replace as dc_replace
+
+    from robot_ct_ros.bag import ScanBagError
+    from robot_ct_ros.bag.reader import scan_from_raw
+    from robot_ct_ros.ct.trajectory import circular_scan
+
+    bag = write_scan(tmp_path / "bag", np.ones((4, 6, 8), np.float32), circular_scan(4, 60.0, 150.0, 6, 8, 1.0, 1.0),
+                     projection_units="line_integral")
+    raw = read_raw_messages(bag)
+    garbled = [dc_replace(m, data=b"\x28\xb5\x2f\xfd" + m.data[4:]) if m.topic == fmt.TOPIC_SCAN_INFO else m
+               for m in raw.messages]  # a zstd frame's magic where CDR's header is
+    with pytest.raises(ScanBagError, match="no decodable /ct/scan_info message.*not CDR"):
+        scan_from_raw(dc_replace(raw, messages=garbled), bag)
+    (tmp_path / "x.db3").write_bytes(b"SQLite format 3\x00")
+    with pytest.raises(ScanBagError, match="sqlite3 bag file is read through its bag folder"):
+        read_scan(tmp_path / "x.db3")
