@@ -190,7 +190,7 @@ def write_correction(correction: Correction, out, *, markdown: bool = False, say
 
     scan, report = correction.scan, dict(correction.report)
     name = scan.path.name.removesuffix(".mcap")
-    _refuse_another_bags_folder(Path(out), name)
+    refuse_another_bags_folder(Path(out), name)
     out = start_output(out)  # report.json is written last: without it, the folder holds an unfinished run
     corrected_bag = out / f"{name}_corrected"
     if corrected_bag.exists():
@@ -211,7 +211,7 @@ def write_correction(correction: Correction, out, *, markdown: bool = False, say
     return report
 
 
-def _refuse_another_bags_folder(out: Path, name: str) -> None:
+def refuse_another_bags_folder(out: Path, name: str) -> None:
     """A folder holds one bag's calibration: refuse ``out`` where report.json or a ``*_corrected`` bag is of a bag
     other than ``name`` (two runs would mix there, and export could take the other bag's correction)."""
     others = ([p.name.removesuffix("_corrected") for p in out.glob("*_corrected") if p.name != f"{name}_corrected"]
@@ -234,7 +234,7 @@ def calibrate_bag(bag, out, settings: CalibrationSettings | None = None, *, voxe
     """:func:`correct_scan` of the bag at ``bag`` (read once), written by :func:`write_correction`
     into ``out``. Returns the correction, its report as written."""
     scan = read_scan(bag, keep_raw=True)
-    _refuse_another_bags_folder(Path(out), scan.path.name.removesuffix(".mcap"))  # before the work, not after it
+    refuse_another_bags_folder(Path(out), scan.path.name.removesuffix(".mcap"))  # before the work, not after it
     correction = correct_scan(scan, settings, scan_grid(scan, voxel_mm, shape_xyz), evaluate_truth=evaluate_truth,
                               say=say)
     report = write_correction(correction, out, markdown=markdown, say=say)
