@@ -12,11 +12,15 @@ Parameters
   output_dir (bags go to <output_dir>/<bag_prefix>_<UTC time>), bag_prefix, record_arm_topics,
   flush_period_s (s: how often arm and diagnostics messages are pushed to disk).
 
-A bag opens on the first /ct/scan_info, /ct/projection or /ct/geometry message and starts
-with the latest scan_info, flat field and dead-pixel map received; a different scan_info after
-frames closes it and opens the next. Every frame and geometry is
+A bag opens with the first /ct/scan_info (frames and geometries that come just before it, up to
+EARLY_FRAMES, follow it into the bag) and starts with the latest scan_info, flat field and
+dead-pixel map received (a flat field or map of another detector shape than the scan_info's, an
+earlier scan's, is left out); a different scan_info after frames, or the bag's first frame stamp
+again (the same scan replayed), closes it and opens the next. Every frame and geometry is
 flushed to disk as it arrives, so a killed recorder leaves a recoverable bag; shutdown
-(SIGINT/SIGTERM) and ~/stop close the bag cleanly.
+(SIGINT/SIGTERM) and ~/stop close the bag cleanly. A write error (a full disk, the bag folder
+removed) gives that bag up with an ERROR in the log and on /diagnostics (1 Hz; also "recording",
+"waiting for a scan"), and the node stays up for the next scan.
 """
 
 from __future__ import annotations
@@ -26,13 +30,14 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_srvs.srv import Trigger
 
 from robot_ct_ros.bag import ScanBagWriter
 from robot_ct_ros.bag import format as fmt
-from robot_ct_ros.nodes.common import declare_settings, run_settings_node, writable_dir
+from robot_ct_ros.nodes.common import declare_settings, publish_diagnostic, run_settings_node, writable_dir
 from robot_ct_ros.parameters import setting, validate
 
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
@@ -89,6 +94,12 @@ class RecorderNode(Node):
         self.bag_path: Path | None = None
         self.closed_bags: list[Path] = []
         self._latched: dict[str, tuple[str, bytes]] = {}
+        self._early: list = []  # frames and geometries that came before any scan_info
+        self._first_stamp = None  # the open bag's first frame stamp: seen again, a new scan starts
+        self._gave_up = False  # a write error gave the scan's bag up: drop its frames until the next scan_info
+        self.failures, self.last_error = 0, ""
+        self.diag_pub = self.create_publisher(DiagnosticArray, fmt.node_topic(fmt.TOPIC_DIAGNOSTICS), 10)
+        self.create_timer(1.0, self._publish_diagnostics)
         topics = SCAN_TOPICS + (ARM_TOPICS if record_arm else ())
         for topic in topics:
             msgtype = fmt.TOPIC_TYPES[topic]
@@ -114,10 +125,18 @@ class RecorderNode(Node):
         self.output_dir.mkdir(parents=True, exist_ok=True)  # checked at start; made again if removed since
         self.bag_path = self._new_bag_path()
         self.writer = ScanBagWriter(self.bag_path, None, flush_every_frame=False).open()
+        self._first_stamp = None
         now = self.get_clock().now().nanoseconds
+        shape = _detector_shape(self._latched.get(fmt.TOPIC_SCAN_INFO, (None, None))[1])
         for topic in fmt.LATCHED_TOPICS:  # scan_info first
             if topic in self._latched:
                 msgtype, data = self._latched[topic]
+                if topic != fmt.TOPIC_SCAN_INFO and shape is not None and _image_shape(data) not in (None, shape):
+                    # an earlier scan's flat field or dead-pixel map (another detector): it would make the bag
+                    # unusable; this scan's own replaces it when it comes
+                    self.get_logger().warning(f"{topic} of {_image_shape(data)} pixels is an earlier scan's (this "
+                                              f"one's detector is {shape}): not recorded")
+                    continue
                 self.writer.write_raw(topic, msgtype, data, now)
         self.writer.flush()
         self.get_logger().info(f"recording scan bag {self.bag_path}")
@@ -136,34 +155,122 @@ class RecorderNode(Node):
         return path
 
     def _on_message(self, topic: str, msgtype: str, data: bytes) -> None:
+        try:
+            self._record(topic, msgtype, bytes(data))
+        except OSError as exc:  # a full disk, a bag folder removed: say so, give the bag up, stay up for the next
+            self._write_failed(exc)
+
+    def _record(self, topic: str, msgtype: str, data: bytes) -> None:
         if (topic == fmt.TOPIC_SCAN_INFO and self.writer is not None and self.writer.counts.get(fmt.TOPIC_PROJECTION)
-                and self._latched.get(topic, (None, None))[1] != bytes(data)):
+                and self._latched.get(topic, (None, None))[1] != data):
             self.close_bag()  # a new scan starts a new bag
+        if topic == fmt.TOPIC_PROJECTION and self.writer is not None and self._first_stamp == _stamp_of(data):
+            self.get_logger().info("the bag's first frame again: a new scan (the same scan replayed?)")
+            self.close_bag()
         if topic in fmt.LATCHED_TOPICS:
-            self._latched[topic] = (msgtype, bytes(data))
+            self._latched[topic] = (msgtype, data)
+            self._gave_up = self._gave_up and topic != fmt.TOPIC_SCAN_INFO
         if self.writer is None:
             if topic not in OPENS_BAG:
                 return
+            if fmt.TOPIC_SCAN_INFO not in self._latched:  # a frame before its scan's scan_info: keep it a moment
+                if not self._gave_up:  # (the rest of a scan whose bag failed is dropped, not carried over)
+                    self._early.append((topic, msgtype, data, self.get_clock().now().nanoseconds))
+                    del self._early[:-EARLY_FRAMES]
+                return
             self._open_bag()
+            for early in self._early:  # the frames that came before the scan_info, after it
+                self._write(*early)
+            self._early.clear()
             if topic in fmt.LATCHED_TOPICS:
                 return  # written by _open_bag
-        self.writer.write_raw(topic, msgtype, bytes(data), self.get_clock().now().nanoseconds)
+        self._write(topic, msgtype, data, self.get_clock().now().nanoseconds)
+
+    def _write(self, topic: str, msgtype: str, data: bytes, time_ns: int) -> None:
+        self.writer.write_raw(topic, msgtype, data, time_ns)
+        if topic == fmt.TOPIC_PROJECTION and self._first_stamp is None:
+            self._first_stamp = _stamp_of(data)
         if topic in FLUSH_AT_ONCE:
             self.writer.flush()
 
+    def _write_failed(self, exc: OSError) -> None:
+        self.failures += 1
+        self.last_error = f"writing {self.bag_path}: {exc.strerror or exc}"
+        self.get_logger().error(f"{self.last_error}; the bag is given up (what was flushed stays readable: robot-ct "
+                                "info recovers it), the next scan_info opens a new one")
+        writer, self.writer = self.writer, None
+        if writer is not None:
+            try:
+                writer.close()
+            except Exception:  # noqa: BLE001 - the disk that failed the write may fail the close too
+                pass
+            self.closed_bags.append(self.bag_path)
+        self.bag_path = None
+        self._latched.pop(fmt.TOPIC_SCAN_INFO, None)  # the rest of this scan is not recorded into a new bag
+        self._early.clear()
+        self._gave_up = True
+
+    def _publish_diagnostics(self) -> None:
+        level = "error" if self.failures else "ok"
+        message = (f"{self.failures} bag(s) given up on a write error (last: {self.last_error})" if self.failures
+                   else (f"recording {self.bag_path}" if self.writer is not None else "waiting for a scan"))
+        counts = dict(self.writer.counts) if self.writer is not None else {}
+        publish_diagnostic(self, self.diag_pub, level, "recorder", "recorder", message, (
+            ("bag", self.bag_path or ""), ("frames", counts.get(fmt.TOPIC_PROJECTION, 0)),
+            ("closed_bags", len(self.closed_bags)), ("write_failures", self.failures)))
+
     def _flush(self) -> None:
         if self.writer is not None:
-            self.writer.flush()
+            try:
+                self.writer.flush()
+            except OSError as exc:
+                self._write_failed(exc)
 
     def _on_stop(self, request, response):
-        path = self.close_bag()
+        try:
+            path = self.close_bag()
+        except OSError as exc:
+            self._write_failed(exc)
+            response.success, response.message = False, self.last_error
+            return response
         response.success = path is not None
         response.message = str(path) if path is not None else "no bag open"
         return response
 
     def destroy_node(self):
-        self.close_bag()
+        try:
+            self.close_bag()
+        except OSError as exc:
+            self._write_failed(exc)
         return super().destroy_node()
+
+
+EARLY_FRAMES = 8
+"""Frames, geometries kept while their scan's /ct/scan_info has not come yet (it may arrive just after them)."""
+
+
+def _stamp_of(data: bytes) -> int:
+    """The header stamp (ns) of a serialized sensor_msgs/Image."""
+    return fmt.stamp_to_ns(fmt.deserialize(data, fmt.IMAGE).header.stamp)
+
+
+def _image_shape(data: bytes):
+    try:
+        msg = fmt.deserialize(data, fmt.IMAGE)
+        return int(msg.height), int(msg.width)
+    except Exception:  # noqa: BLE001 - not an image the reader could use either
+        return None
+
+
+def _detector_shape(scan_info: bytes | None):
+    """(rows, cols) of a serialized /ct/scan_info, or None."""
+    import json
+
+    try:
+        info = json.loads(fmt.deserialize(scan_info, fmt.STRING).data)
+        return int(info["n_rows"]), int(info["n_cols"])
+    except Exception:  # noqa: BLE001 - no scan_info yet, or one the reader will refuse anyway
+        return None
 
 
 def main(argv=None) -> int:

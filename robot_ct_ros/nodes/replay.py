@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import threading
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -164,13 +165,14 @@ class ReplayNode(Node):
         try:
             report = calibrate_bag(self.bag_path, self.output_dir, self.settings, say=lambda s: log.info(s)).report
         except Exception as exc:  # noqa: BLE001 - reported, the node keeps running
-            self.error = f"{type(exc).__name__}: {exc}"
-            log.error(f"offline calibration failed: {self.error}")
-            self._report_pub.publish(String(data=json.dumps({"error": self.error})))
+            error = f"{type(exc).__name__}: {exc}"
+            log.error(f"offline calibration failed: {error}")
+            self._report_pub.publish(String(data=json.dumps({"error": error})))
+            self.error = error  # after the publish: "done" (exit_when_done) must not come before the report
             return
-        self.report = report
         self._report_pub.publish(String(data=json.dumps(clean_json(report), default=json_default)))
         log.info(f"offline calibration done: {self.output_dir}/report.json")
+        self.report = report  # after the publish: "done" (exit_when_done) must not come before the report
 
     @property
     def done(self) -> bool:
@@ -184,9 +186,24 @@ class ReplayNode(Node):
 
             from robot_ct_ros.nodes.common import shutdown_once
 
+            from rclpy.duration import Duration
+
             self.exit_code = 1 if self.error else 0
+            # the report is latched and reliable: let the subscribers that are there take it before the node goes
+            # (a script waiting on ~/report missed it when the node ended 35 ms after publishing)
+            end = time.monotonic() + REPORT_DISCOVERY_S  # a quick job may end before discovery found the listener
+            while not self._report_pub.get_subscription_count() and time.monotonic() < end:
+                time.sleep(0.05)
+            if self._report_pub.get_subscription_count():
+                self._report_pub.wait_for_all_acked(Duration(seconds=REPORT_ACK_S))
             self.get_logger().info("done; exiting (exit_when_done)")
             shutdown_once(rclpy, self.context)
+
+
+REPORT_ACK_S = 5.0
+"""How long an exiting replay waits for ~/report's subscribers to acknowledge it."""
+REPORT_DISCOVERY_S = 3.0
+"""How long an exiting replay waits for a ~/report subscriber to be discovered (none: it exits after this)."""
 
 
 def main(argv=None) -> int:

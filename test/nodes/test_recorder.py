@@ -153,3 +153,85 @@ def test_recorder_process_closes_the_bag_on_sigint(ros, tmp_path):
     assert _both_readers(bag)[fmt.TOPIC_PROJECTION] == N
     scan = read_scan(bag)
     assert not scan.recovered and scan.n_views == N
+
+
+def _raw(geom, frames, stamps, i):
+    from rclpy.serialization import serialize_message
+
+    return (serialize_message(_rclpy_image(frames[i], stamps[i])),
+            fmt.serialize(fmt.view_pose_array(geom.source_mm[i], geom.detector_mm[i], geom.u[i], geom.v[i],
+                                              int(stamps[i])), fmt.POSE_ARRAY))
+
+
+def test_scans_in_a_row_keep_their_own_flat_frames_and_bags(ros, tmp_path):
+    """An earlier scan's flat field went into the next scan's bag (another detector shape: the bag was unusable);
+    a frame before the scan_info opened a bag without one; the same scan replayed twice filled one bag."""
+    node = ros.add(RecorderNode(context=ros.context, parameter_overrides=[Parameter("output_dir", value=str(tmp_path))]))
+    geom, frames, stamps = _scan()
+
+    def feed(scan_info, n=N, flat=None, early=0):
+        for i in range(early):  # frames and geometries that arrive before the scan_info
+            for topic, data in zip((fmt.TOPIC_PROJECTION, fmt.TOPIC_GEOMETRY), _raw(geom, frames, stamps, i)):
+                node._on_message(topic, fmt.TOPIC_TYPES[topic], data)
+        if flat is not None:
+            node._on_message(fmt.TOPIC_FLAT_FIELD, fmt.IMAGE, fmt.serialize(fmt.image_from_array(flat, 1), fmt.IMAGE))
+        node._on_message(fmt.TOPIC_SCAN_INFO, fmt.STRING, fmt.serialize(fmt.scan_info_to_msg(scan_info), fmt.STRING))
+        for i in range(early, n):
+            for topic, data in zip((fmt.TOPIC_PROJECTION, fmt.TOPIC_GEOMETRY), _raw(geom, frames, stamps, i)):
+                node._on_message(topic, fmt.TOPIC_TYPES[topic], data)
+
+    feed(scan_info_for(geom), flat=np.full((6, 10), 900.0, np.float32), early=2)  # a fresh recorder, frames first
+    first = node.close_bag()
+    scan = read_scan(first)
+    assert scan.n_views == N and scan.flat is not None
+    np.testing.assert_array_equal(scan.counts, frames)
+    # another detector, line integrals: the 6 x 10 flat is not its own
+    other = scan_info_for(geom.with_detector(4, 8, 1.0, 1.0), projection_units="line_integral")
+    from rclpy.serialization import serialize_message
+
+    frames_small = frames[:, :4, :8].copy()
+    node._on_message(fmt.TOPIC_SCAN_INFO, fmt.STRING, fmt.serialize(fmt.scan_info_to_msg(other), fmt.STRING))
+    for i in range(N):
+        node._on_message(fmt.TOPIC_PROJECTION, fmt.IMAGE, serialize_message(_rclpy_image(frames_small[i], stamps[i])))
+        node._on_message(fmt.TOPIC_GEOMETRY, fmt.POSE_ARRAY, _raw(geom.with_detector(4, 8, 1.0, 1.0), frames,
+                                                                  stamps, i)[1])
+    second = node.close_bag()
+    scan2 = read_scan(second)
+    assert scan2.flat is None and scan2.n_views == N  # no foreign flat field: the bag is usable
+    # the same scan replayed twice: two bags
+    feed(scan_info_for(geom))
+    feed(scan_info_for(geom))
+    node.close_bag()
+    bags = sorted(set(node.closed_bags) - {first, second})
+    assert len(bags) == 2 and all(read_scan(b).n_views == N and not read_scan(b).warnings for b in bags)
+
+
+def test_a_write_error_gives_the_bag_up_and_keeps_the_node_up(ros, tmp_path):
+    """A full disk raised out of the subscription callback and ended the recorder (no /diagnostics at all)."""
+    node = ros.add(RecorderNode(context=ros.context, parameter_overrides=[Parameter("output_dir", value=str(tmp_path))]))
+    geom, frames, stamps = _scan()
+    node._on_message(fmt.TOPIC_SCAN_INFO, fmt.STRING, fmt.serialize(fmt.scan_info_to_msg(scan_info_for(geom)),
+                                                                     fmt.STRING))
+    proj, pose = _raw(geom, frames, stamps, 0)
+    node._on_message(fmt.TOPIC_PROJECTION, fmt.IMAGE, proj)
+
+    def full(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    node.writer.write_raw = full
+    node._on_message(fmt.TOPIC_GEOMETRY, fmt.POSE_ARRAY, pose)  # no exception out of the callback
+    assert node.writer is None and node.failures == 1 and "No space left" in node.last_error
+    proj1, _ = _raw(geom, frames, stamps, 1)
+    node._on_message(fmt.TOPIC_PROJECTION, fmt.IMAGE, proj1)  # the rest of that scan: dropped, no new bag
+    assert node.writer is None
+    diag = []
+    probe = ros.node("probe")
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+
+    probe.create_subscription(DiagnosticArray, "/diagnostics", diag.append, 10)
+    assert ros.spin_until(lambda: any(s.name.endswith(": recorder") and s.level == DiagnosticStatus.ERROR
+                                      for a in diag for s in a.status))
+    # the next scan records again
+    node._on_message(fmt.TOPIC_SCAN_INFO, fmt.STRING, fmt.serialize(fmt.scan_info_to_msg(scan_info_for(geom)),
+                                                                     fmt.STRING))
+    assert node.writer is not None
