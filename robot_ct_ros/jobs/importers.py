@@ -260,8 +260,8 @@ def counts_warnings(frames: np.ndarray, flat: np.ndarray) -> list[str]:
     """What looks wrong in dark-corrected counts ``frames`` (views, rows, cols; NaN unusable) and flat field
     ``flat`` (rows, cols): flat pixels unusable in every frame (not finite, or at or below the dark), and
     more than :data:`BRIGHTER_THAN_FLAT_SHARE` of the usable pixels counting more than the flat field by over
-    3 Poisson standard deviations (negative line integrals: a flat field from another exposure or tube
-    current, or saturated counts)."""
+    3 standard deviations of its noise, Poisson or 2 % if larger (negative line integrals: a flat field from
+    another exposure or tube current, or saturated counts)."""
     out = []
     flat = np.asarray(flat, np.float64)
     not_finite, dark_above = int((~np.isfinite(flat)).sum()), int((np.isfinite(flat) & (flat <= 0)).sum())
@@ -271,7 +271,8 @@ def counts_warnings(frames: np.ndarray, flat: np.ndarray) -> list[str]:
     ok = np.isfinite(frames) & (np.isfinite(flat) & (flat > 0))[None]
     if ok.any():
         f = np.broadcast_to(flat, frames.shape)[ok]
-        brighter = float(np.mean(frames[ok] > f + 3.0 * np.sqrt(f)))
+        # Poisson noise of photon counts, or 2 % where the counts are scaled (an integrating detector's ADU)
+        brighter = float(np.mean(frames[ok] > f + 3.0 * np.maximum(np.sqrt(f), 0.02 * f)))
         if brighter > BRIGHTER_THAN_FLAT_SHARE:
             out.append(f"{100 * brighter:.0f} % of the usable pixels count more than the flat field beyond its noise "
                        "(negative line integrals): is the flat field from this exposure and tube current, or are the "
