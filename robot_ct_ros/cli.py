@@ -230,7 +230,7 @@ def _cmd_calibrate(args) -> int:
     settings = settings_from_args(args)
     bag, out = _paths(args)
     scan = read_scan(bag, keep_raw=True)  # calibrate_bag's steps, with the memory check before the work
-    refuse_another_bags_folder(Path(out), scan.path.name.removesuffix(".mcap"))
+    refuse_another_bags_folder(Path(out), scan)
     grid = scan_grid(scan, args.voxel_mm, args.shape)
     check_memory(grid, scan.n_views, scan.geom.det_shape, "reconstruct" if settings.method == "none" else "calibrate")
     write_correction(correct_scan(scan, settings, grid), out)
@@ -479,16 +479,16 @@ def _main(argv: list[str] | None = None) -> int:
                 "calibrate": _cmd_calibrate, "report": _cmd_report, "import": _cmd_import,
                 "export": _cmd_export}
     out = Path(args.out) if isinstance(getattr(args, "out", None), str) else None
-    out_is_new = out is not None and not out.exists()
+    created = out if out is not None and not out.exists() else None  # removed again if the command leaves it empty
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # numpy's on masked pixels; the jobs report what counts
             code = commands[args.command](args)
     except BaseException:
-        _remove_if_empty(out if out_is_new else None)  # a refused or stopped command leaves no empty --out behind
+        _remove_if_empty(created)  # a refused or stopped command leaves no empty --out behind
         return _failed(args.command)
     if code:
-        _remove_if_empty(out if out_is_new else None)
+        _remove_if_empty(created)
     return code
 
 

@@ -336,12 +336,12 @@ def read_raw_messages(path) -> RawBag:
         try:
             msgs, announced = _read_with_rosbags(path)
             msgs.sort(key=lambda m: m.log_time_ns)
-            short = len(msgs) < announced and _mcap_files(path)
-            if not short:
+            files = _mcap_files(path) if len(msgs) < announced else []
+            if not files:
                 return RawBag(path, msgs, warnings, False, "rosbags")
             # rosbags matches metadata.yaml's topics to the MCAP's channels, QoS included: a mismatch drops a
             # topic without an error. The MCAP itself holds the messages (readers ignore QoS: the contract)
-            scanned = _scan_mcaps(_mcap_files(path), [])
+            scanned = _scan_mcaps(files, [])
             if len(scanned) <= len(msgs):
                 return RawBag(path, msgs, warnings, False, "rosbags")
             warnings.append(f"rosbags read {len(msgs)} of the {announced} messages metadata.yaml announces (its "
@@ -593,11 +593,12 @@ def scan_from_raw(raw: RawBag, path, *, keep_raw: bool = False, min_views: int |
         topics = ", ".join(f"{t} ({n})" for t, (_, n) in sorted(raw.topics().items()))
         undecodable = ([w for w in raw.warnings if fmt.TOPIC_SCAN_INFO in w and "CDR only" in w]
                        + [w for w in warnings[len(raw.warnings):] if fmt.TOPIC_SCAN_INFO in w])
-        raise ScanBagError(f"{path}: no " + ("decodable " if undecodable else "") + "/ct/scan_info message; a scan bag "
-                           "starts with one (" + (f"found: {topics}" if topics else "the bag holds no message at all")
-                           + (f"; {undecodable[0]}" if undecodable else "")
-                           + (": not CDR? compressed per message without its metadata.yaml, or another encoding"
-                              if undecodable and "CDR only" not in undecodable[0] else "") + ")")
+        found = f"found: {topics}" if topics else "the bag holds no message at all"
+        hint = undecodable[0] if undecodable else ""
+        if hint and "CDR only" not in hint:  # a message that is there but does not decode
+            hint += ": not CDR? compressed per message without its metadata.yaml, or another encoding"
+        raise ScanBagError(f"{path}: no {'decodable ' if hint else ''}/ct/scan_info message; a scan bag starts with "
+                           f"one ({found}{'; ' + hint if hint else ''})")
     info = fmt.scan_info_from_msg(infos[0][1])
     if len(infos) > 1:
         others = [m.data for _, m in infos[1:]]

@@ -189,8 +189,8 @@ def write_correction(correction: Correction, out, *, markdown: bool = False, say
     from robot_ct_ros.bag.writer import write_corrected_bag
 
     scan, report = correction.scan, dict(correction.report)
-    name = scan.path.name.removesuffix(".mcap")
-    refuse_another_bags_folder(Path(out), name)
+    name = _bag_name(scan)
+    refuse_another_bags_folder(Path(out), scan)
     out = start_output(out)  # report.json is written last: without it, the folder holds an unfinished run
     corrected_bag = out / f"{name}_corrected"
     if corrected_bag.exists():
@@ -211,9 +211,15 @@ def write_correction(correction: Correction, out, *, markdown: bool = False, say
     return report
 
 
-def refuse_another_bags_folder(out: Path, name: str) -> None:
+def _bag_name(scan: ScanData) -> str:
+    """The scan bag's name, as its corrected copy ``<name>_corrected`` is named."""
+    return scan.path.name.removesuffix(".mcap")
+
+
+def refuse_another_bags_folder(out: Path, scan: ScanData) -> None:
     """A folder holds one bag's calibration: refuse ``out`` where report.json or a ``*_corrected`` bag is of a bag
-    other than ``name`` (two runs would mix there, and export could take the other bag's correction)."""
+    other than ``scan``'s (two runs would mix there, and export could take the other bag's correction)."""
+    name = _bag_name(scan)
     others = ([p.name.removesuffix("_corrected") for p in out.glob("*_corrected") if p.name != f"{name}_corrected"]
               if out.is_dir() else [])
     previous = out / "report.json"
@@ -234,7 +240,7 @@ def calibrate_bag(bag, out, settings: CalibrationSettings | None = None, *, voxe
     """:func:`correct_scan` of the bag at ``bag`` (read once), written by :func:`write_correction`
     into ``out``. Returns the correction, its report as written."""
     scan = read_scan(bag, keep_raw=True)
-    refuse_another_bags_folder(Path(out), scan.path.name.removesuffix(".mcap"))  # before the work, not after it
+    refuse_another_bags_folder(Path(out), scan)  # before the work, not after it
     correction = correct_scan(scan, settings, scan_grid(scan, voxel_mm, shape_xyz), evaluate_truth=evaluate_truth,
                               say=say)
     report = write_correction(correction, out, markdown=markdown, say=say)

@@ -18,8 +18,9 @@ the files, the line integrals, their mask and the filtered projections; the cali
 padded estimation volumes (FDK, SIRT) and reprojections; the comparison keeps every method's volume."""
 
 
-def prepare_out(out, *, must_not_exist: bool = False) -> Path:
-    """The output folder ``out`` made absolute, created and checked writable before any work is done.
+def prepare_out(out, *, must_not_exist: bool = False, what: str = "--out") -> Path:
+    """The output folder ``out`` made absolute, created and checked writable before any work is done;
+    ``what`` names it in the messages (the command-line option, or a node's parameter).
 
     Raises
     ------
@@ -34,7 +35,7 @@ def prepare_out(out, *, must_not_exist: bool = False) -> Path:
     if must_not_exist and path.exists():
         raise ValueError(f"{out} exists already; it is never overwritten")
     if path.exists() and not path.is_dir():
-        raise ValueError(f"--out {out} is a file, not a folder")
+        raise ValueError(f"{what} {out} is a file, not a folder")
     parent = path if must_not_exist is False else path.parent
     try:
         parent.mkdir(parents=True, exist_ok=True)

@@ -75,16 +75,19 @@ def simulate_bag(out, *, phantom: str = "carotid", views: int = 360, rows: int =
         + (f", detector drift {drift_mm} mm / {drift_deg} deg over the scan" if drift_mm or drift_deg else "")
         + f", seed {seed}")
     gproj = sim.raw_geometry(true, binning)
+    def outer_voxel_mm(fine_mm: float) -> float:  # the coarse grid outside the ROI
+        return max(0.4, 4 * fine_mm)
+
     if sim_voxel_mm is None:  # half the reconstruction voxel, coarser when the ROI would need > 200^3 voxels
         sim_voxel_mm = max(0.5 * voxel, float(np.prod(roi.extent_mm)) ** (1 / 3) / 200)
         # the fine grid is the ROI plus a margin and a blend of outer voxels on every side (sim.scan_volumes):
         # on a thin ROI (a fan beam's one row) that margin, not the ROI, sets its size
-        while np.prod((roi.extent_mm + 2.0 * (0.5 + 3.0 * max(0.4, 4 * sim_voxel_mm))) / sim_voxel_mm) > 0.8 * 400 ** 3:
+        while np.prod((roi.extent_mm + 2.0 * (0.5 + 3.0 * outer_voxel_mm(sim_voxel_mm))) / sim_voxel_mm) > 0.8 * 400 ** 3:
             sim_voxel_mm *= 1.1
-    say(f"phantom voxelised at {sim_voxel_mm * 1000:.1f} um in the ROI, {max(0.4, 4 * sim_voxel_mm):.2f} mm outside")
+    outer_mm = outer_voxel_mm(sim_voxel_mm)
+    say(f"phantom voxelised at {sim_voxel_mm * 1000:.1f} um in the ROI, {outer_mm:.2f} mm outside")
     try:
-        parts = sim.scan_volumes(ph, gproj, sim_voxel_mm, roi_grid=roi,
-                                 outer_voxel_size_mm=max(0.4, 4 * sim_voxel_mm))
+        parts = sim.scan_volumes(ph, gproj, sim_voxel_mm, roi_grid=roi, outer_voxel_size_mm=outer_mm)
     except ValueError as exc:
         if "exceeds max_voxels" not in str(exc):
             raise

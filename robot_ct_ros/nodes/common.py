@@ -53,17 +53,14 @@ def run_node(node_factory: Callable[[], "object"], description: str, argv: list[
 def writable_dir(path, parameter: str) -> Path:
     """``path`` as an absolute folder that exists (made if need be) and can be written, checked when a node starts
     so that a bad place is refused in one line (``parameter ...``, exit status 2) instead of failing with the
-    first scan; raises ValueError."""
-    import os
+    first scan; raises ValueError. The command line's check (jobs.output.prepare_out), named for the parameter."""
+    from robot_ct_ros.jobs.output import prepare_out
 
-    folder = Path(path).expanduser().absolute()
     try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise ValueError(f"parameter {parameter}: cannot make the folder {folder} ({exc.strerror or exc})") from None
-    if not os.access(folder, os.W_OK | os.X_OK):
-        raise ValueError(f"parameter {parameter}: the folder {folder} is not writable")
-    return folder
+        return prepare_out(path, what=f"parameter {parameter}")
+    except ValueError as exc:
+        message = str(exc)
+        raise ValueError(message if message.startswith("parameter ") else f"parameter {parameter}: {message}") from None
 
 
 def shutdown_once(rclpy, context=None) -> None:

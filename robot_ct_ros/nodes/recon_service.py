@@ -164,9 +164,7 @@ class ReconServiceNode(Node):
     def _on_run(self, request, response):
         response.success, response.message = self.start_run()
         if not response.success:  # the caller has the answer; a progress monitor sees the refusal too
-            data = {"state": self.state, "stage": "refused", "message": response.message, "run": self.runs + 1,
-                    "n_views": None, "elapsed_s": 0.0}
-            self.progress_pub.publish(String(data=json.dumps(data)))
+            self._publish_progress("refused", response.message, self.runs + 1, None, 0.0)
         return response
 
     def start_run(self, partial: bool = False) -> tuple[bool, str]:
@@ -196,8 +194,12 @@ class ReconServiceNode(Node):
 
     def _progress(self, stage: str, message: str, run: int, n) -> None:
         self.message = message
+        self._publish_progress(stage, message, run, n, time.monotonic() - self._t_run)
+
+    def _publish_progress(self, stage: str, message: str, run: int, n, elapsed_s: float) -> None:
+        """One recon/progress message (the node's own message unchanged)."""
         data = {"state": self.state, "stage": stage, "message": message, "run": run, "n_views": n,
-                "elapsed_s": round(time.monotonic() - self._t_run, 3)}
+                "elapsed_s": round(elapsed_s, 3)}
         try:
             self.progress_pub.publish(String(data=json.dumps(data)))
         except Exception:  # noqa: BLE001 - shutting down

@@ -131,10 +131,11 @@ class RecorderNode(Node):
         for topic in fmt.LATCHED_TOPICS:  # scan_info first
             if topic in self._latched:
                 msgtype, data = self._latched[topic]
-                if topic != fmt.TOPIC_SCAN_INFO and shape is not None and _image_shape(data) not in (None, shape):
+                image_shape = None if topic == fmt.TOPIC_SCAN_INFO or shape is None else _image_shape(data)
+                if image_shape not in (None, shape):
                     # an earlier scan's flat field or dead-pixel map (another detector): it would make the bag
                     # unusable; this scan's own replaces it when it comes
-                    self.get_logger().warning(f"{topic} of {_image_shape(data)} pixels is an earlier scan's (this "
+                    self.get_logger().warning(f"{topic} of {image_shape} pixels is an earlier scan's (this "
                                               f"one's detector is {shape}): not recorded")
                     continue
                 self.writer.write_raw(topic, msgtype, data, now)

@@ -183,10 +183,9 @@ class ReplayNode(Node):
         """With exit_when_done: end the spin (run_node then exits with exit_code) once everything is done."""
         if self.done and self.context.ok():
             import rclpy
+            from rclpy.duration import Duration
 
             from robot_ct_ros.nodes.common import shutdown_once
-
-            from rclpy.duration import Duration
 
             self.exit_code = 1 if self.error else 0
             # the report is latched and reliable: let the subscribers that are there take it before the node goes
