@@ -288,6 +288,8 @@ def declare_settings(node, cls, *, prefix: str = "", exclude=(), **defaults):
         default = s.to_ros(defaults.get(s.name, s.default))
         if default is None:  # an optional value with no ROS stand-in: declared by its type, left unset
             default = _unset_parameter_type(s)
+        if s.kind is float or (s.kind is tuple and s.item_kind is float):
+            whole_numbers_as_doubles(node, name, "double" if s.kind is float else "double_array")
         try:
             values[s.ros_name] = value = node.declare_parameter(name, default, desc).value
             if (core := s.from_ros(value)) is not None:
@@ -326,6 +328,26 @@ def refuse_unavailable_transitions(node) -> None:
         return answer(request, response)
 
     service.callback = change_state
+
+
+def whole_numbers_as_doubles(node, name: str, kind: str) -> None:
+    """Let ``-p name:=10`` set a double parameter as ``10.0`` would, and ``[0, 0, 1]`` a double array.
+
+    ROS types a command-line or YAML value by how it is written, so ``10`` is an integer, and rclpy
+    refuses an integer override of a parameter declared double ("... of type 'INTEGER', expecting type
+    'DOUBLE'"). Call before declaring ``name``; ``kind`` is "double" or "double_array". The override
+    is converted, the parameter stays statically typed (a string is still refused). Uses rclpy's
+    ``Node._parameter_overrides``, the overrides the node was started with."""
+    from rclpy.parameter import Parameter
+
+    T = Parameter.Type
+    override = node._parameter_overrides.get(name)
+    if override is None:
+        return
+    if kind == "double" and override.type_ == T.INTEGER:
+        node._parameter_overrides[name] = Parameter(name, T.DOUBLE, float(override.value))
+    elif kind == "double_array" and override.type_ == T.INTEGER_ARRAY:
+        node._parameter_overrides[name] = Parameter(name, T.DOUBLE_ARRAY, [float(v) for v in override.value])
 
 
 def _unset_parameter_type(spec):

@@ -32,9 +32,10 @@ def declare_hand_eye(node, prefix: str = "hand_eye") -> HandEye:
     from rcl_interfaces.msg import ParameterDescriptor
     from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 
-    from robot_ct_ros.nodes.common import READ_AT_START
+    from robot_ct_ros.nodes.common import READ_AT_START, whole_numbers_as_doubles
 
     def declare(name, value):
+        whole_numbers_as_doubles(node, name, "double_array")
         try:
             return node.declare_parameter(name, value, ParameterDescriptor(
                 name=name, description=f"hand-eye mount of the device on its flange.{READ_AT_START}",

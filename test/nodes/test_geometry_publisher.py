@@ -123,6 +123,15 @@ def test_hand_eye_parameters_are_used(ros):
     np.testing.assert_allclose(v, expect.v[0], atol=1e-9)
 
 
+def test_whole_numbers_set_double_parameters(ros):
+    """``-p hand_eye.source.rotvec_rad:=[0,0,0]`` is an integer array to ROS; rclpy alone refuses it."""
+    node = _node(ros, **{"hand_eye.source.rotvec_rad": [0, 0, 0], "hand_eye.detector.translation_m": [0, 0, 0],
+                         "max_pose_age_s": 1})
+    assert np.allclose(node.hand_eye.source.matrix[:3, :3], np.eye(3))
+    assert np.allclose(node.hand_eye.detector.matrix[:3, 3], 0.0)
+    assert node.get_parameter("max_pose_age_s").value == 1.0
+
+
 def test_bad_parameter_values_are_refused_with_a_clear_error(ros):
     import pytest
 

@@ -217,3 +217,16 @@ def test_parameters_are_read_only_while_the_node_runs(ros):
     got = ros.call(probe.create_client(GetParameters, "/source_control/get_parameters"),
                    GetParameters.Request(names=["max_beam_on_s", "kvp"]))
     assert [v.double_value for v in got.values] == [node.settings.max_beam_on_s, node.settings.kvp]
+
+
+def test_a_whole_number_sets_a_double_parameter(ros):
+    """``-p kvp:=90`` is an integer to ROS; rclpy alone refuses it for a double parameter."""
+    import pytest
+    from rclpy.parameter import Parameter as P
+
+    node = ros.add(SourceControlNode(context=ros.context, parameter_overrides=[
+        P("kvp", value=90), P("autostart", value=False)]))
+    kvp = node.get_parameter("kvp")
+    assert kvp.type_ == P.Type.DOUBLE and kvp.value == 90.0
+    with pytest.raises(ValueError, match="parameter kvp"):  # still typed: text is refused
+        SourceControlNode(context=ros.context, parameter_overrides=[P("kvp", value="90")])
