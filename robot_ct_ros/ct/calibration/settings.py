@@ -90,6 +90,10 @@ def _schedule_names():
     return (AUTO_SCHEDULE, *SCHEDULES)
 
 
+DASK_PROTOCOLS = ("tcp", "tls", "inproc", "ucx", "ws", "wss")
+"""The address schemes of dask.distributed's communication backends (``scheduler`` = ``<scheme>://host:port``)."""
+
+
 @dataclass(frozen=True)
 class CalibrationSettings:
     """Everything the calibration of one scan is set by (units in each field's help).
@@ -190,7 +194,8 @@ class CalibrationSettings:
     exterior_iterations: int | None = setting(None, "ordered-subsets SIRT passes of the ROI and exterior model (off: "
                                               "the schedule's, 30 under exterior, else 15)", minimum=1, maximum=1000,
                                               ros_none=0, kind=int)
-    exterior_subsets: int = setting(10, "ordered subsets of that SIRT", minimum=1, maximum=1000)
+    exterior_subsets: int = setting(10, "ordered subsets of that SIRT (more than the views: one view each)", minimum=1,
+                                    maximum=1000)
     guard: bool = setting(True, "keep the nominal geometry where the correction moves the views further than the "
                           "robots' stated accuracy (the prior) explains")
     guard_max_ratio: float = setting(1.5, "the scan keeps its nominal geometry when the correction moves the views this "
@@ -230,9 +235,10 @@ class CalibrationSettings:
         if coarse is not None and fine is not None and coarse < fine:
             raise ValueError(f"coarse_binning ({coarse}) must be at least fine_binning ({fine}): the coarse level is "
                              f"the more binned one (a field left off takes the schedule's {self.schedule!r} value)")
-        if self.scheduler not in ("", "local") and "://" not in self.scheduler:
+        scheme, sep, where = self.scheduler.partition("://")
+        if self.scheduler not in ("", "local") and not (sep and where and scheme in DASK_PROTOCOLS):
             raise ValueError(f"scheduler must be empty (in-process), local or a Dask scheduler address such as "
-                             f"tcp://host:8786; got {self.scheduler!r}")
+                             f"tcp://host:8786 (protocol one of {', '.join(DASK_PROTOCOLS)}); got {self.scheduler!r}")
 
     @property
     def prior_sigma(self):

@@ -119,5 +119,7 @@ def test_the_default_path_imports_no_dask_and_a_scheduler_without_dask_says_what
     monkeypatch.setitem(sys.modules, "distributed", None)  # as if not installed
     with pytest.raises(DaskUnavailable, match="pip install dask distributed"):
         executor_for(CalibrationSettings(scheduler="tcp://127.0.0.1:8786"))
-    with pytest.raises(ValueError, match="scheduler"):
-        CalibrationSettings(scheduler="127.0.0.1:8786")
+    for address in ("127.0.0.1:8786", "foo://x", "tcp://"):  # no protocol, one Dask lacks, no host
+        with pytest.raises(ValueError, match="scheduler"):
+            CalibrationSettings(scheduler=address)
+    assert CalibrationSettings(scheduler="tls://10.0.0.2:8786").scheduler == "tls://10.0.0.2:8786"
