@@ -223,17 +223,10 @@ def _cmd_reconstruct(args) -> int:
 
 
 def _cmd_calibrate(args) -> int:
-    from robot_ct_ros.bag.reader import read_scan
-    from robot_ct_ros.jobs.calibrate import correct_scan, refuse_another_bags_folder, scan_grid, write_correction
-    from robot_ct_ros.jobs.output import check_memory
+    from robot_ct_ros.jobs.calibrate import calibrate_bag
 
-    settings = settings_from_args(args)
     bag, out = _paths(args)
-    scan = read_scan(bag, keep_raw=True)  # calibrate_bag's steps, with the memory check before the work
-    refuse_another_bags_folder(Path(out), scan)
-    grid = scan_grid(scan, args.voxel_mm, args.shape)
-    check_memory(grid, scan.n_views, scan.geom.det_shape, "reconstruct" if settings.method == "none" else "calibrate")
-    write_correction(correct_scan(scan, settings, grid), out)
+    calibrate_bag(bag, out, settings_from_args(args), voxel_mm=args.voxel_mm, shape_xyz=args.shape)
     return 0
 
 

@@ -20,7 +20,7 @@ from robot_ct_ros.bag.reader import ScanData, read_scan
 from robot_ct_ros.ct.calibration import CalibrationResult, CalibrationSettings, calibrate
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
 from robot_ct_ros.jobs.output import say as _say
-from robot_ct_ros.jobs.output import start_output, write_json, write_volume
+from robot_ct_ros.jobs.output import check_memory, start_output, write_json, write_volume
 
 __all__ = ["Correction", "correct_scan", "write_correction", "calibrate_bag", "scan_grid", "drift_times",
            "geometry_error", "truth_metrics", "markdown_report"]
@@ -236,13 +236,20 @@ def refuse_another_bags_folder(out: Path, scan: ScanData) -> None:
 
 
 def calibrate_bag(bag, out, settings: CalibrationSettings | None = None, *, voxel_mm=None, shape_xyz=None,
-                  evaluate_truth: bool = False, markdown: bool = False, say=_say) -> Correction:
+                  evaluate_truth: bool = False, markdown: bool = False, say=_say,
+                  options: str = "command line") -> Correction:
     """:func:`correct_scan` of the bag at ``bag`` (read once), written by :func:`write_correction`
-    into ``out``. Returns the correction, its report as written."""
+    into ``out``. Returns the correction, its report as written.
+
+    Refused before the work: a folder holding another bag's calibration, and a grid that would not
+    fit in memory (the refusal names the grid settings of ``options``, jobs.output.GRID_OPTIONS)."""
     scan = read_scan(bag, keep_raw=True)
-    refuse_another_bags_folder(Path(out), scan)  # before the work, not after it
-    correction = correct_scan(scan, settings, scan_grid(scan, voxel_mm, shape_xyz), evaluate_truth=evaluate_truth,
-                              say=say)
+    refuse_another_bags_folder(Path(out), scan)
+    grid = scan_grid(scan, voxel_mm, shape_xyz)
+    method = (settings or CalibrationSettings()).method
+    check_memory(grid, scan.n_views, scan.geom.det_shape, "reconstruct" if method == "none" else "calibrate",
+                 options=options)
+    correction = correct_scan(scan, settings, grid, evaluate_truth=evaluate_truth, say=say)
     report = write_correction(correction, out, markdown=markdown, say=say)
     return Correction(correction.scan, correction.grid, correction.result, report)
 

@@ -10,12 +10,19 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["say", "json_default", "clean_json", "write_json", "write_volume", "write_ome_tiff", "prepare_out",
-           "available_memory_bytes", "check_memory", "MEMORY_FACTORS"]
+           "available_memory_bytes", "check_memory", "MEMORY_FACTORS", "GRID_OPTIONS"]
 
 MEMORY_FACTORS = {"reconstruct": (2.0, 3.0), "calibrate": (8.0, 8.0), "report": (10.0, 8.0)}
 """Rough peak memory of each job, as (volumes, projection stacks): FDK holds its volume and its copy for
 the files, the line integrals, their mask and the filtered projections; the calibration also holds its
 padded estimation volumes (FDK, SIRT) and reprojections; the comparison keeps every method's volume."""
+
+GRID_OPTIONS = {"command line": ("--shape {},{},{}", "--voxel-mm {:.4g}", 1.0),
+                "ROS parameters": ("roi_shape:=[{},{},{}]", "voxel_size_m:={:.4g}", 1e-3),
+                "scan_info": ("a ROI of {} x {} x {} voxels in the bag's scan_info", "voxels of {:.4g} mm", 1.0)}
+"""How a user sets the grid, by where the job was started (the command line, recon_service's parameters,
+or the bag itself for replay): (shape, voxel size, voxel unit per mm), the hints of :func:`check_memory`'s
+refusal."""
 
 
 def prepare_out(out, *, must_not_exist: bool = False, what: str = "--out") -> Path:
@@ -74,11 +81,13 @@ def _gib(n: float) -> str:
     return f"{n / 2 ** 30:.1f} GiB" if n >= 2 ** 29 else f"{n / 2 ** 20:.0f} MiB"
 
 
-def check_memory(grid, n_views: int, det_shape, job: str, available: int | None = None) -> int:
+def check_memory(grid, n_views: int, det_shape, job: str, available: int | None = None, *,
+                 options: str = "command line") -> int:
     """Refuse, before anything is allocated, a job whose grid and projections cannot fit in memory.
 
     Returns the estimate in bytes. Raises ValueError naming the estimate, what is available, and
-    the largest grid (same aspect) or the voxel size that would fit.
+    the largest grid (same aspect) or the voxel size that would fit, written as the settings of
+    ``options`` (a key of :data:`GRID_OPTIONS`).
     """
     kv, kp = MEMORY_FACTORS[job]
     nz, ny, nx = (int(v) for v in grid.shape_zyx)
@@ -95,10 +104,11 @@ def check_memory(grid, n_views: int, det_shape, job: str, available: int | None 
     scale = (room / (kv * vol)) ** (1.0 / 3.0)
     fit = [max(1, int(n * scale)) for n in (nx, ny, nz)]
     voxel = [float(v) / scale for v in grid.voxel_size_mm]
+    shape_hint, voxel_hint, per_mm = GRID_OPTIONS[options]
     raise ValueError(f"not enough memory: a {nx} x {ny} x {nz} grid needs about {_gib(need)} for {job} "
                      f"({_gib(vol)} per volume), {_gib(avail)} are available; at most about "
-                     f"--shape {fit[0]},{fit[1]},{fit[2]} would fit, or the same field of view with "
-                     f"--voxel-mm {max(voxel):.4g}")
+                     f"{shape_hint.format(*fit)} would fit, or the same field of view with "
+                     f"{voxel_hint.format(max(voxel) * per_mm)}")
 
 
 def say(message: str) -> None:

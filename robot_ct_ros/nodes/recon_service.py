@@ -214,7 +214,8 @@ class ReconServiceNode(Node):
         try:
             correction = calibrate_bag(bag, out, self.settings, voxel_mm=self.service.voxel_mm,
                                        shape_xyz=self.service.shape_xyz,
-                                       evaluate_truth=self.service.evaluate_truth, markdown=True, say=say)
+                                       evaluate_truth=self.service.evaluate_truth, markdown=True, say=say,
+                                       options="ROS parameters")
             report = correction.report | {"partial": partial, "scan_id": self.scan.scan_id}
             if not self.service.bag_path or partial:  # the scan as received: what the collection dropped
                 report["bag_warnings"] = list(self.scan.warnings) + list(report.get("bag_warnings", []))

@@ -163,7 +163,8 @@ class ReplayNode(Node):
 
         log = self.get_logger()
         try:
-            report = calibrate_bag(self.bag_path, self.output_dir, self.settings, say=lambda s: log.info(s)).report
+            report = calibrate_bag(self.bag_path, self.output_dir, self.settings, say=lambda s: log.info(s),
+                                   options="scan_info").report
         except Exception as exc:  # noqa: BLE001 - reported, the node keeps running
             error = f"{type(exc).__name__}: {exc}"
             log.error(f"offline calibration failed: {error}")

@@ -56,6 +56,23 @@ def test_the_job_writes_the_oriented_grid_and_a_corrected_bag(tmp_path):
     assert read_scan(correction.report["corrected_bag"]).geom_corrected.allclose(read_scan(bag).geom, atol=1e-6)
 
 
+def test_a_grid_too_large_for_memory_is_refused_before_the_work_in_the_starter_s_words(tmp_path, monkeypatch):
+    """recon_service and replay call calibrate_bag too: before, only the command line checked the memory, and
+    a node given too large a grid was ended by the system instead."""
+    from robot_ct_ros.jobs import output
+
+    bag = _bag(tmp_path / "z", np.eye(3))
+    monkeypatch.setattr(output, "available_memory_bytes", lambda: 64 * 2 ** 20)
+    for options, hints in (("ROS parameters", ("roi_shape:=[", "voxel_size_m:=")),
+                           ("scan_info", ("in the bag's scan_info", "voxels of")),
+                           ("command line", ("--shape ", "--voxel-mm "))):
+        with pytest.raises(ValueError, match="not enough memory") as err:
+            calibrate_bag(bag, tmp_path / "out", CalibrationSettings(iterations=1), shape_xyz=(400, 400, 400),
+                          options=options, say=lambda s: None)
+        assert all(h in str(err.value) for h in hints), str(err.value)
+    assert not (tmp_path / "out" / "report.json").exists()
+
+
 def test_a_one_row_bag_reconstructs_and_calibrates(tmp_path):
     """A fan-beam scan bag (one detector row) through the command line: reconstruct gives the slice
     the row sees on a grid one voxel thick, and calibrate corrects the in-plane errors (the detector
