@@ -158,7 +158,9 @@ def correct_scan(scan: ScanData, settings: CalibrationSettings | None = None, gr
     report = base_report(scan, grid)
     report.update({"job": "calibrate", "method": settings.method, "method_used": result.method,
                    "iterations": used.iterations, "schedule": used.schedule, "settings": used.to_dict(),
-                   "prior_sigma": None if used.prior_sigma is None else list(used.prior_sigma),
+                   # what the estimator used: a method without a prior used none (the settings keep the accuracy)
+                   "prior_sigma": None if used.prior_sigma is None or not get_method(result.method).uses_prior
+                   else list(used.prior_sigma),
                    "drift_order": used.drift_order, "seed": used.seed, "padding": used.padding,
                    "ensemble": result.members, "iterations_run": len(result.history),
                    "history": [dict(h.__dict__) for h in result.history], "notes": list(result.notes)})

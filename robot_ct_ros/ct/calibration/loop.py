@@ -136,10 +136,9 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
     method = get_method(settings.method)
     say = progress or (lambda message: None)
     accuracy = settings.prior_sigma  # the robots' stated accuracy: the guard's reference, prior or not
-    if not method.uses_prior and settings.prior_sigma is not None:
-        settings = settings.without_prior()
-        if method.estimate is not None:
-            say(f"{method.name} has no prior: the robots' error (prior_sigma) is not used")
+    if not method.uses_prior and accuracy is not None and method.estimate is not None:
+        # the settings keep the stated accuracy (the guard reads it), so that the result's settings repeat the run
+        say(f"{method.name} has no prior: the robots' error (prior_sigma) is not used")
     with executor_for(settings) as executor:  # in-process, or Dask tasks (settings.scheduler)
         if settings.scheduler:
             say(f"estimation and FDK run on {executor.description}")

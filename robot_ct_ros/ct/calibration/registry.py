@@ -40,7 +40,8 @@ class Method:
         ``fresh_samples(config, k) -> config``: the config of the k-th extra coarse pass.
     uses_prior : bool
         Whether the estimate is maximum a posteriori under the settings' prior. A method without
-        one runs on the data alone, and the report records its prior as none.
+        one runs on the data alone: the report's ``prior_sigma`` is none, while its settings keep
+        the robots' stated accuracy, which the guard reads.
     samples : bool
         Whether it draws random samples: then ``seed`` changes the estimate and ``ensemble``
         averages runs; otherwise every run is the same and an ensemble runs once.

@@ -41,7 +41,8 @@ class CalibrationResult:
     :class:`IterationRecord` per outer iteration (an ensemble's: its first member's), ``members``
     the runs averaged and ``spread_px`` their mean gauge-aligned distance to the mean (NaN for
     one run), ``settings`` the :class:`~robot_ct_ros.ct.calibration.settings.CalibrationSettings`
-    the run used (a method without a prior runs without one), ``notes`` what the loop decided on
+    the run used (with the stated accuracy, which a method without a prior does not estimate with and
+    the guard reads all the same), ``notes`` what the loop decided on
     its own (e.g. views it kept at nominal), ``params_unguarded`` the loop's estimate before the guard
     kept views at nominal (None when it kept none)."""
 

@@ -96,3 +96,25 @@ def test_a_stricter_scan_limit_refuses_what_the_default_one_keeps():
     assert refused.scan_reverted and refused.ratio == kept.ratio
     np.testing.assert_array_equal(refused.params, 0.0)
     assert "(limit 1)" in refused.note(1.0)
+
+
+def test_a_result_s_settings_repeat_the_run_of_a_method_without_a_prior():
+    """gdc estimates without the prior, yet the guard compares its correction with the robots' stated
+    accuracy. The result's settings (report.json's) dropped that accuracy, so feeding them back ran
+    without the guard's ratio test and applied what the first run refused."""
+    from robot_ct_ros.ct.calibration import calibrate
+    from robot_ct_ros.ct.projector import forward_project
+    from robot_ct_ros.ct.simulation import mouse_phantom, robot_coordination, voxelize
+
+    nominal = circular_scan(16, 60.0, 150.0, 24, 24, 0.8, 0.8)
+    true = nominal.perturbed(robot_coordination(0.3, 0.3, seed=6).sample(16))
+    fine = VolumeGrid.centered((48, 48, 48), 0.2)
+    data = forward_project(voxelize(mouse_phantom(body_width_mm=7.0, length_mm=8.0), fine), fine, true)
+    roi = VolumeGrid.centered((16, 16, 16), 0.5)
+    first = calibrate(data, nominal, roi, method="gdc", iterations=1, exterior="off", guard_min_ncc=0.0,
+                      prior_translation_mm=0.01, prior_rotation_deg=0.01)
+    assert first.settings.prior_sigma is not None
+    assert any("times as far as" in note for note in first.notes), first.notes
+    again = calibrate(data, nominal, roi, first.settings)
+    np.testing.assert_array_equal(again.params, first.params)
+    assert again.notes == first.notes
