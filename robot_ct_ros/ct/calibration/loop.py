@@ -419,11 +419,8 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
     explained = history[-1].projection_ncc if history else float("nan")
     # a strongly truncated scan needs a model that explains more, with the exterior modelled or not
     # (docs/calibration.md §11)
-    min_ncc = settings.guard_min_ncc
-    if unmodelled:
-        min_ncc = max(min_ncc, settings.guard_min_ncc_unmodelled)
-    elif exterior:
-        min_ncc = max(min_ncc, settings.guard_min_ncc_exterior)
+    min_ncc = settings.guard_min_ncc_unmodelled if unmodelled else \
+        settings.guard_min_ncc_exterior if exterior else settings.guard_min_ncc
     if settings.guard and explained < min_ncc:
         # the data term is dominated by what the model lacks (the object outside the ROI): its optimum is not the
         # geometry's, and no consistency figure can vouch for it
@@ -438,8 +435,7 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
     elif settings.guard and accuracy is not None:
         # where the ROI model's data term is biased (strong truncation, no exterior) the correction may not move the
         # views further than the robots' errors do: its helpful corrections there are partial (docs/calibration.md §11)
-        scan_limit = min(settings.guard_max_ratio, settings.guard_max_ratio_unmodelled) if unmodelled \
-            else settings.guard_max_ratio
+        scan_limit = settings.guard_max_ratio_unmodelled if unmodelled else settings.guard_max_ratio
         checked = plausibility_guard(nominal, params, points, accuracy, max_ratio=settings.guard_max_ratio,
                                      view_quantile=settings.guard_view_quantile, seed=settings.seed,
                                      scan_max_ratio=scan_limit)

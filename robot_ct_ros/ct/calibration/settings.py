@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 
-from robot_ct_ros.ct.calibration.lle.estimator import DRAWS
+from robot_ct_ros.ct.calibration.lle.estimator import COARSE_SAMPLES, DRAWS
 from robot_ct_ros.parameters import setting, to_dict, validate
 
 __all__ = ["CalibrationSettings", "SCHEDULES", "AUTO_SCHEDULE", "SCHEDULE_FIELDS", "FINE_VOLUMES", "PROJECTION_KINDS",
@@ -44,6 +44,7 @@ SCHEDULES = {
     "fast": _FAST,
     "exterior": {**_FAST, "iterations": 8, "stop_ncc_gain": 1e-4, "exterior_iterations": 30},
 }
+assert all(s["fine_samples"] >= COARSE_SAMPLES for s in SCHEDULES.values())  # lle_neighbours' bound holds everywhere
 """Resolution schedules, and how long the loop runs under each. ``accurate``: estimate on 2x2
 binned data, then at full size against a full-size FDK + SIRT volume. ``fast`` (large scans):
 4x4 binned (FDK + SIRT), then 2x2 binned against the FDK alone, the source held at the coarse
@@ -147,7 +148,8 @@ class CalibrationSettings:
                             maximum=100)
     lle_neighbours: int | None = setting(None, "LLE methods: how many samples each view's projection is embedded "
                                          "in (off: the method's own, 24 for l2-lle and ncc-lle-exact, 16 for "
-                                         "ncc-lle)", minimum=2, maximum=1000, ros_none=0, kind=int)
+                                         "ncc-lle; at most the coarse level's samples)", minimum=2,
+                                         maximum=COARSE_SAMPLES, ros_none=0, kind=int)
     lle_ridge: float | None = setting(None, "l2-lle and ncc-lle-exact: ridge added to the embedding's Gram matrix, "
                                       "times its trace / K (off: the method's own, 1e-5; the ncc-lle closed form "
                                       "has none)", minimum=1e-12, maximum=1.0, ros_none=0.0, kind=float)
@@ -200,18 +202,18 @@ class CalibrationSettings:
                           "robots' stated accuracy (the prior) explains")
     guard_max_ratio: float = setting(1.5, "the scan keeps its nominal geometry when the correction moves the views this "
                                      "many times as far as the stated accuracy does", minimum=1.0)
-    guard_max_ratio_unmodelled: float = setting(1.0, "the same limit for a strongly truncated scan whose object "
-                                                "outside the ROI was not modelled: there the ROI model's data term is "
+    guard_max_ratio_unmodelled: float = setting(1.0, "guard_max_ratio's place on a strongly truncated scan whose "
+                                                "object outside the ROI was not modelled: there the ROI model's data term is "
                                                 "biased, and a correction larger than the robots' own errors is not "
                                                 "credited", minimum=0.1)
     guard_min_ncc: float = setting(0.5, "the scan keeps its nominal geometry when the estimation model explains the "
                                    "data this poorly: the final projection NCC of its reprojection against the data",
                                    minimum=0.0, maximum=1.0)
-    guard_min_ncc_unmodelled: float = setting(0.7, "the same floor for a strongly truncated scan whose object outside "
-                                              "the ROI was not modelled: there corrections whose model explained the "
+    guard_min_ncc_unmodelled: float = setting(0.7, "guard_min_ncc's place on a strongly truncated scan whose object "
+                                              "outside the ROI was not modelled: there corrections whose model explained the "
                                               "data at about 0.5 have made the geometry worse", minimum=0.0, maximum=1.0)
-    guard_min_ncc_exterior: float = setting(0.85, "the same floor for a scan whose object outside the ROI was "
-                                            "modelled (exterior model): on small interior scans of wide objects, "
+    guard_min_ncc_exterior: float = setting(0.85, "guard_min_ncc's place on a scan whose object outside the ROI "
+                                            "was modelled (exterior model): on small interior scans of wide objects, "
                                             "corrections whose model explained the data at 0.64 to 0.82 made the "
                                             "geometry worse", minimum=0.0, maximum=1.0)
     guard_view_quantile: float = setting(0.999, "a view moved beyond guard_max_ratio times this quantile of the "
@@ -231,7 +233,10 @@ class CalibrationSettings:
             value = getattr(self, name)
             if value is not None and not (value > 0 and math.isfinite(value)):
                 raise ValueError(f"{name} must be positive (or off: the same as prior_translation_mm); got {value!r}")
-        coarse, fine = self.coarse_binning, self.fine_binning  # both set here, or by resolved() for a run
+        coarse, fine = self.coarse_binning, self.fine_binning  # set here, by a named schedule, or by resolved()
+        if self.schedule != AUTO_SCHEDULE:  # a named schedule gives the level left off
+            coarse = SCHEDULES[self.schedule]["coarse_binning"] if coarse is None else coarse
+            fine = SCHEDULES[self.schedule]["fine_binning"] if fine is None else fine
         if coarse is not None and fine is not None and coarse < fine:
             raise ValueError(f"coarse_binning ({coarse}) must be at least fine_binning ({fine}): the coarse level is "
                              f"the more binned one (a field left off takes the schedule's {self.schedule!r} value)")

@@ -170,9 +170,19 @@ def test_settings_a_method_ignores_are_named_in_its_notes():
 
 
 def test_a_coarse_level_finer_than_the_fine_one_is_refused():
-    """--coarse-binning 2 --fine-binning 4 ran with its "coarse" level finer than its "fine" one."""
+    """--coarse-binning 2 --fine-binning 4 ran with its "coarse" level finer than its "fine" one. lle_neighbours
+    beyond the coarse level's samples failed during the run, unnamed ("need 2 <= n_neighbours <= n_samples")."""
+    from robot_ct_ros.ct.calibration.lle.estimator import COARSE_SAMPLES
+
+    CalibrationSettings(lle_neighbours=COARSE_SAMPLES)
+    with pytest.raises(ValueError, match="lle_neighbours"):
+        CalibrationSettings(lle_neighbours=COARSE_SAMPLES + 1)
     with pytest.raises(ValueError, match="coarse_binning"):
         CalibrationSettings(coarse_binning=2, fine_binning=4)
     with pytest.raises(ValueError, match="coarse_binning"):  # the schedule's coarse level (2) under accurate
         CalibrationSettings(fine_binning=4).resolved(False)
     assert CalibrationSettings(coarse_binning=1).resolved(False).plan()["fine_binning"] == 1  # one level
+    # a named schedule's level is known at once: refused where the settings are made (a node's start), not at the run
+    for named in (dict(schedule="fast", coarse_binning=1), dict(schedule="accurate", fine_binning=4)):
+        with pytest.raises(ValueError, match="coarse_binning"):
+            CalibrationSettings(**named)
