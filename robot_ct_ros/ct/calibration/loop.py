@@ -161,16 +161,34 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
 
 
 def _unused_settings(method, settings) -> str:
-    """The note for settings that ``method`` ignores (given, yet the result would be the same without them)."""
+    """The note for settings that ``method`` or the other settings leave unused (given, yet the result would be the
+    same without them); empty when there are none."""
     if method.estimate is None:
         given = [f"{name} {value}" for name, value, off in (("ensemble", settings.ensemble, 1),
                                                               ("drift_order", settings.drift_order, None))
                  if value != off]
         return (f"no correction ({method.name}): {', '.join(given)} did not apply" if given else "")
+    notes = []
     if settings.ensemble > 1 and not method.samples:
-        return (f"ensemble {settings.ensemble} did not apply: {method.name} draws no samples, so its runs would be "
-                "identical (one run)")
-    return ""
+        notes.append(f"ensemble {settings.ensemble} did not apply: {method.name} draws no samples, so its runs would "
+                     "be identical (one run)")
+    defaults = CalibrationSettings()
+
+    def changed(names):
+        return [f"{n} {getattr(settings, n)}" for n in names if getattr(settings, n) != getattr(defaults, n)]
+
+    lle = ["lle_neighbours", "lle_ridge"] if not method.uses_prior else ["lle_ridge"] if method.name == "ncc-lle" else []
+    if given := changed(lle):
+        notes.append(f"{', '.join(given)} did not apply: {method.name} "
+                     + ("embeds no samples" if not method.uses_prior else "has a closed form without a ridge"))
+    if settings.prior_sigma is None and (given := changed(["prior_source_mm", "prior_detector_mm"])):
+        notes.append(f"{', '.join(given)} did not apply: the prior is off (prior_translation_mm or "
+                     "prior_rotation_deg 0)")
+    if settings.exterior == "off" and (given := changed(["exterior_voxel_mm", "exterior_half_width_mm",
+                                                          "exterior_iterations", "exterior_subsets",
+                                                          "exterior_reach_guess"])):
+        notes.append(f"{', '.join(given)} did not apply: exterior is off")
+    return "; ".join(notes)
 
 
 @blas_single_threaded

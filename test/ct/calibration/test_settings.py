@@ -167,6 +167,17 @@ def test_settings_a_method_ignores_are_named_in_its_notes():
     assert "ensemble 2 did not apply: gdc draws no samples" in _unused_settings(
         get_method("gdc"), CalibrationSettings(method="gdc", ensemble=2))
     assert _unused_settings(get_method("ncc-lle-exact"), CalibrationSettings(ensemble=2)) == ""
+    # settings that another setting or the method leaves unused were accepted, recorded and ignored without a word
+    for method, settings, words in (
+            ("ncc-lle-exact", dict(prior_translation_mm=0.0, prior_source_mm=0.5), "prior_source_mm 0.5 did not apply"),
+            ("ncc-lle-exact", dict(exterior="off", exterior_half_width_mm=30.0, exterior_reach_guess=False),
+             "exterior_half_width_mm 30.0, exterior_reach_guess False did not apply: exterior is off"),
+            ("gdc", dict(lle_neighbours=8), "lle_neighbours 8 did not apply"),
+            ("ncc-lle", dict(lle_ridge=1e-3), "lle_ridge 0.001 did not apply")):
+        assert words in _unused_settings(get_method(method), CalibrationSettings(method=method, **settings))
+    for method, settings in (("ncc-lle-exact", dict(lle_ridge=1e-3, prior_source_mm=0.5, exterior_voxel_mm=0.25)),
+                             ("ncc-lle", dict(lle_neighbours=8))):  # each of these is used
+        assert _unused_settings(get_method(method), CalibrationSettings(method=method, **settings)) == ""
 
 
 def test_a_coarse_level_finer_than_the_fine_one_is_refused():
