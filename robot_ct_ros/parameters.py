@@ -26,6 +26,18 @@ __all__ = ["setting", "SettingSpec", "specs", "validate", "to_dict", "ros_defaul
            "with_changes", "yaml_lines"]
 
 
+SCALED_DIGITS = 12
+"""Significant digits of a value converted between core and ROS units: the conversion's rounding noise
+(0.3 deg is 0.005235987755982988 rad, back 0.30000000000000004 deg) is dropped, so that a config file,
+a node's default and the library's default are the same value."""
+
+
+def _unscaled(value, scale: float) -> float:
+    """A ROS value in core units (``value / scale``, to :data:`SCALED_DIGITS` significant digits)."""
+    x = float(value) / scale
+    return x if scale == 1.0 or not math.isfinite(x) else float(f"{x:.{SCALED_DIGITS}g}")
+
+
 def setting(default, help: str, *, unit: str = "", minimum=None, maximum=None, choices=None,
             ros_name: str | None = None, ros_scale: float = 1.0, ros_unit: str | None = None, ros_none=None,
             ros: bool = True, kind: type | None = None, length: int | None = None,
@@ -88,9 +100,9 @@ class SettingSpec:
                 return None  # an optional list left unset (or set to [])
             if self.item_kind is int:
                 return tuple(int(x) for x in value)
-            return tuple(float(x) / self.ros_scale for x in value)
+            return tuple(_unscaled(x, self.ros_scale) for x in value)
         if self.kind is float:
-            return float(value) / self.ros_scale
+            return _unscaled(value, self.ros_scale)
         if self.kind is int:
             if isinstance(value, float) and not value.is_integer():
                 raise ValueError(f"{self.ros_name} must be a whole number, got {value!r}")
@@ -221,7 +233,7 @@ def yaml_lines(cls, indent: int = 4, exclude=()) -> list[str]:
             continue
         v = s.to_ros(s.default)
         text = ("true" if v else "false") if isinstance(v, bool) else json.dumps(v) if isinstance(v, (str, list, tuple)) \
-            else (repr(round(v, 9)) if isinstance(v, float) else str(v))
+            else (repr(float(f"{v:.{SCALED_DIGITS}g}")) if isinstance(v, float) else str(v))
         unit = f" [{s.ros_unit}]" if s.ros_unit else ""
         off = f"; {json.dumps(s.ros_none) if isinstance(s.ros_none, str) else s.ros_none} = off" if s.ros_none is not None \
             else ""

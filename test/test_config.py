@@ -40,3 +40,16 @@ def test_recorder_and_replay_yaml_list_their_typed_settings(node, cls):
     for key, default in ros_defaults(settings).items():
         assert key in params, f"config/{node}.yaml lacks {key}"
         assert params[key] == default, key
+
+
+@pytest.mark.parametrize("node, exclude", [("recon_service", ()), ("replay", ("method",))])
+def test_the_shipped_file_gives_the_library_s_defaults_exactly(node, exclude):
+    """A node started from its config file ran with a prior of 0.30000001398 deg (the file rounded the radians
+    to 9 digits), so its corrected geometry differed from robot-ct calibrate's with the same settings."""
+    from robot_ct_ros.parameters import from_ros_values
+
+    params = yaml.safe_load((CONFIG / f"{node}.yaml").read_text())[f"/**/{node}"]["ros__parameters"]
+    values = {k: v for k, v in params.items() if k in ros_defaults(CalibrationSettings)}
+    values |= {k: ros_defaults(CalibrationSettings)[k] for k in exclude}  # replay's method is its own parameter
+    assert from_ros_values(CalibrationSettings, values) == CalibrationSettings()
+    assert from_ros_values(CalibrationSettings, ros_defaults(CalibrationSettings)) == CalibrationSettings()

@@ -17,7 +17,7 @@ import numpy as np
 
 from robot_ct_ros.bag import format as fmt
 from robot_ct_ros.bag.reader import ScanData, read_scan
-from robot_ct_ros.ct.calibration import CalibrationResult, CalibrationSettings, calibrate
+from robot_ct_ros.ct.calibration import CalibrationResult, CalibrationSettings, calibrate, get_method
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
 from robot_ct_ros.jobs.output import say as _say
 from robot_ct_ros.jobs.output import check_memory, start_output, write_json, write_volume
