@@ -38,6 +38,7 @@ def run_node(node_factory: Callable[[], "object"], description: str, argv: list[
     node = None
     try:
         node = node_factory()
+        warn_undeclared_parameters(node)
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         executor.spin()
@@ -48,6 +49,26 @@ def run_node(node_factory: Callable[[], "object"], description: str, argv: list[
             node.destroy_node()
         shutdown_once(rclpy)
     return int(getattr(node, "exit_code", 0) or 0)  # a node that ends itself (replay's exit_when_done) says how
+
+
+def warn_undeclared_parameters(node) -> list[str]:
+    """Log a warning naming each parameter ``node`` was given but does not declare, with the declared name
+    closest to it, and return those names.
+
+    rclpy ignores such a value without a word, so a misspelt ``itterations:=5`` or a parameter of another node
+    ran with the default. Not refused: one parameter file with a ``/**`` section may serve several nodes."""
+    import difflib
+
+    declared = [name for name in node._parameters]
+    unknown = sorted(name for name in node._parameter_overrides if not node.has_parameter(name))
+    if unknown:
+        hints = []
+        for name in unknown:
+            close = difflib.get_close_matches(name, declared, n=1, cutoff=0.6)
+            hints.append(f"{name} (did you mean {close[0]}?)" if close else name)
+        node.get_logger().warning(f"{len(unknown)} parameter(s) that {node.get_name()} does not have, ignored: "
+                                  + ", ".join(hints))
+    return unknown
 
 
 def writable_dir(path, parameter: str) -> Path:

@@ -103,3 +103,28 @@ def test_a_ros_argument_rcl_cannot_parse_is_one_reason_and_exit_2():
     assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
     last = proc.stderr.strip().splitlines()[-1]
     assert "bad ROS arguments" in last and "output_dir:=" in last and "name:=''" in last, proc.stderr
+
+
+def test_a_parameter_the_node_does_not_have_is_named_with_the_closest_one():
+    """rclpy ignores an undeclared parameter: a misspelt itterations:=5 ran with the default without a word."""
+    import signal
+    import time
+
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_DOMAIN_ID=str(150 + os.getpid() % 50),
+               PYTHONPATH=str(REPO))
+    proc = subprocess.Popen([sys.executable, "-m", "robot_ct_ros.nodes.recon_service", "--ros-args", "-p",
+                             "itterations:=5", "-p", "prior_sigma_translation_mm:=0.1"],
+                            stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True, env=env)
+    import select
+
+    try:
+        deadline, lines = time.monotonic() + 60, []
+        while time.monotonic() < deadline and not any("does not have" in line for line in lines):
+            if select.select([proc.stderr], [], [], 1.0)[0]:  # never blocks past the deadline
+                lines.append(proc.stderr.readline())
+    finally:
+        proc.send_signal(signal.SIGINT)
+        proc.wait(timeout=30)
+    warning = next(line for line in lines if "does not have" in line)
+    assert "itterations (did you mean iterations?)" in warning, warning
+    assert "prior_sigma_translation_mm (did you mean prior_sigma_translation_m?)" in warning, warning
