@@ -467,7 +467,10 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(_negative_lists_attached(list(sys.argv[1:] if argv is None else argv)))
+    try:  # building the parser imports the settings (numba): a signal may come that early
+        args = build_parser().parse_args(_negative_lists_attached(list(sys.argv[1:] if argv is None else argv)))
+    except KeyboardInterrupt:
+        return _failed(None)
     commands = {"demo": _cmd_demo, "simulate": _cmd_simulate, "info": _cmd_info, "reconstruct": _cmd_reconstruct,
                 "calibrate": _cmd_calibrate, "report": _cmd_report, "import": _cmd_import,
                 "export": _cmd_export}
@@ -479,7 +482,7 @@ def _main(argv: list[str] | None = None) -> int:
             code = commands[args.command](args)
     except BaseException:
         _remove_if_empty(created)  # a refused or stopped command leaves no empty --out behind
-        return _failed(args.command)
+        return _failed(args.command, out)
     if code:
         _remove_if_empty(created)
     return code
@@ -493,27 +496,29 @@ def _remove_if_empty(folder) -> None:
         pass
 
 
-def _failed(command: str) -> int:
-    """The exit status and one line for the exception being handled (no traceback for the expected ones)."""
+def _failed(command: str | None, out: Path | None = None) -> int:
+    """The exit status and one line for the exception being handled (no traceback for the expected ones);
+    ``command`` None: before the command was known; ``out`` the command's output folder, if any."""
+    prog = "robot-ct" if command is None else f"robot-ct {command}"
     from robot_ct_ros.bag import ScanBagError
 
     try:
         raise
     except (ScanBagError, ValueError) as exc:
-        print(f"robot-ct {command}: {exc}", file=sys.stderr)
+        print(f"{prog}: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: the job's own cleanup has run; no traceback
         terminated = isinstance(exc, Terminated)
-        print(f"robot-ct {command}: {'terminated (SIGTERM)' if terminated else 'interrupted'} (an output folder "
-              "it was writing holds no report.json of this run)", file=sys.stderr)
+        left = f" ({out} holds no complete result of this run)" if out is not None and out.exists() else ""
+        print(f"{prog}: {'terminated (SIGTERM)' if terminated else 'interrupted'}{left}", file=sys.stderr)
         return 143 if terminated else 130
     except MemoryError as exc:  # the estimate before allocating was too optimistic
-        print(f"robot-ct {command}: out of memory ({exc or 'allocation failed'}); use a smaller --shape or a "
+        print(f"{prog}: out of memory ({exc or 'allocation failed'}); use a smaller --shape or a "
               "larger --voxel-mm", file=sys.stderr)
         return 2
     except OSError as exc:  # a file that cannot be read or written, with its name
         where = f" {exc.filename}" if getattr(exc, "filename", None) else ""
-        print(f"robot-ct {command}: cannot access{where}: {exc.strerror or exc}", file=sys.stderr)
+        print(f"{prog}: cannot access{where}: {exc.strerror or exc}", file=sys.stderr)
         return 2
 
 

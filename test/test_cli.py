@@ -391,3 +391,19 @@ def test_a_refused_command_leaves_no_empty_out_folder(tmp_path, capsys):
     kept.mkdir()
     assert main(["calibrate", str(tmp_path / "nonexistent"), "--out", str(kept)]) == 2
     assert kept.is_dir()  # a folder that was there before stays
+
+
+def test_a_signal_while_the_parser_is_built_ends_with_one_line(monkeypatch, capsys):
+    """Building the parser imports the settings (numba, seconds on a loaded machine); a Ctrl-C or SIGTERM then gave a
+    traceback (and for Ctrl-C death by the signal) instead of one line and 130 or 143."""
+    from robot_ct_ros import cli
+
+    for exc, status, words in ((KeyboardInterrupt, 130, "robot-ct: interrupted"),
+                               (cli.Terminated, 143, "robot-ct: terminated (SIGTERM)")):
+        def build(exc=exc):
+            raise exc()
+
+        monkeypatch.setattr(cli, "build_parser", build)
+        assert cli.main(["info", "x"]) == status
+        err = capsys.readouterr().err
+        assert err.strip() == words, err
