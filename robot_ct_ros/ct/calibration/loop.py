@@ -418,7 +418,8 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
             break
     notes = []
     if skipped:
-        notes.append(f"{len(skipped)} view(s) saw too little of the grid to be estimated and kept their geometry: "
+        notes.append(f"{len(skipped)} view(s) saw too little of the grid to be estimated and kept their geometry, "
+                     "moved only with the whole scan by the gauge fix (its common rigid motion and magnification): "
                      f"{sorted(skipped)[:20]}{' ...' if len(skipped) > 20 else ''}")
     if exterior:
         notes.append("the object outside the ROI was modelled (exterior model)")
