@@ -52,7 +52,7 @@ def reconstruct_bag(bag, out, *, geometry: str = "auto", voxel_mm=None, shape_xy
         f"{grid.voxel_size_mm[0] * 1000:.1f} um ({'corrected' if use_corrected else 'nominal'} geometry)")
     vol = fdk(li, geom, grid, valid_mask=mask)
     out = start_output(out)  # report.json is written last: without it, the folder holds an unfinished run
-    outside = 1.0 - float(np.mean(field_of_view_mask(geom, grid)))
+    outside = 1.0 - float(np.mean(field_of_view_mask(geom, grid)))  # across the axis: rows are not checked
     if outside > 0.3:  # beyond a square grid's corners (21 %): FDK puts streaks there, not the object
         say(f"note: {100 * outside:.0f} % of the grid lies outside the field of view (voxels that the measured rays "
             "do not reach from every direction); FDK's values there are streaks, not the object")
