@@ -160,6 +160,15 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
     return result
 
 
+def _in_nominal_gauge(params, nominal: ConeGeometry, points, held) -> np.ndarray:
+    """``params`` aligned to the nominal geometry (:func:`remove_gauge`) with its magnification held
+    (:func:`hold_magnification`), and the parameters a fan beam cannot see (``held``) at 0."""
+    params = remove_gauge(nominal.perturbed(params), nominal, points).params_relative_to(nominal)
+    params = hold_magnification(nominal, params, points)
+    params[:, held] = 0.0  # a fan beam: the gauge fit must not move what the data cannot see
+    return params
+
+
 def _unused_settings(method, settings) -> str:
     """The note for settings that ``method`` or the other settings leave unused (given, yet the result would be the
     same without them); empty when there are none."""
@@ -184,9 +193,9 @@ def _unused_settings(method, settings) -> str:
     if settings.prior_sigma is None and (given := changed(["prior_source_mm", "prior_detector_mm"])):
         notes.append(f"{', '.join(given)} did not apply: the prior is off (prior_translation_mm or "
                      "prior_rotation_deg 0)")
+    # (not exterior_iterations: a schedule field, which a result's settings record resolved)
     if settings.exterior == "off" and (given := changed(["exterior_voxel_mm", "exterior_half_width_mm",
-                                                          "exterior_iterations", "exterior_subsets",
-                                                          "exterior_reach_guess"])):
+                                                          "exterior_subsets", "exterior_reach_guess"])):
         notes.append(f"{', '.join(given)} did not apply: exterior is off")
     return "; ".join(notes)
 
@@ -357,11 +366,10 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
                       inner_f, fov_f, correction=correction, measure_fdk=False).volume
         params, fine_info = executor.estimate(estimate, li_f, nom_f, params, vol, grid_f, narrowed(fine_cfg, it), mask_f)
         skipped.update(fine_info.get("skipped_views", ()))
-        params = remove_gauge(nominal.perturbed(params), nominal, points).params_relative_to(nominal)
-        params = hold_magnification(nominal, params, points)
-        params[:, held] = 0.0  # a fan beam: the gauge fit must not move what the data cannot see
+        params = _in_nominal_gauge(params, nominal, points, held)
         if drift_order is not None:
-            params = fit_drift(params, drift_order, drift_times)
+            # the polynomial fit puts part of a gauge motion back (a linear drift: 0.09 mm): align again
+            params = _in_nominal_gauge(fit_drift(params, drift_order, drift_times), nominal, points, held)
         if focus_modes:
             params, focus = focus_conjugate_modes(li, nominal, params, grid, mask, modes=focus_modes,
                                                   fdk_kwargs=fdk_kwargs)
