@@ -44,9 +44,10 @@ FAN_BEAM_PARAMS = ("s_u", "s_w", "d_u", "d_w", "r_v")
 """The parameters a one-row (fan-beam) detector sees: those that move its rays within the fan
 plane (spanned by u and w): the source's in-plane position (s_u, s_w), the detector's in-plane
 shift (d_u) and distance (d_w: with s_w, the magnification), and its rotation within the fan
-plane (r_v, about the detector's v axis). The other four (s_v, d_v: out of the plane; r_u, r_w:
-tilt and roll of the row out of the plane) move the rays off the one slice the row sees, which a
-one-row scan cannot tell from the object changing along the axis."""
+plane (r_v, about the detector's v axis). Three others (s_v, d_v: out of the plane; r_w: the
+row's roll out of the plane) move the rays off the one slice the row sees, which a one-row scan
+cannot tell from the object changing along the axis; r_u turns the detector about its own row
+and moves none of a one-row detector's pixels. All four stay nominal."""
 
 
 def observable_params(geom: "ConeGeometry") -> np.ndarray:
@@ -174,8 +175,9 @@ class VolumeGrid:
                                    self.center_mm, self.direction_matrix)
 
     def binned(self, factor: int) -> "VolumeGrid":
-        """The grid with ``factor``-times larger voxels covering the same box; an axis with fewer
-        than ``factor`` voxels (a thin fan-beam slab) keeps its voxels (:func:`bin_factors`)."""
+        """The grid with ``factor``-times larger voxels about the same centre, covering the same box where
+        each axis's voxels divide by ``factor`` (otherwise the box shrinks by the remainder); an axis with
+        fewer than ``factor`` voxels (a thin fan-beam slab) keeps its voxels (:func:`bin_factors`)."""
         f = bin_factors(self.shape_zyx, factor)
         return self.resized(tuple(s // k for s, k in zip(self.shape_zyx, f)),
                             tuple(v * k for v, k in zip(self.voxel_size_mm, f[::-1])))

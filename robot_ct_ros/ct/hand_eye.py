@@ -133,15 +133,19 @@ class HandEye:
 
     @classmethod
     def from_dict(cls, d: dict) -> "HandEye":
-        """From the SI form: per device ``translation_m`` and either ``rotvec_rad`` or ``rpy_rad``."""
+        """From the SI form: per device ``translation_m`` and either ``rotvec_rad`` or ``rpy_rad``; what a device
+        leaves out keeps the default mount's (as the nodes' ``hand_eye.*`` parameters do)."""
         mounts = {}
         for key in ("source", "detector"):
-            m = d.get(key)
+            m, default = d.get(key), getattr(cls(), key)
             if m is None:
-                mounts[key] = getattr(cls(), key)
+                mounts[key] = default
                 continue
-            mounts[key] = mount_from_si(m.get("translation_m", (0.0, 0.0, 0.0)), m.get("rotvec_rad"),
-                                        m.get("rpy_rad"), what=key)
+            rotvec, rpy = m.get("rotvec_rad"), m.get("rpy_rad")
+            if rotvec is None and rpy is None:
+                rotvec = list(default.rotvec)
+            translation = m.get("translation_m", [x * 1e-3 for x in default.translation_mm])
+            mounts[key] = mount_from_si(translation, rotvec, rpy, what=key)
         return cls(**mounts)
 
     def with_errors(self, source_translation_mm=(0, 0, 0), detector_translation_mm=(0, 0, 0),

@@ -81,6 +81,9 @@ def test_config_forms():
     assert he == HandEye()
     assert HandEye.from_dict(he.to_dict()) == he
     assert HandEye.from_dict({}) == HandEye()
+    # what a device leaves out keeps the default mount's, as the nodes' parameters do (a translation alone gave
+    # rotvec 0: the source's beam turned round)
+    assert HandEye.from_dict({"source": {"translation_m": [0, 0, 0.12]}, "detector": {"rpy_rad": [0, 0, 0]}}) == he
     m = mount_from_si([0, 0, 0], rpy_rad=[0.1, 0.2, 0.3])
     np.testing.assert_allclose(m.matrix[:3, :3], Mount.from_rpy((0, 0, 0), (0.1, 0.2, 0.3)).matrix[:3, :3])
     with pytest.raises(ValueError, match="not both"):
