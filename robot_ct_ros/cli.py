@@ -377,7 +377,7 @@ def build_parser() -> argparse.ArgumentParser:
                            help="detector pixel pitch between rows and between columns (mm); RTK's XML holds none")
             q.add_argument("--origin-mm", type=_pair("--origin-mm", False), default=None, metavar="ROW,COL",
                            help="RTK projection stack origin, physical position of pixel (0, 0) (mm; default "
-                                "centred: -(n-1)/2 * pitch)")
+                                "centred: -(n-1)/2 * pitch); rows first, so RTK's origin (x, y, 0) is y,x here")
         else:
             q.add_argument("--vectors", required=True, metavar="V", help="ASTRA vectors, .npy or text")
             q.add_argument("--layout", choices=_import_layouts(), default="views-first",

@@ -161,6 +161,8 @@ def export_geometry(bag, out, fmt: str = "rtk", *, corrected=None, say=_say) -> 
     if fmt == "rtk":
         o = result["rtk_projection_origin_mm"]
         detector += f"; RTK projection stack origin ({o[0] + 0.0:g}, {o[1] + 0.0:g}, 0) mm, spacing " \
-                    f"({geom.col_pitch_mm:g}, {geom.row_pitch_mm:g}, 1)"
+                    f"({geom.col_pitch_mm:g}, {geom.row_pitch_mm:g}, 1) (x along columns; robot-ct import rtk " \
+                    f"takes rows first: --pitch-mm {geom.row_pitch_mm:g},{geom.col_pitch_mm:g} " \
+                    f"--origin-mm={o[1] + 0.0:g},{o[0] + 0.0:g})"
     say(f"wrote {out}: {which} geometry of {geom.n_views} views as {fmt}, {detector}")
     return result

@@ -72,7 +72,16 @@ def test_rtk_xml_round_trip_and_rtk_projects_through_it_as_we_do(tmp_path, capsy
     nominal = read_scan(src).geom  # as the bag carries it (metres on the wire)
     xml = tmp_path / "geometry.xml"
     assert main(["export", str(src), "--format", "rtk", "--out", str(xml)]) == 0
-    assert "RTK projection stack origin" in capsys.readouterr().out
+    said = capsys.readouterr().out
+    assert "RTK projection stack origin" in said
+    # the options it prints bring the stack back (the origin was printed x first, and import takes rows first)
+    import re
+
+    pitch, origin = re.search(r"--pitch-mm (\S+) --origin-mm=(\S+)\)", said).groups()
+    np.save(tmp_path / "p.npy", np.ones((g.n_views,) + g.det_shape, np.float32))
+    assert main(["import", "rtk", "--projections", str(tmp_path / "p.npy"), "--geometry", str(xml), "--pitch-mm",
+                 pitch, f"--origin-mm={origin}", "--out", str(tmp_path / "back")]) == 0
+    assert read_scan(tmp_path / "back").geom.allclose(nominal, atol=1e-9)
     back = from_rtk_geometry(_read_rtk_xml(xml), g.n_rows, g.n_cols, g.row_pitch_mm, g.col_pitch_mm)
     assert back.allclose(nominal, atol=1e-9)
     assert nominal.allclose(g, atol=1e-9)
