@@ -21,7 +21,9 @@ detector frame:
   shifted detectors it is the exact 2D fan-beam Jacobian (as in Rit & Clackdoyle 2014);
 * ramp filter along detector rows (u) in detector millimetres, which is the standard
   FDK filter on the virtual detector through the ROI centre rescaled by the
-  magnification (the ramp kernel is homogeneous of degree -2);
+  magnification (the ramp kernel is homogeneous of degree -2); rows rolled off the
+  source motion are first resampled onto a detector whose rows follow it
+  (:mod:`robot_ct_ros.ct.virtual_detector`);
 * voxel-driven back-projection through ``geom.projection_matrices()``: bilinear
   interpolation and weight ``1 / depth^2`` (depth along the detector normal); with the
   ``D`` above this is FDK's ``(D / depth)^2`` distance weight for the filter in detector
@@ -58,6 +60,7 @@ from scipy import ndimage
 from numba import njit, prange
 
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
+from robot_ct_ros.ct.virtual_detector import fdk_filter_motion_rows
 from robot_ct_ros.ct.scan_weights import (  # noqa: F401  (re-exported: FDK's weights live there)
     centre_column,
     displaced_detector_weights,
@@ -336,8 +339,9 @@ def fdk_filter_projections(line_integrals: np.ndarray, geom: ConeGeometry, *, ce
     g_u = np.einsum("ij,ij->i", g, geom.u)
     g_w = np.einsum("ij,ij->i", g, w_s)
     if np.any(np.abs(g_u) < 0.5 * np.linalg.norm(g, axis=1)):
-        warnings.warn("detector rows (u) are not along the source motion for some views; "
-                      "FDK filters along u", RuntimeWarning, stacklevel=2)
+        warnings.warn("detector rows (u) are not along the source motion for some views; this filters along u "
+                      "(fdk() filters on a virtual detector: virtual_detector.fdk_filter_motion_rows)",
+                      RuntimeWarning, stacklevel=2)
     sgn = np.sign(g_u)
     sgn[sgn == 0] = 1.0
     a_mm = (np.arange(nc)[None, :] - c0[:, None]) * geom.col_pitch_mm  # (nv, nc)
@@ -563,6 +567,11 @@ def fdk(line_integrals: np.ndarray, geom: ConeGeometry, grid: VolumeGrid, *, win
         mu_water_per_mm: float = 0.02, center_mm=None, axis=None) -> np.ndarray:
     """FDK reconstruction (float32, ``grid.shape_zyx``) from line integrals for any per-view geometry.
 
+    Where the detector rows of some view are more than 3 degrees off the source motion projected
+    onto the detector (a detector rolled in its own plane, or a portrait one), the projections are
+    first resampled (bilinear) onto a virtual detector in the same plane whose rows follow the motion
+    (:mod:`robot_ct_ros.ct.virtual_detector`); other scans are filtered as they are.
+
     Parameters
     ----------
     line_integrals : (n_views, n_rows, n_cols) projections, see geometry.py conventions.
@@ -589,7 +598,8 @@ def fdk(line_integrals: np.ndarray, geom: ConeGeometry, grid: VolumeGrid, *, win
         the grid centre and the normal of the plane fitted to the source positions).
     """
     c = grid.center_mm if center_mm is None else center_mm
-    q, q_geom = fdk_filter_projections(line_integrals, geom, center_mm=c, axis=axis, window=window,
+    # rows not along the source motion (a detector rolled in its plane): filtered on a virtual detector
+    q, q_geom = fdk_filter_motion_rows(line_integrals, geom, center_mm=c, axis=axis, window=window,
                                        cutoff=cutoff, truncation=truncation, extension=extension,
                                        pad_factor=pad_factor, valid_mask=valid_mask,
                                        displaced_detector=displaced_detector, short_scan=short_scan,
