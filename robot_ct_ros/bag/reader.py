@@ -465,15 +465,24 @@ class ScanData:
             return VolumeGrid.centered(tuple(int(s) for s in shape_zyx), vs, c, D)
         size = fmt.info_mm(self.info, "roi_size_m")
         if size is None:
-            # transaxial: up to the farther detector edge from the principal point; axial: rows
+            # transaxial: up to the farther detector edge from the principal point across the grid's z
+            # axis (the scan axis); axial: the detector's extent along it; in the detector plane,
+            # whichever way the detector is turned in it (rows along or across the axis)
             s_on_plane = g.source_mm + np.einsum("ij,ij->i", g.detector_mm - g.source_mm, g.w)[:, None] * g.w
-            off_u = np.einsum("ij,ij->i", g.detector_mm - s_on_plane, g.u)
-            half_u = 0.5 * g.n_cols * g.col_pitch_mm
-            reach = float(np.median(np.abs(off_u) + half_u))
+            t = np.cross(D[:, 2], g.w)
+            nt = np.linalg.norm(t, axis=1, keepdims=True)
+            t = np.where(nt > 1e-9, t / np.maximum(nt, 1e-300), g.u)  # axis along the normal: rows
+            a = np.cross(g.w, t)
+
+            def half(e):  # half the detector's extent along the in-plane unit vectors e (n_views, 3)
+                return 0.5 * (g.n_cols * g.col_pitch_mm * np.abs(np.einsum("ij,ij->i", e, g.u))
+                              + g.n_rows * g.row_pitch_mm * np.abs(np.einsum("ij,ij->i", e, g.v)))
+            off_t = np.einsum("ij,ij->i", g.detector_mm - s_on_plane, t)
+            reach = float(np.median(np.abs(off_t) + half(t)))
             sod = float(np.median(g.sod_mm(c)))
             sdd = float(np.median(g.sdd_mm))
             radius = sod * reach / math.hypot(sdd, reach)
-            axial = g.n_rows * g.row_pitch_mm / mag
+            axial = 2.0 * float(np.median(half(a))) / mag
             size = np.array([2 * radius, 2 * radius, axial])  # across, across, along the scan axis
         n = np.maximum(1, np.round(np.asarray(size) / vs).astype(int))
         return VolumeGrid.centered(tuple(n[::-1]), vs, c, D)
