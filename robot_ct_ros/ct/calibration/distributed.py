@@ -242,9 +242,9 @@ class DaskExecutor:
     def fdk(self, line_integrals, geom: ConeGeometry, grid: VolumeGrid, *, center_mm=None, **kwargs) -> np.ndarray:
         """:func:`~robot_ct_ros.ct.reconstruction.fdk`: the projections filtered here, sent once, and
         back-projected onto slabs of the grid's z planes as tasks."""
-        from robot_ct_ros.ct.reconstruction import fdk_filter_projections
+        from robot_ct_ros.ct.virtual_detector import fdk_filter_motion_rows  # rows along the motion, as fdk
 
-        q, q_geom = fdk_filter_projections(line_integrals, geom, center_mm=grid.center_mm if center_mm is None
+        q, q_geom = fdk_filter_motion_rows(line_integrals, geom, center_mm=grid.center_mm if center_mm is None
                                            else center_mm, **kwargs)
         q_f = self.client.scatter(q, broadcast=True, hash=False)
         g_f = self.client.scatter(q_geom, broadcast=True, hash=False)

@@ -120,11 +120,12 @@ class StreamingEstimator:
     def _backproject(self, li, mask, geom: ConeGeometry) -> np.ndarray:
         """The FDK contributions of these views (each filtered alone, weighted 1 / n_views), summed. Each view is
         weighted as in a full circle: Parker's short-scan weights need the whole arc, which a stream has not seen."""
-        from robot_ct_ros.ct.reconstruction import fdk_backproject, fdk_filter_projections
+        from robot_ct_ros.ct.reconstruction import fdk_backproject
+        from robot_ct_ros.ct.virtual_detector import fdk_filter_motion_rows  # rows along the motion, as fdk
 
         out = np.zeros(self.grid.shape_zyx, np.float32)
         for i in range(geom.n_views):
-            q, q_geom = fdk_filter_projections(li[i:i + 1], geom.subset(np.array([i])),
+            q, q_geom = fdk_filter_motion_rows(li[i:i + 1], geom.subset(np.array([i])),
                                                center_mm=self.grid.center_mm, axis=self.axis,
                                                valid_mask=mask[i:i + 1], **self.fdk_kwargs)
             out += fdk_backproject(q, q_geom, self.grid) * np.float32(1.0 / self.n_views)
