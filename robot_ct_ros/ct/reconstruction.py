@@ -107,8 +107,8 @@ def ramp_kernel_spectrum(n_fft: int, window: str = "hann", cutoff: float = 1.0) 
     The spatial kernel is Kak & Slaney's band-limited ramp (h[0] = 1/4, h[n odd] =
     -1/(pi n)^2) sampled on the circular grid of length ``n_fft``; its FFT avoids the DC
     error of a sampled ``|f|``. ``cutoff`` is the window's cut-off as a fraction of the
-    Nyquist frequency (as RTK counts it: of the ``n_fft // 2 + 1`` rfft bins); the filter is
-    zero from there on.
+    Nyquist frequency (as RTK counts it: of the ``n_fft // 2 + 1`` rfft bins, rounded half up to
+    a whole bin); the filter is zero from there on.
     """
     if window not in WINDOWS:
         raise ValueError(f"window must be one of {WINDOWS}, got {window!r}")
@@ -121,8 +121,9 @@ def ramp_kernel_spectrum(n_fft: int, window: str = "hann", cutoff: float = 1.0) 
     h[n_fft - k] = h[k]
     H = np.fft.rfft(h).real
     # RTK's convention (rtkFFTRampImageFilter): the window reaches zero at bin
-    # round((n_fft // 2 + 1) * cutoff), so equal settings give equal filters
-    n_cut = max(1, int(round(H.size * cutoff)))
+    # (n_fft // 2 + 1) * cutoff rounded half up (itk::Math::Round; Python's round() would
+    # round halves to even), so equal settings give equal filters
+    n_cut = max(1, int(math.floor(H.size * cutoff + 0.5)))
     f = np.arange(H.size) / n_cut
     inside = f < 1.0
     if window == "ram-lak":
