@@ -408,10 +408,14 @@ def forward_project(volume: np.ndarray, grid: VolumeGrid, geom: ConeGeometry,
     kernel call, so a batch of sampled geometries (e.g. LLE samples, ``ConeGeometry.concatenate``)
     or an enlarged virtual detector (``geom.with_detector``) needs nothing special.
     ``out``, if given, must be a C-contiguous float32 array of that shape; it is overwritten.
+    ``volume`` must be finite (after conversion to float32); NaN or infinite voxels raise ValueError.
     """
     if tuple(volume.shape) != grid.shape_zyx:
         raise ValueError(f"volume shape {volume.shape} does not match grid {grid.shape_zyx}")
     vol = np.ascontiguousarray(volume, dtype=np.float32).reshape(-1)
+    if not np.isfinite(vol).all():
+        raise ValueError(f"volume holds {int((~np.isfinite(vol)).sum())} NaN or infinite values (as float32); "
+                         "forward_project needs finite ones (each would spoil every ray through it)")
     shape = (geom.n_views, geom.n_rows, geom.n_cols)
     if out is None:
         out = np.empty(shape, dtype=np.float32)

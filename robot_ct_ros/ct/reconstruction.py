@@ -289,6 +289,21 @@ def _edge_above_noise(rows: np.ndarray, z: float = 3.0) -> tuple[np.ndarray, np.
     return np.abs(rows[:, :k].mean(axis=1)) > bound, np.abs(rows[:, -k:].mean(axis=1)) > bound
 
 
+def _refuse_non_finite(p: np.ndarray, valid_mask) -> None:
+    """ValueError when a pixel that ``valid_mask`` (None: all) counts as valid is NaN or infinite: the
+    ramp filter would spread it along the whole row and the back-projection into every voxel it reaches."""
+    bad = ~np.isfinite(p)
+    if not bad.any():
+        return
+    if valid_mask is not None:
+        bad &= np.broadcast_to(np.asarray(valid_mask, dtype=bool), p.shape)
+    n_bad = int(np.count_nonzero(bad))
+    if n_bad:
+        raise ValueError(f"{n_bad} projection pixel(s) are NaN or infinite and not excluded by valid_mask; FDK needs "
+                         "finite data: mark them False in valid_mask (e.g. valid_mask=np.isfinite(line_integrals)) "
+                         "and they are interpolated along their row")
+
+
 def _edges_are_empty(p: np.ndarray, rel_tol: float = 1e-3) -> bool:
     """True when the first and last detector columns hold (almost) nothing in every row."""
     peak = float(np.max(np.abs(p))) if p.size else 0.0
@@ -329,6 +344,7 @@ def fdk_filter_projections(line_integrals: np.ndarray, geom: ConeGeometry, *, ce
         raise ValueError(f"projections must have shape {(geom.n_views,) + geom.det_shape}, got {p.shape}")
     if geom.n_views == 0:
         raise ValueError("FDK needs at least one view, got none")
+    _refuse_non_finite(p, valid_mask)
     if valid_mask is not None:
         p = fill_invalid_pixels(p, valid_mask)
     nv, nr, nc = p.shape
@@ -589,7 +605,8 @@ def fdk(line_integrals: np.ndarray, geom: ConeGeometry, grid: VolumeGrid, *, win
         for ``"cylinder"`` the length of the longest fitted cylinder, at most 4 n_cols).
     pad_factor : FFT length = next power of two >= pad_factor * (n_cols + extension).
     valid_mask : boolean (n_rows, n_cols) or (n_views, n_rows, n_cols), True = good pixel;
-        bad pixels are interpolated along the row before filtering.
+        bad pixels are interpolated along the row before filtering. A NaN or infinite pixel
+        that the mask does not exclude raises ValueError.
     displaced_detector : apply redundancy weights (:func:`displaced_detector_weights`) in the
         views where the detector reaches further on one side of the scan centre than on the
         other (offset-detector ROI scans); centred views are unaffected.

@@ -243,3 +243,22 @@ def test_back_project_refuses_values_that_are_not_finite():
     proj[1, 2, 3] = np.nan
     with pytest.raises(ValueError, match="1 NaN or infinite"):
         back_project(proj, geom, grid)
+
+
+def test_forward_project_refuses_a_volume_that_is_not_finite():
+    """One NaN voxel made every ray through it NaN without a word."""
+    import pytest
+
+    from robot_ct_ros.ct.geometry import VolumeGrid
+    from robot_ct_ros.ct.projector import forward_project
+    from robot_ct_ros.ct.trajectory import circular_scan
+
+    geom = circular_scan(4, 60.0, 150.0, 6, 8, 1.0, 1.0)
+    grid = VolumeGrid.centered((4, 4, 4), 1.0)
+    vol = np.ones(grid.shape_zyx, np.float32)
+    assert np.isfinite(forward_project(vol, grid, geom)).all()
+    vol[1, 2, 3] = np.nan
+    with pytest.raises(ValueError, match="1 NaN or infinite"):
+        forward_project(vol, grid, geom)
+    with pytest.raises(ValueError, match="NaN or infinite"):
+        forward_project(np.full(grid.shape_zyx, 1e300), grid, geom)  # infinite as float32

@@ -364,6 +364,22 @@ def test_dead_pixels_are_interpolated_before_filtering():
     assert unmasked > 5 * masked
 
 
+def test_fdk_refuses_non_finite_pixels_the_mask_does_not_exclude():
+    """One NaN pixel became hundreds of NaN voxels without a word; masked, it is interpolated."""
+    geom = circular_geometry(12, n_rows=8, n_cols=16, pitch_mm=2.0)
+    grid = VolumeGrid.centered((4, 8, 8), 1.0)
+    proj = np.ones((12, 8, 16), np.float32)
+    proj[3, 4, 5] = np.nan
+    proj[7, 2, 9] = np.inf
+    with pytest.raises(ValueError, match="2 projection pixel.*valid_mask"):
+        fdk(proj, geom, grid)
+    valid = np.ones(proj.shape, dtype=bool)
+    valid[3, 4, 5] = False
+    with pytest.raises(ValueError, match="1 projection pixel"):
+        fdk(proj, geom, grid, valid_mask=valid)
+    assert np.isfinite(fdk(proj, geom, grid, valid_mask=np.isfinite(proj))).all()
+
+
 def test_fill_invalid_pixels_is_linear_along_rows():
     ramp = np.tile(np.arange(10, dtype=np.float32) * 2.0 + 1.0, (2, 3, 1))
     valid = np.ones((3, 10), dtype=bool)
