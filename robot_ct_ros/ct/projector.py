@@ -12,11 +12,20 @@ interpolated in the perpendicular plane and weighted by the path length of the r
 that slice (full slices: one step, first/last slices: the clipped fraction).
 
 One convention differs from RTK: the box is the outer faces of the voxels
-([-0.5, n - 0.5] in index units) and samples outside the volume count as zero, so a
-uniform volume integrates to the true chord length. RTK clips the ray to the box of
-voxel *centres* ([0, n - 1]) and clamps at its borders. The two agree exactly when the
-volume is zero in its outer two voxel layers; for a volume that is non-zero at its
-faces RTK's integrals are shorter by up to one voxel per ray.
+([-0.5, n - 0.5] in index units) and samples outside the volume count as zero. A uniform
+volume therefore integrates to the true chord length along a ray that enters and leaves
+through the two faces normal to its stepping (dominant) axis, the slices there being
+clipped exactly. It does not on a ray that crosses one of the four other (side) faces:
+in the outer half voxel beyond the last voxel centres the bilinear interpolation with the
+zero outside fades the volume from 1 to 1/2, so the ray comes short by 1/8 of that axis's
+voxel size divided by |cos| of the angle between the ray and the face's normal, per side
+face crossed: a small fraction of a voxel for a steep crossing, several voxels (a large
+share of the chord) for a grazing one, and up to half the path for a ray that runs along
+a face inside that outer half voxel. RTK clips the ray to the box of voxel *centres*
+([0, n - 1]) and clamps at its borders: along a uniform volume its integrals are short by
+half a voxel of the face's axis, over that same |cos|, at each face the ray crosses (one
+voxel for a ray straight through; many millimetres for oblique crossings). The two agree
+exactly when the volume is zero in its outer two voxel layers.
 
 ``back_project`` is the exact transpose of ``forward_project``: the same rays, the same
 slices, the same bilinear weights, scattered instead of gathered.
