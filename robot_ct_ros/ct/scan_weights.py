@@ -141,13 +141,18 @@ def short_scan_weights(geom: ConeGeometry, center_mm=None, axis=None, min_gap_ra
     return 2.0 * np.nan_to_num(w, nan=0.0)
 
 
-def fdk_view_weights(geom: ConeGeometry, center_mm=None, axis=None, *, short_scan_weighted: bool = False):
+def fdk_view_weights(geom: ConeGeometry, center_mm=None, axis=None, *, short_scan_weighted: bool = False,
+                     min_gap_rad: float = np.pi / 9):
     """Per-view angular quadrature of the FDK sum.
 
     Angles of the source positions around ``axis`` (default: :func:`estimate_scan_axis`)
-    through ``center_mm`` (default: the world origin; :func:`fdk` passes the ROI centre),
-    sorted; the angular gap of each view is half the angle between its two neighbours
-    (periodic, i.e. a full scan; at the ends of a partial arc, the one-sided half gap).
+    through ``center_mm`` (default: the world origin; :func:`fdk` passes the scan centre),
+    sorted; each view weighs half the angle between its two neighbours (periodic, as RTK),
+    whatever the gaps between them: a view next to a gap (dropped or rejected views,
+    uneven sampling) stands in for half of it. Only the ends of a short arc (:func:`scan_arc`
+    with ``min_gap_rad``: its one largest gap, beyond 20 degrees and five times the median)
+    are taken one-sided (the trapezoid rule), as that gap is not measured at all. Other gaps
+    beyond five times the median warn: FDK is only approximate across them.
 
     Returns ``(dbeta, g)``: ``dbeta`` (n_views,) in radians and ``g`` (n_views, 3) in mm,
     the source displacement attributed to each view (``dbeta * R * tangent`` with R the
@@ -165,15 +170,23 @@ def fdk_view_weights(geom: ConeGeometry, center_mm=None, axis=None, *, short_sca
         order = np.argsort(phi)
         ps = phi[order]
         d_next = np.mod(np.roll(ps, -1) - ps, 2 * np.pi)  # gap to the next view
-        d_prev = np.roll(d_next, 1)
-        med = np.median(d_next)
-        big = d_next > 5.0 * max(med, 1e-12)
-        if np.any(big):
+        first = _arc(phi, min_gap_rad)[1] if nv >= 3 else None
+        inner = np.ones(nv, dtype=bool)
+        if first is not None:  # a short arc: the gap before its first view is not measured
             if not short_scan_weighted:
                 warnings.warn("scan does not cover 360 degrees; FDK full-scan weighting (1/2 per ray pair) "
                               "is then only approximate (no Parker weights)", RuntimeWarning, stacklevel=3)
-            d_next = np.where(big, 0.0, d_next)  # trapezoid rule at the ends of the arc
-            d_prev = np.roll(d_next, 1)
+            end = (int(np.flatnonzero(order == first)[0]) - 1) % nv
+            d_next[end] = 0.0  # trapezoid rule at the ends of the arc
+            inner[end] = False
+        moved = d_next[inner & (d_next > 1e-9)]  # views repeated at one angle (several turns) are no gap
+        med = float(np.median(moved)) if moved.size else 0.0
+        wide = inner & (d_next > 5.0 * med) & (med > 0)
+        if np.any(wide):
+            warnings.warn(f"the views leave {int(wide.sum())} gap(s) of up to {np.degrees(d_next[wide].max()):.1f} "
+                          f"degrees (median {np.degrees(med):.2f}); the views beside each stand in for half of it "
+                          "and FDK is only approximate there", RuntimeWarning, stacklevel=3)
+        d_prev = np.roll(d_next, 1)
         gaps = 0.5 * (d_next + d_prev)
         dbeta = np.empty(nv)
         dbeta[order] = gaps
