@@ -14,7 +14,7 @@ detector frame:
   ``a``, ``b`` are the in-plane offsets (mm) of a pixel from it along u and v, ``D`` the
   source-to-plane distance;
 * weight ``D * |g . theta(a)| / sqrt(D^2 + a^2 + b^2)`` with ``g`` the source displacement
-  per view (angular increment times the local source velocity around the ROI centre,
+  per view (angular increment times the local source velocity around the scan centre,
   measured in the plane orthogonal to the estimated scan axis) and ``theta(a)`` the unit
   normal of the ray in the fan plane. For an ideal circular scan this is the classic
   FDK cosine weight ``D / sqrt(D^2 + a^2 + b^2)`` times ``R * dbeta``; for tilted or
@@ -65,6 +65,7 @@ from robot_ct_ros.ct.scan_weights import (  # noqa: F401  (re-exported: FDK's we
     centre_column,
     displaced_detector_weights,
     estimate_scan_axis,
+    estimate_scan_centre,
     fdk_view_weights,
     scan_arc,
     short_scan_weights,
@@ -79,6 +80,8 @@ __all__ = [
     "short_scan_weights",
     "scan_arc",
     "estimate_scan_axis",
+    "estimate_scan_centre",
+    "scan_centre",
     "ramp_kernel_spectrum",
     "fill_invalid_pixels",
     "resample",
@@ -98,6 +101,13 @@ def _principal_point(geom: ConeGeometry):
     r0 = 0.5 * (geom.n_rows - 1) + np.einsum("ij,ij->i", foot - d, v) / geom.row_pitch_mm
     w_s = np.sign(sdd_signed)[:, None] * w  # unit normal pointing from source to detector
     return c0, r0, np.abs(sdd_signed), w_s
+
+
+def scan_centre(geom: ConeGeometry, axis=None, fallback_mm=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """The centre FDK weights about: :func:`estimate_scan_centre`, or ``fallback_mm`` where the geometry
+    tells none (a single view; :func:`fdk` falls back to the grid's centre)."""
+    c = estimate_scan_centre(geom, axis)
+    return np.asarray(fallback_mm, dtype=np.float64) if c is None else c
 
 
 # ------------------------------------------------------------------------- filtering
@@ -329,6 +339,9 @@ def fdk_filter_projections(line_integrals: np.ndarray, geom: ConeGeometry, *, ce
     above the row's noise, :func:`_edge_above_noise`); the FFT length is the next power of two
     >= ``pad_factor * (n_cols + max(extension, margin))``.
 
+    ``center_mm`` (default :func:`scan_centre`, the centre the sources circle) and ``axis`` are the
+    scan's, for the angular and redundancy weights.
+
     Displaced detector: on the inner (short) side the weighted row falls to zero, so it is
     padded with zeros there; the ramp-filtered row is not zero beyond that edge, and voxels
     that project there (seen by the conjugate views) need it, so the filtered rows are
@@ -348,7 +361,7 @@ def fdk_filter_projections(line_integrals: np.ndarray, geom: ConeGeometry, *, ce
     if valid_mask is not None:
         p = fill_invalid_pixels(p, valid_mask)
     nv, nr, nc = p.shape
-    cm = np.zeros(3) if center_mm is None else np.asarray(center_mm, dtype=np.float64)
+    cm = scan_centre(geom, axis) if center_mm is None else np.asarray(center_mm, dtype=np.float64)
 
     c0, r0, sdd, w_s = _principal_point(geom)
     parker = short_scan_weights(geom, cm, axis) if short_scan else None
@@ -393,7 +406,7 @@ def fdk_filter_projections(line_integrals: np.ndarray, geom: ConeGeometry, *, ce
     if ext and _edges_are_empty(p):
         ext = 0  # nothing is truncated: plain zero padding (RTK's filter length)
     if ext and truncation == "cylinder":
-        # attenuation per detector pixel of water seen at the ROI centre's magnification
+        # attenuation per detector pixel of water seen at the scan centre's magnification
         sod = np.abs(np.einsum("ij,ij->i", cm - geom.source_mm, geom.w))
         mu_px = np.repeat(mu_water_per_mm * geom.col_pitch_mm * sod / sdd, nr)
         k_fit = max(2, min(8, nc // 4))
@@ -613,9 +626,12 @@ def fdk(line_integrals: np.ndarray, geom: ConeGeometry, grid: VolumeGrid, *, win
     short_scan : on an arc short of a full turn, apply Parker's weights
         (:func:`short_scan_weights`) in place of the full scan's 1/2 per ray pair.
     center_mm, axis : scan centre and axis for the angular and redundancy weights (default:
-        the grid centre and the normal of the plane fitted to the source positions).
+        the centre of the circle the sources describe, :func:`estimate_scan_centre` (the grid
+        centre where the geometry tells none), and the normal of the plane fitted to the source
+        positions). Not the grid centre: a grid off the axis would make a centred detector look
+        displaced, and its redundancy weights would ruin a full scan.
     """
-    c = grid.center_mm if center_mm is None else center_mm
+    c = scan_centre(geom, axis, grid.center_mm) if center_mm is None else center_mm
     # rows not along the source motion (a detector rolled in its plane): filtered on a virtual detector
     q, q_geom = fdk_filter_motion_rows(line_integrals, geom, center_mm=c, axis=axis, window=window,
                                        cutoff=cutoff, truncation=truncation, extension=extension,

@@ -2,8 +2,8 @@
 view's angular quadrature, and the redundancy weights of an offset (displaced) detector and of a short scan.
 
 Conventions (world mm/rad, ``proj[view, row, col]``) are those of :mod:`robot_ct_ros.ct.geometry`. Angles about the
-scan's axis count counter-clockwise about it; the scan centre is the point the source circles (FDK passes the
-grid's centre). Redundancy weights sum to 2 over a ray and its conjugate, in place of the full circle's 1/2 per
+scan's axis count counter-clockwise about it; the scan centre is the point the source circles (FDK takes it from the
+geometry, :func:`estimate_scan_centre`, not from the grid, which may sit anywhere). Redundancy weights sum to 2 over a ray and its conjugate, in place of the full circle's 1/2 per
 ray pair (:mod:`robot_ct_ros.ct.reconstruction` applies them).
 """
 
@@ -15,7 +15,7 @@ import numpy as np
 
 from robot_ct_ros.ct.geometry import ConeGeometry
 
-__all__ = ["estimate_scan_axis", "fdk_view_weights", "scan_arc", "source_angles", "short_scan_weights",
+__all__ = ["estimate_scan_axis", "estimate_scan_centre", "fdk_view_weights", "scan_arc", "source_angles", "short_scan_weights",
            "displaced_detector_weights", "centre_column"]
 
 
@@ -36,6 +36,43 @@ def estimate_scan_axis(geom: ConeGeometry) -> np.ndarray:
         return vmean
     n = vt[2]
     return n if np.dot(n, vmean) >= 0 else -n
+
+
+def estimate_scan_centre(geom: ConeGeometry, axis=None) -> np.ndarray | None:
+    """The scan's rotation centre (3,) in mm, from the geometry alone (any frame), or None where it
+    does not tell one.
+
+    The centre of the circle fitted (least squares, Kasa) to the source positions in the plane
+    normal to ``axis`` (default :func:`estimate_scan_axis`), placed in the sources' mean plane:
+    the axis the orbit turns about, whatever the detector's offset or the grid's position, for a
+    full circle or an arc. Where the sources do not bend (fewer than 3 views, or on a line, or
+    an arc too flat to fit: a radius over 100 times their spread), the point nearest (least
+    squares) to the views' central rays, the lines from each source along its detector normal;
+    None where those are parallel too.
+    """
+    s = geom.source_mm
+    if geom.n_views >= 3:
+        n = estimate_scan_axis(geom) if axis is None else np.asarray(axis, dtype=np.float64)
+        n = n / np.linalg.norm(n)
+        e1 = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(n, e1)
+        m = s.mean(axis=0)
+        x, y = (s - m) @ e1, (s - m) @ e2
+        spread = float(np.hypot(np.ptp(x), np.ptp(y)))
+        if spread > 0:
+            a = np.column_stack([2 * x, 2 * y, np.ones_like(x)]) / spread
+            sol, _, rank, sv = np.linalg.lstsq(a, (x * x + y * y) / spread, rcond=None)
+            radius2 = sol[2] + sol[0] ** 2 + sol[1] ** 2
+            if rank == 3 and 0 < radius2 <= (100.0 * spread) ** 2:
+                return m + sol[0] * e1 + sol[1] * e2
+    w = geom.w
+    proj = np.eye(3)[None] - w[:, :, None] * w[:, None, :]  # (I - w w^T): distance from each central ray
+    a, b = proj.sum(axis=0), np.einsum("nij,nj->i", proj, s)
+    sv = np.linalg.svd(a, compute_uv=False)
+    if sv[-1] <= 1e-6 * sv[0]:
+        return None
+    return np.linalg.solve(a, b)
 
 
 def _scan_angles(geom: ConeGeometry, center_mm, axis):

@@ -242,10 +242,12 @@ class DaskExecutor:
     def fdk(self, line_integrals, geom: ConeGeometry, grid: VolumeGrid, *, center_mm=None, **kwargs) -> np.ndarray:
         """:func:`~robot_ct_ros.ct.reconstruction.fdk`: the projections filtered here, sent once, and
         back-projected onto slabs of the grid's z planes as tasks."""
+        from robot_ct_ros.ct.reconstruction import scan_centre
         from robot_ct_ros.ct.virtual_detector import fdk_filter_motion_rows  # rows along the motion, as fdk
 
-        q, q_geom = fdk_filter_motion_rows(line_integrals, geom, center_mm=grid.center_mm if center_mm is None
-                                           else center_mm, **kwargs)
+        if center_mm is None:  # as fdk
+            center_mm = scan_centre(geom, kwargs.get("axis"), grid.center_mm)
+        q, q_geom = fdk_filter_motion_rows(line_integrals, geom, center_mm=center_mm, **kwargs)
         q_f = self.client.scatter(q, broadcast=True, hash=False)
         g_f = self.client.scatter(q_geom, broadcast=True, hash=False)
         slabs = slab_bounds(grid.shape_zyx[0], self.blocks_per_worker * self.n_threads())
