@@ -36,7 +36,8 @@ FBP of the plane through the source and the row, and the back-projection fills t
 within half a pixel of that plane (a grid of one or a few slices).
 
 Offset (displaced) detectors, as the robotic ROI scan uses to widen its field of view,
-get Wang's redundancy weights instead of the 1/2 (:func:`displaced_detector_weights`).
+get Wang's redundancy weights instead of the 1/2 (:func:`displaced_detector_weights`), pixel by
+pixel; on a detector rotated in its own plane they are only approximate (see there).
 
 Interior (truncated) scans: before filtering each detector row is extended beyond both
 edges (point-symmetric continuation or capped symmetric mirror, cosine-tapered to zero)
@@ -63,7 +64,9 @@ from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
 from robot_ct_ros.ct.virtual_detector import fdk_filter_motion_rows
 from robot_ct_ros.ct.scan_weights import (  # noqa: F401  (re-exported: FDK's weights live there)
     centre_column,
+    displaced_detector_layout,
     displaced_detector_weights,
+    displaced_pixel_weights,
     estimate_scan_axis,
     estimate_scan_centre,
     fdk_view_weights,
@@ -385,14 +388,14 @@ def fdk_filter_projections(line_integrals: np.ndarray, geom: ConeGeometry, *, ce
 
     keep_lo = keep_hi = None
     m_lo = m_hi = 0  # output margins (pixels) beyond the low / high column edge
+    layout = None
     if displaced_detector:
-        red, side = displaced_detector_weights(geom, cm)
+        layout = displaced_detector_layout(geom, cm, axis=axis)
+        side = layout[0]
         if np.any(side != 0):
-            lin = lin * red
             keep_lo = np.repeat((side != -1).astype(np.float32), nr)
             keep_hi = np.repeat((side != 1).astype(np.float32), nr)
-            cc = centre_column(geom, cm)
-            asym = np.abs((nc - 0.5 - cc) - (cc + 0.5))  # at most 3 rows: centre_column bounds cc
+            asym = np.minimum(np.abs(layout[2]), 3.0 * nc)  # bounded: the centre's image is within a row
             m_lo = int(math.ceil(asym[side == -1].max())) if np.any(side == -1) else 0
             m_hi = int(math.ceil(asym[side == 1].max())) if np.any(side == 1) else 0
             if parker is not None:  # each covers half of the rays' redundancy; both at once is not derived here
@@ -429,7 +432,9 @@ def fdk_filter_projections(line_integrals: np.ndarray, geom: ConeGeometry, *, ce
         v1 = min(nv, v0 + view_chunk)
         sl = slice(v0, v1)
         inv = 1.0 / np.sqrt(sdd[sl, None, None] ** 2 + a_mm[sl, None, :] ** 2 + b_mm[sl, :, None] ** 2)
-        wgt = (const[sl, None, None] * lin[sl, None, :] * inv).astype(np.float32)
+        wgt = const[sl, None, None] * lin[sl, None, :] * inv
+        red = None if layout is None else displaced_pixel_weights(geom, layout, sl)
+        wgt = (wgt if red is None else wgt * red).astype(np.float32)
         rows = (p[sl].astype(np.float32, copy=False) * wgt).reshape(-1, nc)
         rsl = slice(v0 * nr, v1 * nr)
         given = None

@@ -15,8 +15,9 @@ import numpy as np
 
 from robot_ct_ros.ct.geometry import ConeGeometry
 
-__all__ = ["estimate_scan_axis", "estimate_scan_centre", "fdk_view_weights", "scan_arc", "source_angles", "short_scan_weights",
-           "displaced_detector_weights", "centre_column"]
+__all__ = ["estimate_scan_axis", "estimate_scan_centre", "fdk_view_weights", "scan_arc", "source_angles",
+           "short_scan_weights", "displaced_detector_weights", "displaced_detector_layout", "displaced_pixel_weights",
+           "centre_column"]
 
 
 def estimate_scan_axis(geom: ConeGeometry) -> np.ndarray:
@@ -244,40 +245,109 @@ def centre_column(geom: ConeGeometry, center_mm) -> np.ndarray:
     return np.clip(cc, -1.0 * nc, 2.0 * nc)
 
 
-def displaced_detector_weights(geom: ConeGeometry, center_mm=(0.0, 0.0, 0.0),
-                               min_asymmetry_px: float | None = None):
-    """Redundancy weights (n_views, n_cols) for an offset (displaced) detector, after Wang 2002.
+def _axis_frame(geom: ConeGeometry, center_mm, axis):
+    """Per view, where the scan axis falls on the detector: the centre's projection (col, row) (each bounded as
+    :func:`centre_column`), and the unit in-plane direction ``p`` (n_views, 2) in detector mm along (u, v)
+    perpendicular to the axis's projected line, turned towards increasing columns; ``(cc, rc, p)``."""
+    nc, nr = geom.n_cols, geom.n_rows
+    c = np.asarray(center_mm, dtype=np.float64).reshape(3)
+    n = estimate_scan_axis(geom) if axis is None else np.asarray(axis, dtype=np.float64)
+    n = n / np.linalg.norm(n)
+    step = 0.1 * max(float(np.median(np.linalg.norm(geom.source_mm - c, axis=1))), 1.0)
+    with np.errstate(all="ignore"):
+        pts = geom.project_points(np.stack([c, c + step * n]))  # (nv, 2, 2): the axis's image is a line
+    cc = centre_column(geom, c)
+    rc = np.clip(np.nan_to_num(pts[:, 0, 1], nan=0.5 * (nr - 1), posinf=2.0 * nr, neginf=-1.0 * nr), -1.0 * nr,
+                 2.0 * nr)
+    t = (pts[:, 1] - pts[:, 0]) * np.array([geom.col_pitch_mm, geom.row_pitch_mm])
+    norm = np.linalg.norm(t, axis=1)
+    ok = np.isfinite(norm) & (norm > 1e-9 * step)
+    t = np.where(ok[:, None], t / np.where(ok, norm, 1.0)[:, None], np.array([0.0, 1.0]))  # else along v
+    p = np.stack([t[:, 1], -t[:, 0]], axis=1)
+    p = np.where((p[:, 0] < 0)[:, None], -p, p)
+    return cc, rc, p
 
-    The scan centre ``center_mm`` projects onto column ``c_c``; where the detector reaches
-    further on one side of it than on the other, rays within ``+-delta`` of ``c_c`` (delta =
-    the shorter reach, to the edge of the outer pixel) are measured twice over 360 degrees
-    and the rest once. Weights ``2 sin^2(pi/4 (1 + x))``, ``x = +-(c - c_c) / delta`` (0 at
-    the inner edge, 1 at ``c_c``, 2 beyond ``delta``) sum to 2 over each ray and its
-    conjugate, replacing FDK's 1/2 per ray pair.
 
-    The scan counts as displaced when the median asymmetry of the reaches is at least
-    ``min_asymmetry_px`` (default 10 % of the row, at least 2 pixels); then every view is
-    weighted (with its own centre column and delta), otherwise none is: conjugate views
-    must be treated alike, and per-view robot errors of a few pixels must not switch a
-    nearly centred detector to redundancy weighting.
+def _distance_from_axis(geom: ConeGeometry, cc, rc, p, views=slice(None)):
+    """Each pixel's signed distance (mm) from the scan axis's image along ``p``: (n_views', n_rows, n_cols)."""
+    dc = (np.arange(geom.n_cols)[None, None, :] - cc[views, None, None]) * geom.col_pitch_mm
+    dr = (np.arange(geom.n_rows)[None, :, None] - rc[views, None, None]) * geom.row_pitch_mm
+    return dc * p[views, 0, None, None] + dr * p[views, 1, None, None]
 
-    Returns ``(weights, inner_side)``: ``inner_side`` (n_views,) is -1 where the short side is
-    at low column indices, +1 at high ones, 0 where no weighting applies.
-    """
-    nv, nc = geom.n_views, geom.n_cols
-    cc = centre_column(geom, center_mm)
-    reach_lo = cc + 0.5
-    reach_hi = (nc - 0.5) - cc
-    asym = reach_hi - reach_lo
+
+def displaced_detector_layout(geom: ConeGeometry, center_mm=(0.0, 0.0, 0.0), min_asymmetry_px: float | None = None,
+                              axis=None):
+    """What :func:`displaced_detector_weights` weighs by, per view: ``(side, delta_mm, margin_px, frame)``:
+    the short side (-1 at low columns, +1 at high ones, 0 where no view is weighted), the overlap's
+    half-width (mm, None where no view is weighted), how far (in columns) the long side reaches beyond the
+    short one in the row where that is most (FDK widens the filtered rows by it) and the axis's image
+    (:func:`_axis_frame`)."""
+    nv, nc, nr = geom.n_views, geom.n_cols, geom.n_rows
+    cc, rc, p = _axis_frame(geom, center_mm, axis)
+    # the reach on each side: from the axis's image to the detector's edge along p, the least over the rows
+    corners_c = np.array([-0.5, -0.5, nc - 0.5, nc - 0.5])
+    corners_r = np.array([-0.5, nr - 0.5, -0.5, nr - 0.5])
+    d = ((corners_c[None] - cc[:, None]) * geom.col_pitch_mm * p[:, :1]
+         + (corners_r[None] - rc[:, None]) * geom.row_pitch_mm * p[:, 1:])
+    reach_lo = np.min(-d[:, :2], axis=1)
+    reach_hi = np.min(d[:, 2:], axis=1)
+    asym = (reach_hi - reach_lo) / geom.col_pitch_mm
+    # how far the long side reaches beyond the short one in any row (slanted rows: more than asym)
+    spread = np.maximum(np.max(d[:, 2:], axis=1) - reach_lo, np.max(-d[:, :2], axis=1) - reach_hi) / geom.col_pitch_mm
     if min_asymmetry_px is None:
         min_asymmetry_px = max(2.0, 0.1 * nc)
     if np.median(np.abs(asym)) < min_asymmetry_px:
-        return np.ones((nv, nc)), np.zeros(nv, dtype=np.int64)
+        return np.zeros(nv, dtype=np.int64), None, spread, (cc, rc, p)
     delta = np.minimum(reach_lo, reach_hi)
     if np.any(delta <= 0):
         warnings.warn("the scan centre projects off the detector in some views; "
                       "displaced-detector weights cannot fill the missing half", RuntimeWarning, stacklevel=3)
-    side = np.where(asym >= 0, -1, 1)
-    x = (np.arange(nc)[None, :] - cc[:, None]) * (-side[:, None]) / np.maximum(delta, 1e-6)[:, None]
-    weights = 2.0 * np.sin(0.25 * np.pi * (1.0 + np.clip(x, -1.0, 1.0))) ** 2  # x = -1 at the inner edge
-    return weights, side
+    return np.where(asym >= 0, -1, 1), delta, spread, (cc, rc, p)
+
+
+def displaced_pixel_weights(geom: ConeGeometry, layout, views=slice(None)) -> np.ndarray | None:
+    """The weights (n_views', n_rows, n_cols) of ``views`` for the ``layout`` of
+    :func:`displaced_detector_layout` (None where no view is weighted)."""
+    side, delta, _, (cc, rc, p) = layout
+    if delta is None:
+        return None
+    x = _distance_from_axis(geom, cc, rc, p, views) * (-side[views, None, None]) \
+        / np.maximum(delta[views], 1e-6)[:, None, None]
+    return 2.0 * np.sin(0.25 * np.pi * (1.0 + np.clip(x, -1.0, 1.0))) ** 2  # x = -1 at the inner edge
+
+
+def displaced_detector_weights(geom: ConeGeometry, center_mm=(0.0, 0.0, 0.0),
+                               min_asymmetry_px: float | None = None, axis=None):
+    """Redundancy weights (n_views, n_rows, n_cols) for an offset (displaced) detector, after Wang 2002.
+
+    The scan axis (``axis``, default :func:`estimate_scan_axis`, through ``center_mm``) falls on each
+    view's detector along a line; each pixel's coordinate ``a`` is its signed distance from that line
+    along the in-plane direction perpendicular to it (a detector rotated in its own plane has slanted
+    rows, and its pixels are weighed by their own distance, not their column's). Where the detector
+    reaches further on one side of the line than on the other, rays within ``+-delta`` of it (delta
+    = the shorter reach, to the edge of the outer pixel, the least over the rows) are measured twice
+    over 360 degrees and the rest once. Weights ``2 sin^2(pi/4 (1 + x))``, ``x = +-a / delta`` (0 at
+    the inner edge, 1 on the line, 2 beyond ``delta``) sum to 2 over each ray and its conjugate,
+    replacing FDK's 1/2 per ray pair.
+
+    The scan counts as displaced when the median asymmetry of the reaches is at least
+    ``min_asymmetry_px`` (default 10 % of the row, at least 2 pixels); then every view is
+    weighted (with its own line and delta), otherwise none is: conjugate views
+    must be treated alike, and per-view robot errors of a few pixels must not switch a
+    nearly centred detector to redundancy weighting.
+
+    Limit: on a detector rotated in its own plane the weights are right pixel by pixel, but FDK filters
+    along the detector rows, which then run slanted to the fan (across the axis's image), and a row and
+    the rows holding its conjugate rays are no longer the same lines; weighting before filtering is then
+    only approximate, the more so the larger the rotation and the steeper the weights (the smaller
+    ``delta``). With the test's 0.15 rad rotation the weighted reconstruction still beats the unweighted
+    one, but its error is several times that of the same scan without the rotation (resampling such
+    projections onto a detector whose rows cross the axis's image at right angles is not done here).
+
+    Returns ``(weights, inner_side)``: ``inner_side`` (n_views,) is -1 where the short side is
+    at low column indices, +1 at high ones, 0 where no weighting applies. (:func:`fdk` computes
+    the weights a few views at a time: :func:`displaced_detector_layout`, :func:`displaced_pixel_weights`.)
+    """
+    layout = displaced_detector_layout(geom, center_mm, min_asymmetry_px, axis)
+    w = displaced_pixel_weights(geom, layout)
+    return (np.ones((geom.n_views,) + geom.det_shape) if w is None else w), layout[0]

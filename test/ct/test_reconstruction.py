@@ -260,7 +260,38 @@ def test_displaced_detector_roi_scan():
     assert np.all(w == 1) and np.all(side == 0)
     w, side = displaced_detector_weights(geom, center)
     assert np.all(side == -1) and w.min() >= 0 and w.max() == pytest.approx(2.0)
-    assert np.all(w[:, 0] < 0.05)  # falls to zero at the inner edge
+    assert w.shape == (90, 48, 64) and np.all(w[..., 0] < 0.05)  # falls to zero at the inner edge
+
+
+def test_displaced_detector_weights_follow_each_pixel_on_a_detector_rotated_in_its_plane():
+    """The weights are a function of each pixel's distance from the axis's image (slanted on a detector rotated
+    in its own plane), not of its column: every point of the axis falls where the weight is 1. Per column,
+    rows away from the centre's were weighted as if the axis crossed them at the centre's column."""
+    from scipy.ndimage import map_coordinates
+
+    def rotated_in_plane(geom, psi):
+        c, s = np.cos(psi), np.sin(psi)
+        return geom.replace(u=c * geom.u + s * geom.v, v=-s * geom.u + c * geom.v)
+
+    centre = np.array([6.0, -3.0, 4.0])
+    geom = rotated_in_plane(circular_geometry(36, n_rows=48, n_cols=64, center_mm=centre, det_offset_u_mm=12.0), 0.15)
+    w, side = displaced_detector_weights(geom, centre)
+    assert np.all(side == -1)
+    if w.ndim == 2:  # per column (the old form): the same for every row
+        w = np.repeat(w[:, None, :], geom.n_rows, axis=1)
+    on_axis = geom.project_points(centre + np.outer(np.linspace(-6.0, 6.0, 7), [0.0, 1.0, 0.0]))
+    at_axis = [map_coordinates(w[i], [on_axis[i, :, 1], on_axis[i, :, 0]], order=1) for i in range(geom.n_views)]
+    np.testing.assert_allclose(at_axis, 1.0, atol=1e-3)  # per column: 0.73 to 1.27
+
+    geom = rotated_in_plane(circular_geometry(90, n_rows=48, n_cols=64, center_mm=centre, det_offset_u_mm=12.0), 0.15)
+    ball = [(centre, (9.0, 5.0, 9.0), 0.02), (np.add(centre, (4.0, 0, 0)), (2.0, 2.0, 2.0), 0.01)]
+    grid = VolumeGrid.centered((16, 32, 32), 0.6, centre)
+    proj = ellipsoid_projections(geom, ball)
+    phantom = ellipsoid_volume(grid, ball)
+    support = phantom > 0
+    e_w = rmse(fdk(proj, geom, grid, window="ram-lak", truncation=None), phantom, support)
+    e_p = rmse(fdk(proj, geom, grid, window="ram-lak", truncation=None, displaced_detector=False), phantom, support)
+    assert e_w < 0.5 * e_p  # measured 0.44 (per column 0.59; unrotated 0.06: the docstring's limit)
 
 
 def short_arc(geom, extra_deg):
