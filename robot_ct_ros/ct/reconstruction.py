@@ -61,7 +61,7 @@ from scipy import ndimage
 from numba import njit, prange
 
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
-from robot_ct_ros.ct.virtual_detector import fdk_filter_motion_rows
+from robot_ct_ros.ct.virtual_detector import DEFAULT_TOL_DEG, align_rows_to_motion, outside_footprint
 from robot_ct_ros.ct.scan_weights import (  # noqa: F401  (re-exported: FDK's weights live there)
     centre_column,
     displaced_detector_layout,
@@ -373,7 +373,7 @@ def fdk_filter_projections(line_integrals: np.ndarray, geom: ConeGeometry, *, ce
     g_w = np.einsum("ij,ij->i", g, w_s)
     if np.any(np.abs(g_u) < 0.5 * np.linalg.norm(g, axis=1)):
         warnings.warn("detector rows (u) are not along the source motion for some views; this filters along u "
-                      "(fdk() filters on a virtual detector: virtual_detector.fdk_filter_motion_rows)",
+                      "(fdk() filters on a virtual detector: fdk_filter_motion_rows)",
                       RuntimeWarning, stacklevel=2)
     sgn = np.sign(g_u)
     sgn[sgn == 0] = 1.0
@@ -594,6 +594,31 @@ def fdk_backproject(filtered: np.ndarray, geom: ConeGeometry, grid: VolumeGrid,
     _fdk_backproject_kernel(q, pm, vol, float(origin[0]), float(origin[1]), float(origin[2]),
                             float(dx), float(dy), float(dz), int(view_chunk))
     return vol
+
+
+def fdk_filter_motion_rows(line_integrals: np.ndarray, geom: ConeGeometry, *, center_mm=None, axis=None,
+                           valid_mask=None, tol_deg: float = DEFAULT_TOL_DEG, **filter_kwargs):
+    """:func:`fdk_filter_projections` with the rows along the source
+    motion: the data as they are where every view's rows are within ``tol_deg`` of it (the very same
+    call), else on the virtual detector of :func:`~robot_ct_ros.ct.virtual_detector.align_rows_to_motion`, its filtered pixels beyond the
+    real detector's edges set to 0 (FDK back-projects nothing from beyond a detector's edge; columns
+    the filter adds for a displaced detector are kept). Returns ``(filtered, filtered_geom)`` as
+    ``fdk_filter_projections`` does; ``filtered_geom`` is then the virtual detector's."""
+    virt = align_rows_to_motion(line_integrals, geom, center_mm, axis, valid_mask, tol_deg)
+    if virt is None:
+        return fdk_filter_projections(line_integrals, geom, center_mm=center_mm, axis=axis,
+                                      valid_mask=valid_mask, **filter_kwargs)
+    if filter_kwargs.get("displaced_detector", True):
+        cm = scan_centre(virt.geom, axis) if center_mm is None else np.asarray(center_mm, dtype=np.float64)
+        if np.any(displaced_detector_layout(virt.geom, cm, axis=axis)[0] != 0) \
+                and outside_footprint(virt.geom, virt.original).any():
+            warnings.warn("a displaced detector turned in its plane: its redundancy weights are taken on the "
+                          "virtual detector, which reaches beyond the real one, and FDK is approximate",
+                          RuntimeWarning, stacklevel=3)
+    q, q_geom = fdk_filter_projections(virt.projections, virt.geom, center_mm=center_mm, axis=axis,
+                                       valid_mask=virt.valid_mask, **filter_kwargs)
+    q[outside_footprint(q_geom, virt.original) & ~outside_footprint(q_geom, virt.geom)] = 0.0
+    return q, q_geom
 
 
 def fdk(line_integrals: np.ndarray, geom: ConeGeometry, grid: VolumeGrid, *, window: str = "hann",

@@ -249,7 +249,7 @@ def _axis_frame(geom: ConeGeometry, center_mm, axis):
     """Per view, where the scan axis falls on the detector: the centre's projection (col, row) (each bounded as
     :func:`centre_column`), and the unit in-plane direction ``p`` (n_views, 2) in detector mm along (u, v)
     perpendicular to the axis's projected line, turned towards increasing columns; ``(cc, rc, p)``."""
-    nc, nr = geom.n_cols, geom.n_rows
+    nr = geom.n_rows
     c = np.asarray(center_mm, dtype=np.float64).reshape(3)
     n = estimate_scan_axis(geom) if axis is None else np.asarray(axis, dtype=np.float64)
     n = n / np.linalg.norm(n)
@@ -341,8 +341,10 @@ def displaced_detector_weights(geom: ConeGeometry, center_mm=(0.0, 0.0, 0.0),
     the rows holding its conjugate rays are no longer the same lines; weighting before filtering is then
     only approximate, the more so the larger the rotation and the steeper the weights (the smaller
     ``delta``). With the test's 0.15 rad rotation the weighted reconstruction still beats the unweighted
-    one, but its error is several times that of the same scan without the rotation (resampling such
-    projections onto a detector whose rows cross the axis's image at right angles is not done here).
+    one, but its error is several times that of the same scan without the rotation. :func:`fdk` resamples
+    a detector rolled by more than ``virtual_detector.DEFAULT_TOL_DEG`` onto a virtual detector whose rows
+    follow the source motion and weighs that one (:mod:`robot_ct_ros.ct.virtual_detector`), approximate
+    too where it reaches beyond the real detector.
 
     Returns ``(weights, inner_side)``: ``inner_side`` (n_views,) is -1 where the short side is
     at low column indices, +1 at high ones, 0 where no weighting applies. (:func:`fdk` computes

@@ -15,7 +15,8 @@ the tolerance keep u' = u) and ``v' = w x u'``, so (u', v', w) is right-handed l
 frame and w is unchanged. It is one size for all views, large enough to hold the whole original
 detector in every view; its pixels outside the original detector (or fed by a bad pixel) are
 marked invalid, and :func:`robot_ct_ros.ct.reconstruction.fill_invalid_pixels` interpolates them
-along the virtual rows before filtering. Nothing here assumes an axis or a world frame.
+along the virtual rows before filtering (:func:`robot_ct_ros.ct.reconstruction.fdk_filter_motion_rows`,
+which :func:`~robot_ct_ros.ct.reconstruction.fdk` calls). Nothing here assumes an axis or a world frame.
 
 A one-row (fan-beam) or one-column detector is left as it is: its single row defines the fan.
 """
@@ -23,16 +24,15 @@ A one-row (fan-beam) or one-column detector is left as it is: its single row def
 from __future__ import annotations
 
 import math
-import warnings
 from dataclasses import dataclass
 
 import numpy as np
 from numba import njit, prange
 
 from robot_ct_ros.ct.geometry import ConeGeometry
-from robot_ct_ros.ct.scan_weights import displaced_detector_weights, fdk_view_weights
+from robot_ct_ros.ct.scan_weights import fdk_view_weights
 
-__all__ = ["VirtualDetector", "row_roll_deg", "align_rows_to_motion", "outside_footprint", "fdk_filter_motion_rows"]
+__all__ = ["VirtualDetector", "row_roll_deg", "align_rows_to_motion", "outside_footprint"]
 
 DEFAULT_TOL_DEG = 3.0
 """Largest roll (degrees) between the detector rows and the projected source motion that FDK
@@ -200,30 +200,3 @@ def outside_footprint(geom: ConeGeometry, original: ConeGeometry) -> np.ndarray:
     x = A[:, 0, 0, None, None] * c + A[:, 0, 1, None, None] * r + A[:, 0, 2, None, None]
     y = A[:, 1, 0, None, None] * c + A[:, 1, 1, None, None] * r + A[:, 1, 2, None, None]
     return ~((x >= -0.5) & (x <= original.n_cols - 0.5) & (y >= -0.5) & (y <= original.n_rows - 0.5))
-
-
-def fdk_filter_motion_rows(line_integrals: np.ndarray, geom: ConeGeometry, *, center_mm=None, axis=None,
-                           valid_mask=None, tol_deg: float = DEFAULT_TOL_DEG, **filter_kwargs):
-    """:func:`robot_ct_ros.ct.reconstruction.fdk_filter_projections` with the rows along the source
-    motion: the data as they are where every view's rows are within ``tol_deg`` of it (the very same
-    call), else on the virtual detector of :func:`align_rows_to_motion`, its filtered pixels beyond the
-    real detector's edges set to 0 (FDK back-projects nothing from beyond a detector's edge; columns
-    the filter adds for a displaced detector are kept). Returns ``(filtered, filtered_geom)`` as
-    ``fdk_filter_projections`` does; ``filtered_geom`` is then the virtual detector's."""
-    from robot_ct_ros.ct.reconstruction import fdk_filter_projections  # it imports this module
-
-    virt = align_rows_to_motion(line_integrals, geom, center_mm, axis, valid_mask, tol_deg)
-    if virt is None:
-        return fdk_filter_projections(line_integrals, geom, center_mm=center_mm, axis=axis,
-                                      valid_mask=valid_mask, **filter_kwargs)
-    if filter_kwargs.get("displaced_detector", True):
-        cm = np.zeros(3) if center_mm is None else np.asarray(center_mm, dtype=np.float64)
-        if np.any(displaced_detector_weights(virt.geom, cm)[1] != 0) \
-                and outside_footprint(virt.geom, virt.original).any():
-            warnings.warn("a displaced detector turned in its plane: its redundancy weights are taken on the "
-                          "virtual detector, which reaches beyond the real one, and FDK is approximate",
-                          RuntimeWarning, stacklevel=3)
-    q, q_geom = fdk_filter_projections(virt.projections, virt.geom, center_mm=center_mm, axis=axis,
-                                       valid_mask=virt.valid_mask, **filter_kwargs)
-    q[outside_footprint(q_geom, virt.original) & ~outside_footprint(q_geom, virt.geom)] = 0.0
-    return q, q_geom

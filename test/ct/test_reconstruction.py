@@ -291,7 +291,13 @@ def test_displaced_detector_weights_follow_each_pixel_on_a_detector_rotated_in_i
     support = phantom > 0
     e_w = rmse(fdk(proj, geom, grid, window="ram-lak", truncation=None), phantom, support)
     e_p = rmse(fdk(proj, geom, grid, window="ram-lak", truncation=None, displaced_detector=False), phantom, support)
-    assert e_w < 0.5 * e_p  # measured 0.44 (per column 0.59; unrotated 0.06: the docstring's limit)
+    upright = circular_geometry(90, n_rows=48, n_cols=64, center_mm=centre, det_offset_u_mm=12.0)
+    e_0 = rmse(fdk(ellipsoid_projections(upright, ball), upright, grid, window="ram-lak", truncation=None), phantom,
+               support)
+    # fdk filters a detector turned by 0.15 rad on a virtual detector whose rows follow the motion
+    # (ct/virtual_detector.py), weighted there: measured 2.3 times the upright scan's error (weighted on the real
+    # detector's slanted rows 7 times, per column more), and below the unweighted one
+    assert e_w < 3.0 * e_0 and e_w < e_p, (e_w, e_0, e_p)
 
 
 def short_arc(geom, extra_deg):

@@ -243,7 +243,7 @@ class DaskExecutor:
         """:func:`~robot_ct_ros.ct.reconstruction.fdk`: the projections filtered here, sent once, and
         back-projected onto slabs of the grid's z planes as tasks."""
         from robot_ct_ros.ct.reconstruction import scan_centre
-        from robot_ct_ros.ct.virtual_detector import fdk_filter_motion_rows  # rows along the motion, as fdk
+        from robot_ct_ros.ct.reconstruction import fdk_filter_motion_rows  # rows along the motion, as fdk
 
         if center_mm is None:  # as fdk
             center_mm = scan_centre(geom, kwargs.get("axis"), grid.center_mm)

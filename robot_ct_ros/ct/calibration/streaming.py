@@ -121,7 +121,7 @@ class StreamingEstimator:
         """The FDK contributions of these views (each filtered alone, weighted 1 / n_views), summed. Each view is
         weighted as in a full circle: Parker's short-scan weights need the whole arc, which a stream has not seen."""
         from robot_ct_ros.ct.reconstruction import fdk_backproject
-        from robot_ct_ros.ct.virtual_detector import fdk_filter_motion_rows  # rows along the motion, as fdk
+        from robot_ct_ros.ct.reconstruction import fdk_filter_motion_rows  # rows along the motion, as fdk
 
         out = np.zeros(self.grid.shape_zyx, np.float32)
         for i in range(geom.n_views):
