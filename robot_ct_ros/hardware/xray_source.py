@@ -115,7 +115,22 @@ class InterlockedSource:
         self.inputs = InterlockInputs()
         self.last_reason = "scan not armed"
         self.last_cut_reason = ""  # why the interlock last switched the beam off
+        self.fault = ""  # the driver's last refusal (SourceError), kept until the same command succeeds
+        self._fault_switching_on = False
         self._on_since: float | None = None
+
+    def _switch(self, on: bool, now_s: float) -> str:
+        """Command the source; a driver fault is recorded and returned (empty when it obeyed), never raised,
+        so that a refused switch-off is retried by the next tick instead of ending the controller."""
+        try:
+            self.source.set_beam(on, now_s)
+        except SourceError as exc:
+            self.fault = f"source refused beam {'on' if on else 'off'}: {exc}"
+            self._fault_switching_on = on
+            return self.fault
+        if self.fault and self._fault_switching_on == on:
+            self.fault = ""
+        return ""
 
     def _enforce(self, now_s: float) -> None:
         ok, reason = beam_permitted(self.inputs, now_s, self.max_report_age_s)
@@ -125,8 +140,8 @@ class InterlockedSource:
                                  "alive?)")
         self.last_reason = reason
         if not ok and self.source.beam_on:
-            self.source.set_beam(False, now_s)
-            self.last_cut_reason = reason
+            if not self._switch(False, now_s):
+                self.last_cut_reason = reason
 
     def update(self, now_s: float, **changes) -> None:
         inputs = replace(self.inputs, **changes)
@@ -153,16 +168,21 @@ class InterlockedSource:
         self._enforce(now_s)
 
     def request_beam(self, on: bool, now_s: float) -> tuple[bool, str]:
+        """Switch the beam; the answer says whether it is done, and why not (a driver fault included)."""
         if not on:
-            self.source.set_beam(False, now_s)
-            return True, "beam off"
+            fault = self._switch(False, now_s)
+            return (False, fault) if fault else (True, "beam off")
         ok, reason = beam_permitted(self.inputs, now_s, self.max_report_age_s)
         self.last_reason = reason
         if not ok:
             return False, f"beam refused: {reason}"
         if not self.source.beam_on:
             self._on_since = now_s
-        self.source.set_beam(True, now_s)
+        fault = self._switch(True, now_s)
+        if fault:
+            if self.source.beam_on and not self._switch(False, now_s):  # half done: not left on after a no
+                self.fault, self._fault_switching_on = fault, True  # the switch-on fault is the one to report
+            return False, f"beam refused: {fault}"
         return True, "beam on"
 
     @property

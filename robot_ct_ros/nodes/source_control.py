@@ -18,8 +18,9 @@ source/reset_estop the beam needs scan/armed true anew.
 Lifecycle: configure builds the (simulated) source at kvp/power_w behind the interlock, activate
 serves source/set_beam and publishes the beam state, deactivate switches the beam off at once and
 refuses beam requests, cleanup/shutdown/error switch it off and release the source. The beam is off
-in every state but active. The interlock inputs (armed, arm reports, e-stop) are followed in every
-state, so they are current on activation; an e-stop is latched in any state (one received while
+in every state but active. A driver fault (SourceError) is a refused answer or, for a switch-off,
+retried every tick; either is an ERROR on /diagnostics until the refused command succeeds. The
+interlock inputs (armed, arm reports, e-stop) are followed in every state, so they are current on activation; an e-stop is latched in any state (one received while
 unconfigured latches the source built by the next configure). With autostart the node configures
 and activates itself in its constructor, so a plain ``ros2 run`` works without a lifecycle manager.
 """
@@ -69,6 +70,7 @@ class SourceControlNode(LifecycleNode):
         self.create_timer(0.1, self._tick)
         self.create_timer(1.0, self._publish_diagnostics)
         self._last_published: bool | None = None
+        self._logged_fault = ""
         self._publish_beam()
         self._publish_estop()
         if autostart and self.trigger_configure() == TransitionCallbackReturn.SUCCESS:
@@ -107,6 +109,10 @@ class SourceControlNode(LifecycleNode):
         return TransitionCallbackReturn.SUCCESS
 
     def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._beam_off("cleaned up")
+        if self.beam_on:  # keep the source (and the tick retrying the switch-off) rather than lose it with the beam on
+            self.get_logger().error("cleanup refused: the beam is still on")
+            return TransitionCallbackReturn.FAILURE
         self._release("cleaned up")
         return TransitionCallbackReturn.SUCCESS
 
@@ -122,7 +128,9 @@ class SourceControlNode(LifecycleNode):
         """Refuse beam requests from now on and switch the beam off at once."""
         self._active = False
         if self.interlock is not None:
-            self.interlock.request_beam(False, self._now_s())
+            done, answer = self.interlock.request_beam(False, self._now_s())
+            if not done:  # logged, not raised: every way out of active must finish (destroy_node included)
+                self.get_logger().error(f"source_control {why} with the beam on: {answer}")
             self.interlock.last_reason = f"source_control {why}"
         self._publish_beam(force=True)  # not after SIGINT: publish_while_up then publishes nothing
 
@@ -183,10 +191,10 @@ class SourceControlNode(LifecycleNode):
     # -- services ------------------------------------------------------------------------------
     def _on_set_beam(self, request, response):
         if not request.data:
-            if self.interlock is not None:
-                self.interlock.request_beam(False, self._now_s())
-            self._publish_beam()
             response.success, response.message = True, "beam off"
+            if self.interlock is not None:
+                response.success, response.message = self.interlock.request_beam(False, self._now_s())
+            self._publish_beam()
         elif not self._active:
             response.success = False
             response.message = f"beam refused: source_control is {self.lifecycle_state}, not active"
@@ -211,10 +219,14 @@ class SourceControlNode(LifecycleNode):
     # -- periodic -------------------------------------------------------------------------------
     def _tick(self) -> None:
         if self.interlock is not None:
-            self.interlock.tick(self._now_s())
+            self.interlock.tick(self._now_s())  # retries a switch-off the source refused
+            if self.interlock.fault != self._logged_fault:
+                if self.interlock.fault:
+                    self.get_logger().error(self.interlock.fault)
+                self._logged_fault = self.interlock.fault
         if self._active:
             self._publish_beam(force=True)
-        elif self.beam_on:  # cannot happen (every way out of active cuts the beam); never leave it on
+        elif self.beam_on:  # every way out of active cuts the beam, unless the source refused: retry
             self.interlock.request_beam(False, self._now_s())
             self._publish_beam(force=True)
 
@@ -226,18 +238,19 @@ class SourceControlNode(LifecycleNode):
         state = self.lifecycle_state
         il = self.interlock
         latched = self.estop_latched
-        if latched or self.last_error:
+        fault = il.fault if il is not None else ""
+        if latched or self.last_error or fault:
             level = DiagnosticStatus.ERROR
         elif not self._active:
             level = DiagnosticStatus.WARN
         else:
             level = DiagnosticStatus.OK
         values = [("lifecycle_state", state), ("beam_on", self.beam_on), ("kvp", self.kvp),
-                  ("power_w", self.power_w), ("estop_latched", latched)]
+                  ("power_w", self.power_w), ("estop_latched", latched), ("source_fault", fault or "-")]
         if il is not None:
             values += [("scan_armed", il.inputs.scan_armed), ("last_beam_cut", il.last_cut_reason or "-"),
                        ("beam_on_seconds", f"{self._beam_on_seconds(il):.3f}")]
-        message = self.last_error or (il.last_reason if il is not None and self._active else state)
+        message = self.last_error or fault or (il.last_reason if il is not None and self._active else state)
         publish_diagnostic(self, self.diag_pub, level, "x-ray source", "simulated_xray_source", message, values)
 
 

@@ -98,3 +98,48 @@ def test_after_an_estop_the_scan_must_be_armed_anew():
     assert not ok and "not armed" in why
     src.update(10.6, scan_armed=True)
     assert src.request_beam(True, 10.7)[0]
+
+
+class _FaultySource(SimulatedXraySource):
+    """A driver that refuses to switch on (an arcing tube) or off (a shutter that does not confirm)."""
+
+    refuse_on = False
+    refuse_off = False
+    off_tries = 0
+
+    def set_beam(self, on, now_s):
+        if on and self.refuse_on:
+            raise SourceError("tube arc detected")
+        if not on and self._beam_on:
+            self.off_tries += 1
+            if self.refuse_off:
+                raise SourceError("shutter did not confirm closed")
+        super().set_beam(on, now_s)
+
+
+def test_a_driver_fault_is_an_answer_not_an_exception():
+    """SourceError from the driver once escaped request_beam and the tick (the node's callbacks crashed and a
+    refused switch-off was never retried): now a refused switch-on is a refusal naming the fault, a refused
+    switch-off is retried on every tick, and the fault stays until the refused command succeeds."""
+    src = InterlockedSource(_FaultySource(), max_report_age_s=1.0)
+    src.update(10.0, **ALL_OK)
+    src.source.refuse_on = True
+    ok, why = src.request_beam(True, 10.1)
+    assert not ok and "beam refused: source refused beam on: tube arc detected" == why and not src.beam_on
+    assert "tube arc" in src.fault
+    assert src.request_beam(False, 10.15)[0] and "tube arc" in src.fault  # switching off does not clear it
+    src.source.refuse_on = False
+    assert src.request_beam(True, 10.2)[0] and src.fault == ""
+
+    src.source.refuse_off = True
+    src.update(10.3, scan_armed=False)
+    assert src.beam_on and "shutter did not confirm closed" in src.fault and src.last_cut_reason == ""
+    ok, why = src.request_beam(False, 10.35)
+    assert not ok and "shutter" in why
+    tries = src.source.off_tries
+    src.tick(10.4)
+    src.tick(10.5)
+    assert src.source.off_tries == tries + 2 and src.beam_on  # retried on every tick
+    src.source.refuse_off = False
+    src.tick(10.6)
+    assert not src.beam_on and src.fault == "" and "not armed" in src.last_cut_reason

@@ -230,3 +230,65 @@ def test_a_whole_number_sets_a_double_parameter(ros):
     assert kvp.type_ == P.Type.DOUBLE and kvp.value == 90.0
     with pytest.raises(ValueError, match="parameter kvp"):  # still typed: text is refused
         SourceControlNode(context=ros.context, parameter_overrides=[P("kvp", value="90")])
+
+
+def test_a_source_driver_fault_is_answered_reported_and_the_node_lives_on(ros):
+    """A driver's SourceError once escaped the service and the 10 Hz tick (the executor raised, a refused
+    switch-off left beam_on true with nothing reported, destroy_node raised): now set_beam answers no with the
+    fault, /diagnostics is ERROR naming it, the switch-off is retried on every tick, and destroy_node logs."""
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+
+    from robot_ct_ros.hardware.xray_source import SimulatedXraySource, SourceError
+
+    class Faulty(SimulatedXraySource):
+        refuse_on = refuse_off = False
+        off_tries = 0
+
+        def set_beam(self, on, now_s):
+            if on and self.refuse_on:
+                raise SourceError("tube arc detected")
+            if not on and self._beam_on:
+                self.off_tries += 1
+                if self.refuse_off:
+                    raise SourceError("shutter did not confirm closed")
+            super().set_beam(on, now_s)
+
+    node = ros.add(SourceControlNode(context=ros.context, source_factory=Faulty))
+    probe = ros.node("probe")
+    diag = []
+    probe.create_subscription(DiagnosticArray, "/diagnostics",
+                              lambda m: diag.extend(s for s in m.status if s.name.endswith("x-ray source")), 10)
+    pubs = {name: probe.create_publisher(Bool, name, 10)
+            for name in ("scan/armed", "source_arm/in_position", "detector_arm/in_position")}
+    for pub in pubs.values():
+        assert ros.wait_for_subscribers(pub)
+    set_beam = probe.create_client(SetBool, "source/set_beam")
+    _ready(ros, pubs, node)
+    source = node.interlock.source
+
+    source.refuse_on = True
+    answer = ros.call(set_beam, SetBool.Request(data=True))
+    assert not answer.success and "tube arc detected" in answer.message and not node.beam_on
+    assert ros.spin_until(lambda: diag and diag[-1].level == DiagnosticStatus.ERROR
+                          and "tube arc detected" in diag[-1].message)
+    assert node.lifecycle_state == "active"
+
+    source.refuse_on = False
+    _ready(ros, pubs, node)
+    assert ros.call(set_beam, SetBool.Request(data=True)).success and node.beam_on
+    source.refuse_off = True
+    pubs["scan/armed"].publish(Bool(data=False))
+    assert ros.spin_until(lambda: not node.interlock.inputs.scan_armed)
+    tries = source.off_tries
+    assert ros.spin_until(lambda: source.off_tries >= tries + 3)  # the tick retries
+    assert node.beam_on
+    assert ros.spin_until(lambda: diag[-1].level == DiagnosticStatus.ERROR and "shutter" in diag[-1].message)
+    answer = ros.call(set_beam, SetBool.Request(data=False))
+    assert not answer.success and "shutter" in answer.message
+    assert node.trigger_deactivate() == TransitionCallbackReturn.SUCCESS and node.beam_on
+    assert node.trigger_cleanup() != TransitionCallbackReturn.SUCCESS  # the source is kept while the beam is on
+    assert node.lifecycle_state == "inactive" and node.interlock is not None
+    ros.executor.remove_node(node)
+    ros.nodes.remove(node)
+    node.destroy_node()  # logs, does not raise
+    assert node.interlock is None
