@@ -72,12 +72,16 @@ class ArmSnapshot:
     timestamp_s : float or None
         The controller's clock when it measured this state (s, any origin; UR: time since the
         controller started); None when the arm has no clock of its own (every read is a new sample).
+    fault : str
+        Why the arm does not hold its pose under control now, naming the controller's mode (UR: robot
+        mode not RUNNING, or a safety stop); empty in normal running. Such an arm is never in position.
     """
 
     tcp_pose: np.ndarray
     joint_positions: np.ndarray
     true_tcp_pose: np.ndarray | None = None
     timestamp_s: float | None = None
+    fault: str = ""
 
 
 @runtime_checkable
@@ -245,10 +249,12 @@ class ArmRunner:
             self._goal_event.set()
 
     def in_position(self) -> bool:
-        """The last commanded move completed, the state is fresh, and the measured pose is within
-        tolerance of the goal."""
+        """The last commanded move completed, the state is fresh, the arm reports no fault (a protective
+        stop or power-off: the beam must not be allowed), and the measured pose is within tolerance of the goal."""
         with self._lock:
             if self._moving or not self._move_ok or self.target is None or self.snapshot is None:
+                return False
+            if self.snapshot.fault:
                 return False
             snap, target = self.snapshot, self.target
         if self.stale():
@@ -380,7 +386,8 @@ def arm_health(runner: ArmRunner, arm, lifecycle_state: str, last_error: str, *,
 
     ``arm`` is the connected arm (None: none); ``connecting_s`` how long a connection attempt to
     ``where`` has been under way (None: none is). In order: a last error starting with one of
-    :data:`ARM_ERRORS` is an ERROR; connecting, a stale state, another last error, or a lifecycle
+    :data:`ARM_ERRORS` is an ERROR; connecting is a WARN; a fault the arm reports (protective stop, power
+    off) an ERROR; a stale state, another last error, or a lifecycle
     state other than active a WARN; else OK (with "in position" when it is), made a WARN when
     ``goal_problem`` (the last refused goal) is set. ``values`` are (key, value) pairs."""
     in_position = runner.in_position()
@@ -388,6 +395,8 @@ def arm_health(runner: ArmRunner, arm, lifecycle_state: str, last_error: str, *,
         level, message = "error", last_error
     elif connecting_s is not None:
         level, message = "warn", f"connecting to {where} ({connecting_s:.1f} s)"
+    elif runner.active and (snap := runner.latest()) is not None and snap.fault:
+        level, message = "error", f"robot not ready: {snap.fault}"
     elif runner.active and runner.latest() is not None and runner.stale():
         level = "warn"
         message = (f"state stale: no new sample from the controller for {runner.state_age_s():.2f} s "

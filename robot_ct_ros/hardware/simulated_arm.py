@@ -139,12 +139,15 @@ class SimulatedArm:
     ``motion_time_scale``: 0 moves instantly; otherwise a move takes
     ``scale * (distance / speed + angle / (4 * speed) + speed / accel)`` seconds.
     ``fail_after_moves``: the connection drops at the start of move number N + 1 (fault tests).
+    ``fault``: set it to the reason (e.g. "protective stop") for a controller that stops holding
+    the arm; snapshots carry it (never in position) until it is cleared.
     """
 
     errors: SimulatedArmErrors = field(default_factory=SimulatedArmErrors)
     initial_q: Sequence[float] = HOME_Q
     motion_time_scale: float = 0.0
     fail_after_moves: int | None = None
+    fault: str = ""
 
     @classmethod
     def from_settings(cls, settings: SimulatedArmSettings) -> "SimulatedArm":
@@ -239,4 +242,4 @@ class SimulatedArm:
 
     def snapshot(self) -> ArmSnapshot:
         """Measured (= commanded) TCP pose, joints, and the true pose (for the simulated detector)."""
-        return ArmSnapshot(self.get_tcp_pose(), self.get_joint_positions(), self.true_tcp_pose())
+        return ArmSnapshot(self.get_tcp_pose(), self.get_joint_positions(), self.true_tcp_pose(), fault=self.fault)

@@ -26,7 +26,29 @@ import numpy as np
 from robot_ct_ros.hardware.arm import (Arm, ArmConnectionError, ArmError, ArmMotionError, ArmSnapshot, as_pose,
                                        pose_distance)
 
-__all__ = ["URArm", "Arm", "ArmError", "ArmConnectionError", "ArmMotionError", "as_pose", "pose_distance"]
+__all__ = ["URArm", "Arm", "ArmError", "ArmConnectionError", "ArmMotionError", "as_pose", "pose_distance",
+           "ROBOT_MODES", "SAFETY_MODES", "mode_fault"]
+
+# The RTDE robot_mode and safety_mode values (UR's RTDE guide).
+ROBOT_MODES = {-1: "NO_CONTROLLER", 0: "DISCONNECTED", 1: "CONFIRM_SAFETY", 2: "BOOTING", 3: "POWER_OFF",
+               4: "POWER_ON", 5: "IDLE", 6: "BACKDRIVE", 7: "RUNNING", 8: "UPDATING_FIRMWARE"}
+SAFETY_MODES = {1: "NORMAL", 2: "REDUCED", 3: "PROTECTIVE_STOP", 4: "RECOVERY", 5: "SAFEGUARD_STOP",
+                6: "SYSTEM_EMERGENCY_STOP", 7: "ROBOT_EMERGENCY_STOP", 8: "VIOLATION", 9: "FAULT",
+                10: "VALIDATE_JOINT_ID", 11: "UNDEFINED_SAFETY_MODE", 12: "AUTOMATIC_MODE_SAFEGUARD_STOP",
+                13: "SYSTEM_THREE_POSITION_ENABLING_STOP"}
+_RUNNING = 7
+_HOLDING_SAFETY_MODES = (1, 2)  # NORMAL, REDUCED (slower limits; the arm still holds its pose under control)
+
+
+def mode_fault(robot_mode, safety_mode) -> str:
+    """Why a UR arm in these modes does not hold its pose under control ("" when it does): the robot
+    not RUNNING (powered off, idle with brakes on, ...) or a safety stop."""
+    problems = []
+    if robot_mode is not None and int(robot_mode) != _RUNNING:
+        problems.append(f"robot_mode {ROBOT_MODES.get(int(robot_mode), 'unknown')} ({int(robot_mode)})")
+    if safety_mode is not None and int(safety_mode) not in _HOLDING_SAFETY_MODES:
+        problems.append(f"safety_mode {SAFETY_MODES.get(int(safety_mode), 'unknown')} ({int(safety_mode)})")
+    return ", ".join(problems)
 
 
 class URArm:
@@ -221,7 +243,7 @@ class URArm:
 
     def snapshot(self) -> ArmSnapshot:
         """Measured TCP pose and joints from one state read, with the controller's clock (a real arm
-        does not know its true pose). Raises ArmConnectionError on non-finite values (a corrupt stream)."""
+        does not know its true pose) and :func:`mode_fault` of its modes. Raises ArmConnectionError on non-finite values (a corrupt stream)."""
         state = self.read_state()
         pose, q = np.asarray(state["tcp_pose"], float), np.asarray(state["joint_positions"], float)
         if pose.shape != (6,) or q.shape != (6,) or not (np.all(np.isfinite(pose)) and np.all(np.isfinite(q))):
@@ -229,7 +251,8 @@ class URArm:
                              f"joints {q.tolist()})")
             raise ArmConnectionError(self._dead_reason)
         ts = state.get("timestamp")
-        return ArmSnapshot(pose, q, None, float(ts) if ts is not None and np.isfinite(ts) else None)
+        return ArmSnapshot(pose, q, None, float(ts) if ts is not None and np.isfinite(ts) else None,
+                           fault=mode_fault(state.get("robot_mode"), state.get("safety_mode")))
 
     def __enter__(self):
         self.connect()

@@ -4,8 +4,9 @@ Topics, relative to the node namespace, under ``<role>_arm/`` (role is "source" 
   publishes   <role>_arm/joint_states (sensor_msgs/JointState, rad), <role>_arm/tool_pose
               (geometry_msgs/PoseStamped: the measured TCP pose in metres, REP 103, frame_id =
               base_frame), <role>_arm/in_position (std_msgs/Bool: true when the last commanded
-              move completed, the state is fresh and the measured pose is within tolerance of the
-              goal), at publish_rate_hz while active; <role>_arm/true_tool_pose (PoseStamped,
+              move completed, the state is fresh, the robot runs normally (no protective stop, not
+              powered off: else an ERROR on diagnostics) and the measured pose is within tolerance of
+              the goal), at publish_rate_hz while active; <role>_arm/true_tool_pose (PoseStamped,
               simulated arm only: the true, perturbed pose, for the simulated detector);
               diagnostics (1 Hz).
   subscribes  <role>_arm/goal_pose (geometry_msgs/PoseStamped in base_frame): a linear move to

@@ -231,3 +231,25 @@ def test_runner_hands_out_each_fresh_sample_once():
             assert runner.new_sample() is not None
         finally:
             runner.stop()
+
+
+def test_an_arm_that_stops_holding_its_pose_is_never_in_position_and_is_an_error():
+    """A protective stop or power-off (the snapshot's fault) once left in_position true, and the beam allowed."""
+    arm = SimulatedArm()
+    arm.connect()
+    runner = ArmRunner(ArmSettings(), rate_hz=200.0)
+    runner.start(arm)
+    try:
+        assert _wait(lambda: runner.latest() is not None)
+        runner.command(runner.latest().tcp_pose + np.array([0.0, 0.0, 0.01, 0, 0, 0]))
+        assert _wait(runner.in_position)
+        arm.fault = "safety_mode PROTECTIVE_STOP (3)"
+        assert _wait(lambda: not runner.in_position())
+        level, message, values = _health(runner, arm=arm)
+        assert (level, message) == ("error", "robot not ready: safety_mode PROTECTIVE_STOP (3)")
+        assert dict(values)["in_position"] is False
+        arm.fault = ""
+        assert _wait(runner.in_position)  # the pose held: in position again once the controller runs
+        assert _health(runner, arm=arm)[:2] == ("ok", "active, in position")
+    finally:
+        runner.stop()

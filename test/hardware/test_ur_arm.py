@@ -172,3 +172,31 @@ def test_robot_powered_off_refuses_the_control_script():
         assert not arm.is_connected and not emu.script_running
     finally:
         emu.stop()
+
+
+def test_mode_fault_names_the_modes_that_do_not_hold_the_arm():
+    from robot_ct_ros.hardware.ur_arm import mode_fault
+
+    assert mode_fault(7, 1) == "" and mode_fault(7, 2) == "" and mode_fault(None, None) == ""
+    assert mode_fault(7, 3) == "safety_mode PROTECTIVE_STOP (3)"
+    assert mode_fault(3, 1) == "robot_mode POWER_OFF (3)"
+    assert mode_fault(5, 7) == "robot_mode IDLE (5), safety_mode ROBOT_EMERGENCY_STOP (7)"
+    assert mode_fault(42, 99) == "robot_mode unknown (42), safety_mode unknown (99)"
+
+
+def test_a_protective_stop_or_power_off_reaches_the_snapshot(emulator):
+    """RTDE robot_mode / safety_mode were read on every state read and ignored: a protective stop left the arm
+    "in position"."""
+    arm = URArm(emulator.host, connect_timeout_s=15.0)
+    bounded(arm.connect, 30.0)
+    try:
+        assert arm.snapshot().fault == ""
+        emulator.safety_mode = 3
+        assert emulator.wait_for(lambda: arm.snapshot().fault == "safety_mode PROTECTIVE_STOP (3)")
+        emulator.safety_mode = 1
+        emulator.powered = False
+        assert emulator.wait_for(lambda: arm.snapshot().fault == "robot_mode POWER_OFF (3)")
+        emulator.powered = True
+        assert emulator.wait_for(lambda: arm.snapshot().fault == "")
+    finally:
+        bounded(arm.disconnect, 15.0)

@@ -28,7 +28,8 @@ each instance binds its own address in 127.0.0.0/8 (all of it is loopback on Lin
 random unless given. Fault options: ``drop_after_moves=N`` closes every socket and listener when
 move N + 1 arrives (a controller lost mid-scan); ``silent=True`` accepts connections and never
 sends a byte; ``freeze()`` stops the RTDE data stream while every connection stays open (a hung
-controller: the last state is all a client has).
+controller: the last state is all a client has); setting ``safety_mode`` (3 = PROTECTIVE_STOP) or
+``powered = False`` (robot_mode 3 = POWER_OFF) changes what the RTDE stream reports.
 """
 
 from __future__ import annotations
@@ -180,6 +181,7 @@ class URControllerEmulator:
         self.tcp_pose = forward_kinematics(self.q)
         self.powered = bool(powered)
         self.brakes_released = bool(powered)
+        self.safety_mode = 1  # NORMAL; 3 PROTECTIVE_STOP, 7 ROBOT_EMERGENCY_STOP (RTDE safety_mode, safety_status)
         self.in_int = [0] * N_REGISTERS
         self.in_double = [0.0] * N_REGISTERS
         self.out_int = [0] * N_REGISTERS
@@ -554,7 +556,7 @@ class URControllerEmulator:
         if name == "robot_mode":
             return self._robot_mode()
         if name == "safety_mode" or name == "safety_status":
-            return 1
+            return self.safety_mode
         if name == "safety_status_bits":
             return 1
         if name == "runtime_state":

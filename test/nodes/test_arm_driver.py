@@ -336,3 +336,20 @@ def test_a_publish_rate_that_would_look_silent_is_refused(ros):
         with pytest.raises(ValueError) as err:
             ArmDriverNode(context=ros.context, parameter_overrides=[Parameter("publish_rate_hz", value=rate)])
         assert "publish_rate_hz" in str(err.value) and "\n" not in str(err.value)
+
+
+def test_a_protective_stop_clears_in_position_and_is_an_error(ros):
+    """The robot's mode (protective stop, power off) once left in_position true and /diagnostics OK."""
+    node = _driver(ros, role="source")
+    probe = Probe(ros)
+    assert ros.spin_until(lambda: node.lifecycle_state == "active" and probe.poses)
+    goal = pose_msg_to_ur(probe.poses[-1]) + np.array([0.01, 0, 0, 0, 0, 0])
+    probe.send_goal(ros, goal)
+    assert ros.spin_until(lambda: probe.in_position and probe.in_position[-1])
+    node.arm.fault = "safety_mode PROTECTIVE_STOP (3)"
+    assert ros.spin_until(lambda: probe.in_position[-1] is False)
+    assert ros.spin_until(lambda: probe.last_level() == DiagnosticStatus.ERROR)
+    messages = [s.message for a in probe.diag for s in a.status if s.name.endswith("source arm")]
+    assert messages[-1] == "robot not ready: safety_mode PROTECTIVE_STOP (3)"
+    node.arm.fault = ""
+    assert ros.spin_until(lambda: probe.in_position[-1] is True and probe.last_level() == DiagnosticStatus.OK)
