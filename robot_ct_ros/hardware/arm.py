@@ -16,7 +16,9 @@ it feeds the simulated detector), and the simulated arm's error injection is its
 polls the state at a fixed rate, the other runs linear moves one at a time (the newest goal
 wins). A lost connection is recorded (:attr:`ArmRunner.lost_reason`) for the owner to act on,
 and so is the death of either thread from an unexpected exception (:attr:`ArmRunner.failure`, and
-the ``on_thread_died`` callback): a thread never dies silently.
+the ``on_thread_died`` callback): a thread never dies silently. :class:`ArmWatch` keeps reading a
+connected arm that is not driven (the arm driver configured but inactive) at a low rate, so a
+connection lost then is noticed too.
 
 Freshness: a snapshot carries the controller's own clock (``timestamp_s``, the UR controller's time
 since power-up; None for an arm without one, whose every read is fresh). The runner keeps the host
@@ -42,7 +44,7 @@ import numpy as np
 from robot_ct_ros.parameters import setting, validate
 
 __all__ = ["ArmError", "ArmConnectionError", "ArmMotionError", "ArmSnapshot", "Arm", "as_pose", "pose_distance",
-           "ArmSettings", "ArmRunner", "ARM_ERRORS", "arm_health"]
+           "ArmSettings", "ArmRunner", "ArmWatch", "ARM_ERRORS", "arm_health"]
 
 
 class ArmError(RuntimeError):
@@ -374,6 +376,72 @@ class ArmRunner:
             if self.lost_reason is None:
                 self.lost_reason = reason
             self._moving, self._move_ok = False, False
+
+
+class ArmWatch:
+    """Reads the state of a connected arm nobody drives, every ``period_s`` on a daemon thread, so that
+    a connection lost while the arm driver is inactive is noticed (nothing else reads the arm then).
+
+    A failed read, or a controller clock that has not advanced for ``max(call_timeout_s,
+    max_state_age_s)`` (a hung controller answering with its last state), is recorded in
+    :attr:`lost_reason` for the owner to act on; the thread then ends. :meth:`start` and :meth:`stop`
+    are the owner's; a read under way when :meth:`stop` is called is never waited for, and its result
+    is dropped. An unexpected exception ends the thread through ``on_thread_died`` (as ArmRunner's).
+    """
+
+    def __init__(self, settings: ArmSettings, period_s: float = 0.5,
+                 on_thread_died: Callable[[str], None] | None = None, clock: Callable[[], float] = time.monotonic):
+        self.settings = settings
+        self.period_s = float(period_s)
+        self._on_thread_died = on_thread_died or (lambda message: None)
+        self._clock = clock
+        self.arm = None
+        self.lost_reason: str | None = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    @property
+    def active(self) -> bool:
+        return self._thread is not None
+
+    def start(self, arm) -> None:
+        self.stop()
+        self.arm, self.lost_reason = arm, None
+        self._stop = stop = threading.Event()  # a thread left from before keeps its own, set, event
+        self._thread = threading.Thread(target=self._guarded, args=(arm, stop), name="arm_watch", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(0.1)
+        self._thread, self.arm = None, None
+
+    def _guarded(self, arm, stop: threading.Event) -> None:
+        try:
+            self._loop(arm, stop)
+        except BaseException as exc:  # noqa: BLE001 - a thread never dies silently
+            if not stop.is_set():
+                self._on_thread_died(f"arm_watch thread died: {type(exc).__name__}: {exc}")
+
+    def _loop(self, arm, stop: threading.Event) -> None:
+        limit_s = max(self.settings.call_timeout_s, self.settings.max_state_age_s)
+        last_ts, since_s = None, self._clock()
+        while not stop.wait(self.period_s):
+            try:
+                snap = arm.snapshot()
+            except ArmError as exc:
+                reason = str(exc)
+            else:
+                if snap.timestamp_s is None or snap.timestamp_s != last_ts:
+                    last_ts, since_s = snap.timestamp_s, self._clock()
+                    continue
+                if self._clock() - since_s <= limit_s:
+                    continue
+                reason = f"the controller stopped updating its state (no new sample for {self._clock() - since_s:.2f} s)"
+            if not stop.is_set():  # not an arm already let go of
+                self.lost_reason = reason
+            return
 
 
 ARM_ERRORS = ("connection lost", "configure failed", "connect failed", "fault")

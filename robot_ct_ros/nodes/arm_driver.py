@@ -23,7 +23,8 @@ simulated arm), so the executor, the lifecycle services and diagnostics ("connec
 running while a controller is slow to answer; activate starts publishing and accepting goals once
 the connection is up (at once if it already is); deactivate stops them; cleanup disconnects (off
 the executor too). A failed connection, or one lost while configured, is logged, reported as
-ERROR on diagnostics, and the node goes back to unconfigured; configure again to reconnect. A
+ERROR on diagnostics, and the node goes back to unconfigured; configure again to reconnect (while
+inactive the arm is read at 2 Hz to notice it, and activate is refused on a dead connection). A
 worker thread dying on an unexpected exception is an ERROR on diagnostics and takes the node
 through the lifecycle error transition (on_error releases the arm; the node ends unconfigured).
 With autostart (default) the node configures and activates itself, so a plain ``ros2 run`` works
@@ -44,7 +45,7 @@ from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Bool, Header
 
-from robot_ct_ros.hardware.arm import ArmError, ArmRunner, ArmSettings, arm_health
+from robot_ct_ros.hardware.arm import ArmError, ArmRunner, ArmSettings, ArmWatch, arm_health
 from robot_ct_ros.hardware.arms import make_arm
 from robot_ct_ros.hardware.connection import BackgroundConnection
 from robot_ct_ros.hardware.simulated_arm import JOINT_NAMES, SimulatedArmSettings
@@ -105,6 +106,9 @@ class ArmDriverNode(LifecycleNode):
         self._want_active = False
         self.runner = ArmRunner(self.arm_settings, s.publish_rate_hz, self._move_failed,
                                 on_thread_died=self.faults.report)
+        # connected but inactive, nothing else reads the arm: a lost connection would go unnoticed
+        self.watch = ArmWatch(self.arm_settings, period_s=0.5, on_thread_died=self.faults.report)
+        self.create_timer(0.5, self._check_watch)
         self._publish_timer = None
         self.last_error = ""
         self.goal_rejections = 0
@@ -153,6 +157,10 @@ class ArmDriverNode(LifecycleNode):
         return TransitionCallbackReturn.SUCCESS
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        if self.arm is not None and (reason := self._lost_while_inactive()) is not None:
+            self.last_error = f"connection lost: {reason}"  # _check_watch takes the node to unconfigured
+            self.get_logger().error(f"{self.role} arm activate refused: {self.last_error}")
+            return TransitionCallbackReturn.FAILURE
         self._want_active = True
         if self.arm is not None:
             self._start_runner()
@@ -160,6 +168,8 @@ class ArmDriverNode(LifecycleNode):
 
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
         self._stop_activity()
+        if self.arm is not None and not self.error_transition_pending:
+            self.watch.start(self.arm)
         return transition_result(self)
 
     def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
@@ -168,6 +178,7 @@ class ArmDriverNode(LifecycleNode):
 
     def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
         self._stop_activity()
+        self.watch.stop()
         self.connection.disconnect()  # off the executor
         return TransitionCallbackReturn.SUCCESS
 
@@ -176,6 +187,7 @@ class ArmDriverNode(LifecycleNode):
     def _start_runner(self) -> None:
         if self.runner.active:
             return
+        self.watch.stop()  # the runner reads the arm from now on
         self.runner.start(self.arm)
         self._publish_timer = self.create_timer(self.runner.period_s, self._publish)
 
@@ -199,6 +211,21 @@ class ArmDriverNode(LifecycleNode):
                                f"{self.connection.elapsed_s:.2f} s")
         if self._want_active and self.lifecycle_state == "active":
             self._start_runner()
+        else:
+            self.watch.start(self.arm)
+
+    def _lost_while_inactive(self) -> str | None:
+        """Why the connected, inactive arm is no longer usable (None: it is)."""
+        if self.watch.lost_reason is not None:
+            return self.watch.lost_reason
+        return None if self.arm.is_connected else "the arm reports itself disconnected"
+
+    def _check_watch(self) -> None:
+        if self.lifecycle_state != "inactive" or self.arm is None or self.connecting:
+            return
+        if (reason := self._lost_while_inactive()) is not None:
+            publish_while_up(self, self.in_position_pub, Bool(data=False))
+            self._unconfigure(f"connection lost: {reason}", "reconnect")
 
     def _unconfigure(self, error: str, retry: str) -> None:
         self.last_error = error
@@ -209,6 +236,7 @@ class ArmDriverNode(LifecycleNode):
     def destroy_node(self):
         # the context may already be shut down (SIGINT): no publishing here
         self._stop_activity(publish=self.context.ok())
+        self.watch.stop()
         self.connection.disconnect()  # off the executor
         self.connection.close(5.0)
         return super().destroy_node()

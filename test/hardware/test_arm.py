@@ -253,3 +253,32 @@ def test_an_arm_that_stops_holding_its_pose_is_never_in_position_and_is_an_error
         assert _health(runner, arm=arm)[:2] == ("ok", "active, in position")
     finally:
         runner.stop()
+
+
+def test_the_watch_notices_a_lost_connection_or_a_frozen_controller():
+    """Nothing read an arm that was connected but not driven (arm_driver inactive): a lost connection went
+    unnoticed until activate, which then succeeded on a dead arm."""
+    from robot_ct_ros.hardware.arm import ArmWatch
+
+    flaky = _FlakyArm(reads=3)
+    watch = ArmWatch(ArmSettings(), period_s=0.01)
+    watch.start(flaky)
+    assert _wait(lambda: watch.lost_reason is not None) and watch.lost_reason == "controller gone"
+    watch.stop()
+
+    class Frozen(_FlakyArm):  # answers, but its clock stands still
+        def snapshot(self):
+            return ArmSnapshot(self.pose.copy(), np.zeros(6), timestamp_s=5.0)
+
+    watch = ArmWatch(ArmSettings(call_timeout_s=0.05, max_state_age_s=0.05), period_s=0.01)
+    watch.start(Frozen())
+    assert _wait(lambda: watch.lost_reason is not None) and "stopped updating" in watch.lost_reason
+    watch.stop()
+
+    arm = SimulatedArm()
+    arm.connect()
+    watch.start(arm)  # no clock: never stale; connected: nothing to report
+    time.sleep(0.2)
+    assert watch.lost_reason is None and watch.active
+    watch.stop()
+    assert not watch.active

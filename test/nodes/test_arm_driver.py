@@ -353,3 +353,28 @@ def test_a_protective_stop_clears_in_position_and_is_an_error(ros):
     assert messages[-1] == "robot not ready: safety_mode PROTECTIVE_STOP (3)"
     node.arm.fault = ""
     assert ros.spin_until(lambda: probe.in_position[-1] is True and probe.last_level() == DiagnosticStatus.OK)
+
+
+def test_a_connection_lost_while_inactive_is_noticed_and_activate_is_refused(ros):
+    """Nothing read the arm while the node was configured but inactive: a lost connection went unnoticed and
+    activate then succeeded on a dead arm."""
+    node = _driver(ros, role="source", autostart=False)
+    probe = Probe(ros)
+    assert node.trigger_configure().name == "SUCCESS"
+    assert ros.spin_until(lambda: node.arm is not None)
+    ros.spin_for(1.2)  # the watch reads a healthy arm: nothing happens
+    assert node.lifecycle_state == "inactive" and node.last_error == ""
+    node.arm.disconnect()  # the connection drops under the inactive node
+    assert node.trigger_activate().name == "FAILURE" and node.lifecycle_state == "inactive"
+    assert ros.spin_until(lambda: node.lifecycle_state == "unconfigured")
+    assert node.last_error.startswith("connection lost") and node.arm is None
+    assert ros.spin_until(lambda: probe.last_level() == DiagnosticStatus.ERROR)
+
+    # the watch alone (no activate) notices it too; deactivate hands the arm back to the watch
+    assert node.trigger_configure().name == "SUCCESS"
+    assert ros.spin_until(lambda: node.arm is not None)
+    assert node.trigger_activate().name == "SUCCESS" and not node.watch.active
+    assert node.trigger_deactivate().name == "SUCCESS" and node.watch.active
+    node.arm.disconnect()
+    assert ros.spin_until(lambda: node.lifecycle_state == "unconfigured")
+    assert "simulated arm not connected" in node.last_error or "disconnected" in node.last_error, node.last_error
