@@ -11,13 +11,16 @@ reconnect fails. So the ur-rtde objects live in a child process
 (:mod:`robot_ct_ros.hardware.ur_worker`, started with the ``spawn`` context) and every call from
 the parent goes over a pipe with a timeout. On a timeout or a dead child the parent kills the
 child and raises :class:`ArmConnectionError`; no call ever blocks its caller longer than its
-timeout (plus the time to kill the child).
+timeout (plus the time to kill the child). On Linux the child dies with the parent, even a parent
+killed while the child is stuck in ur-rtde (PR_SET_PDEATHSIG; see :class:`_Spawner`).
 """
 
 from __future__ import annotations
 
 import itertools
 import multiprocessing
+import os
+import queue
 import threading
 from typing import Sequence
 
@@ -49,6 +52,40 @@ def mode_fault(robot_mode, safety_mode) -> str:
     if safety_mode is not None and int(safety_mode) not in _HOLDING_SAFETY_MODES:
         problems.append(f"safety_mode {SAFETY_MODES.get(int(safety_mode), 'unknown')} ({int(safety_mode)})")
     return ", ".join(problems)
+
+
+class _Spawner:
+    """Starts the driver processes from one thread that lives as long as this process.
+
+    A driver process asks to be killed when its parent dies (PR_SET_PDEATHSIG, ur_worker); Linux
+    sends that signal when the parent *thread* that started it ends, and URArm.connect runs on
+    short-lived threads (arm_driver connects off its executor), which would kill a healthy driver.
+    """
+
+    _lock = threading.Lock()
+    _requests: queue.SimpleQueue | None = None
+
+    @classmethod
+    def start(cls, proc) -> None:
+        with cls._lock:
+            if cls._requests is None:
+                cls._requests = queue.SimpleQueue()
+                threading.Thread(target=cls._serve, args=(cls._requests,), name="ur_spawner", daemon=True).start()
+        slot = [threading.Event(), None]
+        cls._requests.put((proc, slot))
+        slot[0].wait()
+        if slot[1] is not None:
+            raise slot[1]
+
+    @staticmethod
+    def _serve(requests: queue.SimpleQueue) -> None:
+        while True:
+            proc, slot = requests.get()
+            try:
+                proc.start()
+            except BaseException as exc:  # noqa: BLE001 - handed to the caller
+                slot[1] = exc
+            slot[0].set()
 
 
 class URArm:
@@ -86,9 +123,9 @@ class URArm:
 
         ctx = multiprocessing.get_context("spawn")
         parent_conn, child_conn = ctx.Pipe(duplex=True)
-        proc = ctx.Process(target=ur_worker.worker_main, args=(child_conn, self.host),
+        proc = ctx.Process(target=ur_worker.worker_main, args=(child_conn, self.host, os.getpid()),
                            name=f"ur_worker[{self.host}]", daemon=True)
-        proc.start()
+        _Spawner.start(proc)  # from a thread that outlives this one: the child dies with its parent thread
         child_conn.close()
         self._proc, self._conn = proc, parent_conn
         self._dead_reason = None

@@ -148,13 +148,42 @@ class _Worker:
                 self.reply(msg_id, "error", ("other", f"{type(exc).__name__}: {exc}"))
 
 
-def worker_main(conn, host: str) -> None:
+PR_SET_PDEATHSIG = 1  # linux/prctl.h
+
+
+def die_with_parent(parent_pid: int | None) -> bool:
+    """On Linux, have the kernel SIGKILL this process when its parent dies, and leave at once if it
+    already has (it may have died before the request was made). Returns whether the request was made.
+
+    A closed pipe ends this process only while it can run Python: ur-rtde's constructors, stuck on
+    a silent controller, hold the GIL, so a parent killed then (SIGKILL: no cleanup of its own)
+    would leave this process behind for good. The signal comes when the parent's *thread* that
+    started this process ends: URArm starts it from a thread that lives as long as the parent.
+    """
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0) != 0:
+            return False
+    except (OSError, AttributeError):
+        return False
+    if parent_pid is not None and os.getppid() != parent_pid:  # the parent died before the request
+        os._exit(1)
+    return True
+
+
+def worker_main(conn, host: str, parent_pid: int | None = None) -> None:
     """Entry point of the child process.
 
-    SIGINT is ignored (Ctrl-C reaches the whole process group; the parent decides when this
-    process ends: a "disconnect" request, a closed pipe, or a kill). The process leaves with
-    os._exit so that no library destructor can block the exit on a stuck connection.
+    The process dies with its parent (:func:`die_with_parent`). SIGINT is ignored (Ctrl-C reaches
+    the whole process group; the parent decides when this process ends: a "disconnect" request, a
+    closed pipe, or a kill). The process leaves with os._exit so that no library destructor can
+    block the exit on a stuck connection.
     """
+    die_with_parent(parent_pid)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     worker = _Worker(conn, host)
     try:

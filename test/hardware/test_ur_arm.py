@@ -200,3 +200,66 @@ def test_a_protective_stop_or_power_off_reaches_the_snapshot(emulator):
         assert emulator.wait_for(lambda: arm.snapshot().fault == "")
     finally:
         bounded(arm.disconnect, 15.0)
+
+
+ORPHAN = r"""
+import sys, threading, time
+from robot_ct_ros.hardware.ur_arm import URArm
+arm = URArm(sys.argv[1], connect_timeout_s=120.0)
+threading.Thread(target=arm.connect, daemon=True).start()
+while arm._proc is None or arm._proc.pid is None:
+    time.sleep(0.01)
+print(arm._proc.pid, flush=True)
+time.sleep(120)
+"""
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().split(")")[-1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
+def test_the_driver_process_dies_with_its_parent():
+    """A parent SIGKILLed while its driver process was stuck connecting (ur-rtde holding the GIL, so the closed
+    pipe went unnoticed) left the driver process behind for good, reparented to PID 1."""
+    import os
+    import signal
+    import time
+
+    from robot_ct_ros.testing import wait_until
+
+    emu = load_emulator().URControllerEmulator(silent=True).start()
+    parent = subprocess.Popen([sys.executable, "-c", ORPHAN, emu.host], stdout=subprocess.PIPE, text=True, cwd=REPO)
+    child = None
+    try:
+        child = int(parent.stdout.readline())
+        time.sleep(1.5)  # stuck in ur-rtde's constructor by now
+        assert _alive(child)
+        parent.send_signal(signal.SIGKILL)
+        parent.wait(10)
+        assert wait_until(lambda: not _alive(child), 10.0), "driver process outlived its parent"
+    finally:
+        parent.kill()
+        if child is not None and _alive(child):
+            os.kill(child, signal.SIGKILL)
+        emu.stop()
+
+
+def test_a_driver_started_from_a_short_lived_thread_outlives_that_thread(emulator):
+    """The parent-death signal follows the thread that started the driver process: URArm starts it from a
+    thread of its own, since arm_driver connects on a thread that ends once connected."""
+    import time
+
+    arm = URArm(emulator.host, connect_timeout_s=15.0)
+    t = threading.Thread(target=arm.connect)
+    t.start()
+    t.join(30.0)
+    try:
+        time.sleep(0.5)
+        assert arm.is_connected and arm.read_state()["connected"]
+    finally:
+        bounded(arm.disconnect, 15.0)
