@@ -296,7 +296,7 @@ class ScanSequencer:
         self.geom = geom
         self._goal_list = {"source": src, "detector": det}
         self.scan_id = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime()) + f"-{int(now * 1e3) % 1000:03d}"
-        self.view, self.frames = 0, 0
+        self.view, self.frames, self._expected_stamp = 0, 0, None
         self.frame_stamps, self._seen_frames, self._seen_geometries = [], {}, set()
         self.last_abort_reason = ""
         ports.publish_scan_info(self.protocol.scan_info(geom, self.scan_id))
@@ -318,6 +318,11 @@ class ScanSequencer:
         if not self.running:
             return
         self.safe_off()
+        if self.state in ("beam_off", "waiting_frame") and self._expected_stamp is not None \
+                and self._expected_stamp not in self.frame_stamps:
+            # the detector took this view's frame and published it (the bag keeps it): count it
+            self.frames += 1
+            self.frame_stamps.append(self._expected_stamp)
         self._future = None
         self._beam_expect = None
         self.last_abort_reason = reason
@@ -448,6 +453,7 @@ class ScanSequencer:
         shape = self._seen_frames.get(self._expected_stamp)
         if shape is not None:
             if shape != (self.geom.n_rows, self.geom.n_cols):
+                self._expected_stamp = None  # not a frame of this scan's detector: not kept
                 self.abort(f"frame is {shape[0]} x {shape[1]}, the protocol's detector "
                            f"{self.geom.n_rows} x {self.geom.n_cols}")
                 return
@@ -459,4 +465,5 @@ class ScanSequencer:
             else:
                 self._send_goals()
         elif elapsed > s.frame_timeout_s:
+            self._expected_stamp = None  # never arrived: not kept
             self.abort(f"frame of view {self.view} not received on {fmt.TOPIC_PROJECTION}")

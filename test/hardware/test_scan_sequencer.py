@@ -330,3 +330,36 @@ def test_no_scan_starts_under_a_latched_estop_and_a_latch_aborts_a_running_one(t
     rig.seq.on_estop(True)  # a press on the estop topic counts as latched until the source says otherwise
     rig.report_arms(False)
     assert not rig.seq.start()[0] and rig.ports.goals == []
+
+
+def test_an_abort_after_the_exposure_counts_the_frame_taken(tmp_path):
+    """An abort between the detector's answer and the frame's arrival said "(1 frames kept)" at view 1 while the
+    bag held 2 frames: the frame exposed for the view in progress is taken (pcd_grabber publishes it)."""
+    rig = _started(tmp_path, protocol={"n_views": 3})
+    rig.run_view(11)
+    assert rig.seq.frames == 1 and rig.seq.view == 1
+    rig.arrive()
+    rig.advance(0.03, 3)
+    rig.ports.beam_calls[-1][1].set(True)
+    rig.seq.on_beam(True)
+    rig.advance()
+    rig.ports.expose_calls[-1].set(True, json.dumps({"stamp_ns": 12}))
+    rig.advance()
+    assert rig.seq.state == "beam_off"
+    rig.seq.abort("aborted on request")
+    _aborted(rig, "aborted on request")
+    assert rig.seq.frames == 2 and rig.seq.frame_stamps == [11, 12]
+    assert ("error", "scan aborted at view 1 (2 frames kept): aborted on request") in rig.ports.logs
+    assert rig.ports.status[-1]["frames"] == 2
+    # an abort before the exposure counts none for the view in progress; nor one whose frame never came
+    rig = _started(tmp_path)
+    rig.arrive()
+    rig.advance()
+    rig.seq.abort("aborted on request")
+    assert rig.seq.frames == 0
+    rig = _waiting_frame(tmp_path, 7)
+    for _ in range(5):
+        rig.report_arms(True)
+        rig.advance(0.5)
+    _aborted(rig, "frame of view 0 not received")
+    assert rig.seq.frames == 0
