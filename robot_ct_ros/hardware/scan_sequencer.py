@@ -401,8 +401,10 @@ class ScanSequencer:
                 answer = self._check_future(s.service_timeout_s, "source/set_beam")
                 if answer is None or answer is False:
                     return
-                if not answer.success:
-                    self.abort(f"beam refused: {answer.message}")
+                if not answer.success:  # source_control's refusals already say "beam refused: "
+                    refusal = answer.message if answer.message.startswith("beam refused") \
+                        else f"beam refused: {answer.message}"
+                    self.abort(refusal)
                     return
             if self._beam_confirmed:
                 self._future = self.ports.call_expose()

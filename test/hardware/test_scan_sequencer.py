@@ -228,6 +228,13 @@ def test_beam_refused_lost_or_unexpected_aborts(tmp_path):
     rig.ports.beam_calls[-1][1].set(False, "beam refused: e-stop latched")
     rig.advance()
     _aborted(rig, "beam refused", "e-stop")
+    assert rig.seq.message == "beam refused: e-stop latched"  # said once (it was "beam refused: beam refused: ...")
+    rig = _started(tmp_path)
+    rig.arrive()
+    rig.advance(0.03, 3)
+    rig.ports.beam_calls[-1][1].set(False, "interlock open")  # a source that does not say it
+    rig.advance()
+    assert rig.seq.message == "beam refused: interlock open"
 
     rig = _started(tmp_path)
     rig.arrive()
