@@ -116,6 +116,7 @@ class URArm:
         self._ids = itertools.count(1)
         self._reader: threading.Thread | None = None
         self._dead_reason: str | None = "not connected"
+        self._linked = False  # a connect succeeded on the current child: a failure now is a connection *lost*
 
     # -- process plumbing -------------------------------------------------------------------
     def _start_child(self) -> None:
@@ -128,7 +129,7 @@ class URArm:
         _Spawner.start(proc)  # from a thread that outlives this one: the child dies with its parent thread
         child_conn.close()
         self._proc, self._conn = proc, parent_conn
-        self._dead_reason = None
+        self._dead_reason, self._linked = None, False
         self._reader = threading.Thread(target=self._read_loop, name=f"ur_reader[{self.host}]", daemon=True)
         self._reader.start()
 
@@ -144,8 +145,9 @@ class URArm:
             except (EOFError, OSError):
                 proc.join(0.5)
                 if self._conn is conn:  # not a reader left over from an earlier connection
-                    self._fail_all(f"connection to controller at {self.host} lost "
-                                   f"(driver process exited with code {proc.exitcode})")
+                    self._fail_all(f"connection to controller at {self.host} lost (driver process exited with code "
+                                   f"{proc.exitcode})" if self._linked else
+                                   f"driver process for {self.host} exited with code {proc.exitcode} before connecting")
                 return
             except Exception as exc:  # noqa: BLE001 - a garbled reply: this reader must not die silently
                 if self._conn is conn:
@@ -194,8 +196,8 @@ class URArm:
         if status == "dead":
             raise ArmConnectionError(payload)
         kind, message = payload
-        if kind == "connection":
-            self._kill_child(f"connection to controller at {self.host} lost: {message}")
+        if kind == "connection":  # while connecting nothing was lost: connect() says it could not connect
+            self._kill_child(message if op == "connect" else f"connection to controller at {self.host} lost: {message}")
             raise ArmConnectionError(self._dead_reason)
         if kind == "motion":
             raise ArmMotionError(message)
@@ -211,6 +213,7 @@ class URArm:
             self.controller_info = self._request(
                 "connect", {"frequency": self.frequency_hz, "verbose": self.verbose},
                 timeout_s=self.connect_timeout_s) or {}
+            self._linked = True
         except ArmError as exc:
             self._shutdown_child()
             message = str(exc)

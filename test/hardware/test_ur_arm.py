@@ -125,8 +125,10 @@ def test_silent_controller_times_out_with_a_clear_error():
 def test_nothing_listening_is_a_connection_error():
     host = load_emulator().free_loopback_host()
     arm = URArm(host, connect_timeout_s=10.0)
-    with pytest.raises(ArmConnectionError, match=host):
+    with pytest.raises(ArmConnectionError, match=host) as err:
         bounded(arm.connect, 30.0)
+    # no connection was made, so none was lost (it said "cannot connect ...: connection to controller at ... lost")
+    assert str(err.value).startswith(f"cannot connect to controller at {host}: ") and "lost" not in str(err.value)
 
 
 CLIENT = r"""
