@@ -116,6 +116,7 @@ class InterlockedSource:
         self.last_reason = "scan not armed"
         self.last_cut_reason = ""  # why the interlock last switched the beam off
         self.fault = ""  # the driver's last refusal (SourceError), kept until the same command succeeds
+        self.watchdog_cut = ""  # why max_beam_on_s last cut the beam, kept until a scan is armed or the beam is on again
         self._fault_switching_on = False
         self._on_since: float | None = None
 
@@ -134,19 +135,24 @@ class InterlockedSource:
 
     def _enforce(self, now_s: float) -> None:
         ok, reason = beam_permitted(self.inputs, now_s, self.max_report_age_s)
+        watchdog = False
         if ok and self.source.beam_on and self._on_since is not None and now_s - self._on_since > self.max_beam_on_s:
-            ok, reason = False, (f"beam on for {now_s - self._on_since:.1f} s, longer than max_beam_on_s "
-                                 f"{self.max_beam_on_s:g} s: no exposure takes that long (is the scan's controller "
-                                 "alive?)")
+            ok, reason, watchdog = False, (f"beam on for {now_s - self._on_since:.1f} s, longer than max_beam_on_s "
+                                           f"{self.max_beam_on_s:g} s: no exposure takes that long (is the scan's "
+                                           "controller alive?)"), True
         self.last_reason = reason
         if not ok and self.source.beam_on:
             if not self._switch(False, now_s):
                 self.last_cut_reason = reason
+                if watchdog:
+                    self.watchdog_cut = f"beam cut: {reason}"
 
     def update(self, now_s: float, **changes) -> None:
         inputs = replace(self.inputs, **changes)
         if inputs.estop_latched and inputs.scan_armed:
             inputs = replace(inputs, scan_armed=False)  # arming under a latched e-stop does not count, nor after
+        if inputs.scan_armed and not self.inputs.scan_armed:
+            self.watchdog_cut = ""  # a new scan
         self.inputs = inputs
         self._enforce(now_s)
 
@@ -183,6 +189,7 @@ class InterlockedSource:
             if self.source.beam_on and not self._switch(False, now_s):  # half done: not left on after a no
                 self.fault, self._fault_switching_on = fault, True  # the switch-on fault is the one to report
             return False, f"beam refused: {fault}"
+        self.watchdog_cut = ""  # a good exposure
         return True, "beam on"
 
     @property

@@ -11,7 +11,8 @@ Topics (relative names; namespace the node to place them):
               source/reset_estop (std_srvs/Trigger); <node>/change_state, <node>/get_state (lifecycle_msgs)
 Parameters: kvp (kVp, 60-120), power_w (W, <= 150), max_report_age_s (s): an arm report
 older than this counts as "not in position" and cuts the beam; max_beam_on_s (s): a beam on for longer
-is cut (no exposure takes that long, so a controller that dies with the beam on cannot leave it on)
+is cut (no exposure takes that long, so a controller that dies with the beam on cannot leave it on; a
+WARN on /diagnostics until the beam is switched on again or a scan is armed anew)
 (hardware.xray_source.SourceSettings); autostart (default true). An e-stop disarms the scan: after
 source/reset_estop the beam needs scan/armed true anew.
 
@@ -241,7 +242,7 @@ class SourceControlNode(LifecycleNode):
         fault = il.fault if il is not None else ""
         if latched or self.last_error or fault:
             level = DiagnosticStatus.ERROR
-        elif not self._active:
+        elif not self._active or (il is not None and il.watchdog_cut):  # the cut says the controller died
             level = DiagnosticStatus.WARN
         else:
             level = DiagnosticStatus.OK
@@ -250,7 +251,8 @@ class SourceControlNode(LifecycleNode):
         if il is not None:
             values += [("scan_armed", il.inputs.scan_armed), ("last_beam_cut", il.last_cut_reason or "-"),
                        ("beam_on_seconds", f"{self._beam_on_seconds(il):.3f}")]
-        message = self.last_error or fault or (il.last_reason if il is not None and self._active else state)
+        watchdog = il.watchdog_cut if il is not None and self._active else ""
+        message = self.last_error or fault or watchdog or (il.last_reason if il is not None and self._active else state)
         publish_diagnostic(self, self.diag_pub, level, "x-ray source", "simulated_xray_source", message, values)
 
 

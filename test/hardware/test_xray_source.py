@@ -143,3 +143,24 @@ def test_a_driver_fault_is_an_answer_not_an_exception():
     src.source.refuse_off = False
     src.tick(10.6)
     assert not src.beam_on and src.fault == "" and "not armed" in src.last_cut_reason
+
+
+def test_the_max_beam_on_cut_is_remembered_until_a_new_scan_or_exposure():
+    """The watchdog's cut left nothing to report (/diagnostics stayed OK): it is kept until a scan is armed anew
+    or the beam is switched on again; an ordinary cut (disarmed) is not a watchdog cut."""
+    src = SourceSettings(max_beam_on_s=1.0).interlocked(SimulatedXraySource())
+    src.update(0.0, **{**ALL_OK, "source_arm_stamp_s": 0.0, "detector_arm_stamp_s": 0.0})
+    assert src.request_beam(True, 0.0)[0]
+    for t in (0.5, 1.2):
+        src.report_arm("source", True, t)
+        src.report_arm("detector", True, t)
+        src.tick(t)
+    assert not src.beam_on and src.watchdog_cut.startswith("beam cut: beam on for 1.2 s, longer than max_beam_on_s")
+    src.tick(1.3)
+    assert src.watchdog_cut  # kept
+    assert src.request_beam(True, 1.4)[0] and src.watchdog_cut == ""  # a good exposure
+    src.update(1.5, scan_armed=False)
+    assert not src.beam_on and src.watchdog_cut == ""  # not the watchdog
+    src._on_since, src.watchdog_cut = None, "beam cut: x"
+    src.update(1.6, scan_armed=True)  # a new scan
+    assert src.watchdog_cut == ""

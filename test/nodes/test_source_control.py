@@ -292,3 +292,36 @@ def test_a_source_driver_fault_is_answered_reported_and_the_node_lives_on(ros):
     ros.nodes.remove(node)
     node.destroy_node()  # logs, does not raise
     assert node.interlock is None
+
+
+def test_a_beam_cut_by_max_beam_on_s_is_a_warning_until_the_next_exposure(ros):
+    """After the watchdog cut a beam left on (the controller died), /diagnostics went on saying OK."""
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+
+    node = ros.add(SourceControlNode(context=ros.context, parameter_overrides=[Parameter("max_beam_on_s", value=0.5)]))
+    probe = ros.node("probe")
+    diag = []
+    probe.create_subscription(DiagnosticArray, "/diagnostics",
+                              lambda m: diag.extend(s for s in m.status if s.name.endswith("x-ray source")), 10)
+    pubs = {name: probe.create_publisher(Bool, name, 10)
+            for name in ("scan/armed", "source_arm/in_position", "detector_arm/in_position")}
+    for pub in pubs.values():
+        assert ros.wait_for_subscribers(pub)
+    set_beam = probe.create_client(SetBool, "source/set_beam")
+    _ready(ros, pubs, node)
+    assert ros.call(set_beam, SetBool.Request(data=True)).success
+
+    def keep_reporting():
+        for name in ("source_arm/in_position", "detector_arm/in_position"):
+            pubs[name].publish(Bool(data=True))
+        return not node.beam_on
+
+    assert ros.spin_until(keep_reporting)
+    assert ros.spin_until(lambda: keep_reporting() and diag and diag[-1].level == DiagnosticStatus.WARN)
+    assert "max_beam_on_s" in diag[-1].message and diag[-1].message.startswith("beam cut: ")
+    _ready(ros, pubs, node)
+    assert ros.call(set_beam, SetBool.Request(data=True)).success  # the next exposure, shorter than the limit
+    assert ros.call(set_beam, SetBool.Request(data=False)).success
+    n = len(diag)
+    assert ros.spin_until(lambda: keep_reporting() and len(diag) > n)
+    assert diag[-1].level == DiagnosticStatus.OK, diag[-1].message
