@@ -95,6 +95,16 @@ class ScanBagError(Exception):
     """A scan bag that cannot be used (the message says why and what was found)."""
 
 
+class TooFewViewsError(ScanBagError):
+    """Too few frames paired with a geometry are usable (``causes``: why frames or geometries were not used).
+    Raised for the scan's messages themselves, not for a missing scan_info or flat field: the live path
+    (robot_ct_ros.jobs.streaming), which decodes a few frames at a time, counts such frames as dropped."""
+
+    def __init__(self, message: str, causes=()):
+        super().__init__(message)
+        self.causes = list(causes)
+
+
 # ------------------------------------------------------------------------------ QoS
 def _qos(depth: int, latched: bool):
     from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime

@@ -30,7 +30,7 @@ import numpy as np
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
 
 from . import format as fmt
-from .format import ScanBagError
+from .format import ScanBagError, TooFewViewsError
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 
@@ -683,9 +683,9 @@ def scan_from_raw(raw: RawBag, path, *, keep_raw: bool = False, min_views: int |
             causes.append("no usable frame on /ct/projection")
         elif not geoms:
             causes.append("no usable geometry on /ct/geometry")
-        raise ScanBagError(f"{path}: not a usable scan: {found}, a scan needs at least {min_views} "
-                           f"({len(frames)} usable frames, {len(geoms)} usable geometries)"
-                           + (f"; {'; '.join(causes)}" if causes else ""))
+        raise TooFewViewsError(f"{path}: not a usable scan: {found}, a scan needs at least {min_views} "
+                               f"({len(frames)} usable frames, {len(geoms)} usable geometries)"
+                               + (f"; {'; '.join(causes)}" if causes else ""), causes)
     n_views = info.get("n_views")
     if isinstance(n_views, int) and n_views != len(paired):
         warnings.append(f"scan_info announces {n_views} views, the bag holds {len(paired)} paired frames")

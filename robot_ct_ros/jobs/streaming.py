@@ -4,7 +4,8 @@
 projection and its geometry, plus the latched scan_info / flat field / dead pixels) and hands
 them in batches to one worker process (``concurrent.futures.ProcessPoolExecutor``, ``spawn``
 context, started at a lower OS priority with ``os.nice`` and its own numba thread count). The
-worker decodes them (:func:`robot_ct_ros.bag.reader.scan_from_raw`), holds the scan's
+worker decodes them (:func:`robot_ct_ros.bag.reader.scan_from_raw`; a frame with nothing usable in it
+or a stamp already received is dropped and counted, never an error), holds the scan's
 :class:`~robot_ct_ros.ct.calibration.streaming.StreamingEstimator` and returns each batch's
 corrected geometry, the running projection NCC and the middle slices of the running volume.
 The caller polls (:meth:`StreamingCorrector.poll`, non-blocking): it never waits on numba, and
@@ -102,8 +103,17 @@ def _decode(latched: dict, frames: list):
 
 
 def _stream_task(scan: int, latched, frames: list, options: dict) -> dict:
-    """Estimate a batch of frames of scan ``scan`` (the worker keeps one scan's state)."""
+    """Estimate a batch of frames of scan ``scan`` (the worker keeps one scan's state).
+
+    Each batch is decoded as it arrives: a frame the decoder drops (nothing usable in it: all NaN, no positive
+    count; a stamp already seen, in this batch or an earlier one) is counted in ``dropped`` (the scan's total so far,
+    ``drop_reason`` the last cause) and estimated never. The warm-up waits for ``warmup_views`` usable views, not
+    frames; ``stamps`` are always those of the views in ``geom``, in its order (none while the warm-up collects)."""
+    from dataclasses import replace
+
+    from robot_ct_ros.bag.format import TooFewViewsError
     from robot_ct_ros.ct.calibration.streaming import StreamingEstimator
+    from robot_ct_ros.ct.geometry import ConeGeometry
     from robot_ct_ros.ct.reconstruction import resample
     from robot_ct_ros.jobs.calibrate import scan_grid
 
@@ -111,29 +121,56 @@ def _stream_task(scan: int, latched, frames: list, options: dict) -> dict:
     st = _STATE
     if st.get("scan") != scan:
         st.clear()
-        st.update(scan=scan, latched=latched, buffer=[], estimator=None, next_id=0)
-    st["buffer"].extend(frames)
-    est = st["estimator"]
-    if est is None and len(st["buffer"]) < options["warmup_views"]:
-        return {"scan": scan, "stamps": [], "worker_s": time.perf_counter() - t0}
-    data = _decode(st["latched"], st["buffer"])
-    st["buffer"] = []
+        st.update(scan=scan, latched=latched, buffer=[], estimator=None, next_id=0, seen=set(), stamp_of={},
+                  dropped=0, drop_reason="")
+    fresh = [f for f in frames if int(f[0]) not in st["seen"]]
+    notes = []
+    if len(fresh) < len(frames):
+        notes.append(f"{len(frames) - len(fresh)} frame(s) with a stamp already received were dropped (the first one "
+                     "is used; header.stamp is the pairing key and must differ from frame to frame)")
+    data = None
+    if fresh:
+        try:
+            data = _decode(st["latched"], fresh)
+        except TooFewViewsError as exc:  # none of these frames is usable: dropped, the scan goes on
+            notes += [c for c in exc.causes if "geometries" not in c] or [str(exc)]
+    used = 0 if data is None else data.n_views
+    if data is not None:
+        notes += [w for w in data.warnings if ("dropped" in w or "not used" in w) and "geometries" not in w]
+        st["seen"].update(int(s) for s in data.stamps_ns)
+    if used < len(frames):
+        st["dropped"] += len(frames) - used
+        st["drop_reason"] = "; ".join(notes)
+    out = {"scan": scan, "stamps": [], "dropped": st["dropped"], "drop_reason": st["drop_reason"]}
+    if data is None:
+        return out | {"worker_s": time.perf_counter() - t0}
     li, mask = data.to_line_integrals()
-    if est is None:
-        grid = scan_grid(data, options.get("voxel_mm"), options.get("shape_xyz"))
+    geom = data.geom
+    ids = np.arange(st["next_id"], st["next_id"] + used)
+    st["next_id"] += used
+    st["stamp_of"].update(zip(ids.tolist(), (int(s) for s in data.stamps_ns)))
+    est = st["estimator"]
+    if est is None:  # the warm-up: the first warmup_views usable views make the first volume
+        st["buffer"].append((geom, li, mask, ids))
+        if sum(len(p[3]) for p in st["buffer"]) < options["warmup_views"]:
+            return out | {"worker_s": time.perf_counter() - t0}
+        parts, st["buffer"] = st["buffer"], []
+        geom = ConeGeometry.concatenate([p[0] for p in parts])
+        li, mask, ids = (np.concatenate([p[j] for p in parts]) for j in (1, 2, 3))
+        grid = scan_grid(replace(data, geom=geom), options.get("voxel_mm"), options.get("shape_xyz"))
         n = data.info.get("n_views")
         est = st["estimator"] = StreamingEstimator(options["settings"], grid, n if isinstance(n, int) and n > 0
                                                    else options.get("n_views_default", 360),
                                                    warmup_views=options["warmup_views"])
-    ids = np.arange(st["next_id"], st["next_id"] + data.n_views)
-    st["next_id"] += data.n_views
-    step = est.add_views(li, mask, data.geom, ids)
+    step = est.add_views(li, mask, geom, ids)
+    if step is None:
+        return out | {"worker_s": time.perf_counter() - t0}
+    stamps = [st["stamp_of"].pop(int(i)) for i in step.view_ids]  # the views of step.geom, in its order
     roi = est.roi_grid.binned(est.binning) if est.binning > 1 else est.roi_grid
     preview = resample(est.volume, est.grid, roi)
     slices = {k: np.ascontiguousarray(v, np.float32) for k, v in mid_slices(preview).items()}
-    return {"scan": scan, "stamps": [int(s) for s in data.stamps_ns], "geom": step.geom, "ncc": step.ncc,
-            "mean_ncc": step.mean_ncc, "views": est.n_estimated, "slices": slices,
-            "worker_s": time.perf_counter() - t0}
+    return out | {"stamps": stamps, "geom": step.geom, "ncc": step.ncc, "mean_ncc": step.mean_ncc,
+                  "views": est.n_estimated, "slices": slices, "worker_s": time.perf_counter() - t0}
 
 
 # ------------------------------------------------------------------------------ the caller's side
@@ -142,10 +179,10 @@ class StreamingCorrector:
     """Live per-view correction in one worker process (see the module docstring).
 
     ``settings``: the CalibrationSettings (method, schedule, prior, seed, padding); ``warmup_views``
-    frames make the first volume; ``nice``: the worker's niceness increment (0: the caller's
-    priority); ``threads``: its numba threads (0: numba's default, every core; one thread slowed the
-    simulated scan less, docs/calibration.md §13a); ``voxel_mm`` / ``shape_xyz``:
-    the ROI grid's overrides (as the whole-scan job's).
+    usable frames make the first volume (``dropped`` counts those the worker could not use); ``nice``:
+    the worker's niceness increment (0: the caller's priority); ``threads``: its numba threads (0:
+    numba's default, every core; one thread slowed the simulated scan less, docs/calibration.md §13a);
+    ``voxel_mm`` / ``shape_xyz``: the ROI grid's overrides (as the whole-scan job's).
     """
 
     settings: object
@@ -162,6 +199,8 @@ class StreamingCorrector:
     views: int = 0
     mean_ncc: float = float("nan")
     received: int = 0  # frames handed in for this scan
+    dropped: int = 0  # of them, frames the worker could not use (nothing usable in them, a stamp already received)
+    drop_reason: str = ""  # why the last of them were dropped
 
     def __post_init__(self):
         self._pool = ProcessPoolExecutor(1, mp_context=get_context(self.context), initializer=_init_worker,
@@ -185,7 +224,7 @@ class StreamingCorrector:
         self._queue.clear()
         self._arrived.clear()
         self.latencies, self.ncc, self.views, self.mean_ncc, self.error = [], [], 0, float("nan"), ""
-        self.received = 0
+        self.received, self.dropped, self.drop_reason = 0, 0, ""
 
     def add_frame(self, stamp_ns: int, image: bytes, geometry: bytes, latched: dict) -> None:
         """A frame paired with its geometry (CDR bytes), with the scan's latched messages as held now
@@ -221,7 +260,12 @@ class StreamingCorrector:
                 res = None
             if self._warming:  # a failed warm-up only means the first batch compiles
                 self._warming, self.worker_pid, res = False, res, None
-            if res is not None and res["scan"] == self.scan and res["stamps"]:
+            if res is not None and res["scan"] == self.scan:
+                self.dropped, self.drop_reason = int(res.get("dropped", 0)), str(res.get("drop_reason", ""))
+            if res is not None and res["scan"] == self.scan and res["stamps"] \
+                    and len(res["stamps"]) != res["geom"].n_views:  # never published with the wrong stamps
+                self.error = f"live: {len(res['stamps'])} stamps for {res['geom'].n_views} views; the batch is dropped"
+            elif res is not None and res["scan"] == self.scan and res["stamps"]:
                 now = time.monotonic()
                 stamps = np.asarray(res["stamps"], np.int64)
                 lat = np.array([now - self._arrived.pop(int(s), now) for s in stamps])
@@ -249,9 +293,13 @@ class StreamingCorrector:
                 "latency_s_median": float(np.median(lat)) if lat.size else None,
                 "latency_s_max": float(lat.max()) if lat.size else None, "worker_nice": int(self.nice),
                 "warmup_views": int(self.warmup_views), "error": self.error, "frames_received": int(self.received),
-                "note": (f"no live estimate: the scan gave {self.received} frames, fewer than stream_warmup_views "
-                         f"({self.warmup_views}), the views the first running volume is made of; "
-                         if self.views == 0 and self.received < self.warmup_views else "")
+                "frames_dropped": int(self.dropped), "drop_reason": self.drop_reason,
+                "note": (f"no live estimate: the scan gave {self.received - self.dropped} "
+                         f"{'usable ' if self.dropped else ''}frames"
+                         + (f" ({self.received} received, {self.dropped} dropped)" if self.dropped else "")
+                         + f", fewer than stream_warmup_views ({self.warmup_views}), the views the first running "
+                           "volume is made of; "
+                         if self.views == 0 and self.received - self.dropped < self.warmup_views else "")
                         + "per-view estimates against the running volume (coarse level); the final correction is "
                           "the whole-scan run"}
 

@@ -93,3 +93,92 @@ def test_a_scan_shorter_than_the_warm_up_says_why_it_has_no_live_estimate():
         assert stream.summary()["frames_received"] == 0
     finally:
         stream.close()
+
+
+def _frames(tmp_path, views):
+    """The latched messages (topic -> (type, bytes)) and the (stamp, image, geometry) frames of a small simulated scan,
+    as the node hands them to the worker; and a function giving a frame's all-NaN twin."""
+    bag = simulate_bag(tmp_path / "scan", phantom="mouse", views=views, rows=12, cols=16, sigma_mm=0.05,
+                       sigma_deg=0.05, seed=3, progress=False, say=lambda s: None)
+    latched, images, geoms = {}, {}, {}
+    for m in read_raw_messages(bag).messages:
+        if m.topic in fmt.LATCHED_TOPICS:
+            latched[m.topic] = (m.msgtype, m.data)
+        elif m.topic in (fmt.TOPIC_PROJECTION, fmt.TOPIC_GEOMETRY):
+            stamp = fmt.stamp_to_ns(fmt.deserialize(m.data, m.msgtype).header.stamp)
+            (images if m.topic == fmt.TOPIC_PROJECTION else geoms)[stamp] = m.data
+    frames = [(s, images[s], geoms[s]) for s in sorted(images)]
+
+    def nan(frame):
+        a = np.full((12, 16), np.nan, np.float32)
+        return frame[0], fmt.serialize(fmt.image_from_array(a, frame[0]), fmt.IMAGE), frame[2]
+    return latched, frames, nan
+
+
+def _task(scan, latched, batch, warmup=4):
+    from robot_ct_ros.jobs.streaming import _stream_task
+
+    res = _stream_task(scan, latched, batch, {"settings": CalibrationSettings(method="ncc-lle-exact"),
+                                              "warmup_views": warmup})
+    if res["stamps"]:  # the stamps are those of the views estimated, in the geometry's order
+        assert len(res["stamps"]) == res["geom"].n_views == len(res["ncc"])
+    return res
+
+
+def test_frames_the_worker_drops_during_the_warm_up_are_counted_and_the_warm_up_waits_for_usable_views(tmp_path):
+    """From an outside check: the warm-up started after stream_warmup_views FRAMES, but the decoder drops an all-NaN
+    frame and a repeated stamp, so the estimator got fewer views than its warm-up, returned nothing and the batch
+    failed (AttributeError); later batches came back with stamps that did not match their geometries. Now the
+    warm-up waits for enough usable views, the dropped frames are counted with their cause, and every usable frame
+    comes back once with its own geometry."""
+    latched, frames, nan = _frames(tmp_path, 10)
+    stamps = [f[0] for f in frames]
+    res = _task(901, latched, [frames[0], nan(frames[1]), frames[2], frames[0]])  # 4 frames, 2 usable
+    assert res["stamps"] == [] and res["dropped"] == 2 and "NaN" in res["drop_reason"]
+    res = _task(901, latched, [frames[3]])  # 3 usable views: still warming up
+    assert res["stamps"] == [] and res["dropped"] == 2
+    got = []
+    for batch in ([frames[4], frames[5]], [frames[2]], frames[6:]):  # the warm-up; a stamp again, alone; the rest
+        res = _task(901, latched, batch)
+        got += res["stamps"]
+    assert res["dropped"] == 3 and "already received" in res["drop_reason"]
+    assert got == [s for i, s in enumerate(stamps) if i != 1] and res["views"] == 9
+
+
+def test_an_unusable_frame_mid_stream_is_dropped_not_a_lasting_error(tmp_path):
+    """From an outside check: one all-NaN frame alone in a batch after the warm-up made the decoder refuse the batch
+    ("not a usable scan: 0 paired views"), and that error stayed on /diagnostics and in report.json until the scan
+    ended. Now the frame is counted as dropped and the scan goes on."""
+    latched, frames, nan = _frames(tmp_path, 7)
+    assert len(_task(902, latched, frames[:4])["stamps"]) == 4
+    res = _task(902, latched, [nan(frames[4])])
+    assert res["stamps"] == [] and res["dropped"] == 1 and "NaN" in res["drop_reason"]
+    res = _task(902, latched, frames[5:])
+    assert res["stamps"] == [frames[5][0], frames[6][0]] and res["views"] == 6 and res["dropped"] == 1
+
+
+def test_the_summary_counts_the_dropped_frames_and_keeps_no_error():
+    """The worker's count of dropped frames reaches the summary (report.json's live, /diagnostics), with or without
+    views in the batch; the batch without views is no error and no update."""
+    from concurrent.futures import Future
+
+    stream = StreamingCorrector(CalibrationSettings(method="ncc-lle-exact"), warmup_views=8, nice=5)
+    try:
+        assert stream.wait(120.0)
+        stream.poll()  # the worker's warm-up
+        for k in range(3):
+            stream.add_frame(k, b"", b"", {})
+        done = Future()
+        done.set_result({"scan": stream.scan, "stamps": [], "dropped": 1, "drop_reason": "1 frames dropped: NaN",
+                         "worker_s": 0.0})
+        stream._future, stream._queue = done, []
+        assert stream.poll() == []
+        summary = stream.summary()
+        assert summary["frames_dropped"] == 1 and summary["drop_reason"] == "1 frames dropped: NaN"
+        assert not summary["error"]
+        assert "the scan gave 2 usable frames (3 received, 1 dropped), fewer than stream_warmup_views" \
+            in summary["note"]
+        stream.new_scan()
+        assert stream.summary()["frames_dropped"] == 0
+    finally:
+        stream.close()
