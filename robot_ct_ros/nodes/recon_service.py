@@ -131,8 +131,7 @@ class ReconServiceNode(Node):
                 self.corrected_pub.publish(data)
                 self.corrected_published += 1
         if self.stream is not None:
-            for update in self.stream.poll():
-                self._publish_live(update)
+            self._poll_live()
         if self.running:
             return
         run = self.planner.next_run(self.n_paired, self.scan.scan_id)
@@ -145,6 +144,23 @@ class ReconServiceNode(Node):
                 self._fail(self.runs + 1, f"automatic correction not started: {why}", self.n_paired)
         elif run == "partial":
             self.start_run(partial=True)
+
+    def _poll_live(self) -> None:
+        """The live path's finished batch, published. A failure here is the live path's (live_error on /diagnostics,
+        report.json's live.error) and never leaves the timer: the node keeps collecting and running."""
+        stream = self.stream
+        try:
+            dropped = stream.dropped
+            for update in stream.poll():
+                self._publish_live(update)
+            if stream.dropped > dropped:
+                self.get_logger().warning(f"live: {stream.dropped} frame(s) of this scan dropped so far, not "
+                                          f"estimated: {stream.drop_reason}")
+        except Exception as exc:  # noqa: BLE001 - reported; the node keeps serving
+            error = f"live: {type(exc).__name__}: {exc}"
+            if stream.error != error:
+                self.get_logger().error(error)
+            stream.error = error
 
     def _publish_live(self, update) -> None:
         """A batch of live estimates: its geometries on /ct/geometry_live, the running volume's slices."""
@@ -281,10 +297,13 @@ class ReconServiceNode(Node):
         if self.stream is not None:
             live = self.stream.summary()
             values += [("live_views", live["views"]), ("live_mean_projection_ncc", live["mean_projection_ncc"]),
-                       ("live_latency_s_median", live["latency_s_median"]), ("live_error", live["error"])]
-        level = DiagnosticStatus.ERROR if self.state == "failed" else DiagnosticStatus.OK
-        publish_diagnostic(self, self.diag_pub, level, "reconstruction", "recon_service", self.error or self.message,
-                           values)
+                       ("live_latency_s_median", live["latency_s_median"]), ("live_error", live["error"]),
+                       ("live_frames_dropped", live["frames_dropped"]), ("live_drop_reason", live["drop_reason"])]
+        live_error = self.stream.error if self.stream is not None else ""
+        level = (DiagnosticStatus.ERROR if self.state == "failed" else DiagnosticStatus.WARN if live_error
+                 else DiagnosticStatus.OK)
+        publish_diagnostic(self, self.diag_pub, level, "reconstruction", "recon_service",
+                           self.error or self.message + (f"; {live_error}" if live_error else ""), values)
 
     def destroy_node(self):
         if self._worker is not None and self._worker.is_alive():

@@ -256,3 +256,33 @@ def test_an_automatic_run_that_cannot_start_is_a_failure_not_idle(ros, tmp_path)
         (recon.state, recon.error)
     assert "automatic correction not started" in recon.error and recon.runs == 0
     assert probe.progress[-1]["stage"] == "failed" and "not started" in probe.reports[-1]["error"]
+
+
+def test_a_failure_of_the_live_path_is_reported_and_never_leaves_the_timer(ros, tmp_path):
+    """From an outside check: a live batch whose stamps did not match its geometry (a frame dropped in the warm-up)
+    raised ValueError out of the timer callback, which ends the executor's spin and the node. Now a failure of the
+    live path is live_error on /diagnostics (level WARN) and the node keeps serving."""
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+
+    from robot_ct_ros.ct.trajectory import robotic_roi_scan
+    from robot_ct_ros.jobs.streaming import LiveUpdate
+
+    diags = []
+    ros.node("probe").create_subscription(DiagnosticArray, fmt.node_topic(fmt.TOPIC_DIAGNOSTICS),
+                                          lambda m: diags.extend(m.status), 10)
+    recon = ros.add(ReconServiceNode(context=ros.context, parameter_overrides=_params(
+        output_dir=str(tmp_path / "recon"), method="ncc-lle-exact", stream=True, stream_nice=0, auto_run=False)))
+    geom = robotic_roi_scan(n_views=3, n_rows=8, n_cols=12, fov_diameter_mm=0.6)
+    bad = LiveUpdate(recon.stream.scan, np.array([1, 2], np.int64), geom, np.zeros(3), float("nan"), 3, {},
+                     np.zeros(2), 0.0)
+    recon.stream.poll = lambda: [bad]
+    recon._tick()
+    assert recon.stream.error.startswith("live: ValueError"), recon.stream.error
+    recon.stream.poll = lambda: []
+
+    def live_error():
+        values = [{v.key: v.value for v in s.values} for s in diags if s.name.endswith("reconstruction")]
+        return values and values[-1]["live_error"].startswith("live: ValueError")
+    assert ros.spin_until(live_error, timeout_s=10.0)  # the timers still run
+    assert [s for s in diags if s.name.endswith("reconstruction")][-1].level == DiagnosticStatus.WARN
+    assert recon.state == "idle"
