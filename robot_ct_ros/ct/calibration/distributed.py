@@ -28,8 +28,8 @@ import numpy as np
 from robot_ct_ros.ct.calibration.masks import roi_support_mask, summarise_views
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
 
-__all__ = ["InProcess", "DaskExecutor", "DaskUnavailable", "executor_for", "view_blocks", "slab_bounds",
-           "join_infos", "transfer_bytes", "LOCAL"]
+__all__ = ["InProcess", "DaskExecutor", "DaskUnavailable", "SchedulerUnreachable", "executor_for", "check_scheduler",
+           "connect_timeout_s", "view_blocks", "slab_bounds", "join_infos", "transfer_bytes", "LOCAL"]
 
 LOCAL = "local"
 """The ``scheduler`` setting that starts a ``LocalCluster`` of worker processes on this machine."""
@@ -37,6 +37,51 @@ LOCAL = "local"
 
 class DaskUnavailable(ValueError):
     """A scheduler was asked for, but dask.distributed is not installed."""
+
+
+class SchedulerUnreachable(ValueError):
+    """A scheduler address that does not answer as a Dask scheduler (nothing listens, another service such as an
+    HTTP server or the dashboard's port, a worker's address) or not within Dask's connect timeout."""
+
+
+def connect_timeout_s() -> float:
+    """Dask's ``distributed.comm.timeouts.connect`` (30 s unless configured; the environment variable
+    ``DASK_DISTRIBUTED__COMM__TIMEOUTS__CONNECT`` sets it), in seconds: how long a scheduler address may take
+    to answer."""
+    import dask
+    from dask.utils import parse_timedelta
+
+    return float(parse_timedelta(dask.config.get("distributed.comm.timeouts.connect"), "s"))
+
+
+def check_scheduler(distributed, address: str, timeout_s: float) -> None:
+    """Ask ``address`` who it is (Dask's ``identity`` call), within ``timeout_s`` for the connection and the
+    answer together. ``distributed.Client`` times out only the connection: a server that accepts and never
+    answers held it forever, and an HTTP server's reply was read as the length of a message (an allocation of
+    exabytes). Raises :class:`SchedulerUnreachable` with the reason."""
+    import asyncio
+
+    hint = "give the scheduler's port (8786 by default), not its dashboard's (8787) or another service's"
+
+    async def identity():
+        args = distributed.Security().get_connection_args("client")
+        async with distributed.rpc(address, timeout=timeout_s, connection_args=args) as scheduler:
+            return await scheduler.identity()
+    try:
+        info = asyncio.run(asyncio.wait_for(identity(), 2 * timeout_s))  # Dask's own timeouts say more, first
+    except TimeoutError as exc:
+        raise SchedulerUnreachable(f"scheduler {address}: no answer as a Dask scheduler within {2 * timeout_s:g} s "
+                                   f"({str(exc) or 'it accepted the connection, nothing came back'}; twice Dask's "
+                                   f"distributed.comm.timeouts.connect, {timeout_s:g} s); {hint}") from None
+    except OSError as exc:  # refused, unreachable, the address unknown
+        raise SchedulerUnreachable(f"scheduler {address}: cannot reach it: {exc}; {hint}") from None
+    except Exception as exc:  # noqa: BLE001 - an answer in another protocol (e.g. HTTP) fails in any way
+        raise SchedulerUnreachable(f"scheduler {address}: does not answer as a Dask scheduler (its answer is not "
+                                   f"Dask's protocol: {type(exc).__name__}: {str(exc)[:120]}); {hint}") from None
+    kind = info.get("type") if isinstance(info, dict) else None
+    if kind != "Scheduler":
+        kind = str(kind).lower() if kind else "peer of unknown type"
+        raise SchedulerUnreachable(f"scheduler {address}: answers as a Dask {kind}, not as a scheduler; {hint}")
 
 
 class InProcess:
@@ -172,6 +217,9 @@ class DaskExecutor:
     ------
     DaskUnavailable
         dask.distributed is not installed.
+    SchedulerUnreachable
+        the address does not answer as a Dask scheduler within Dask's connect timeout
+        (:func:`connect_timeout_s`).
     """
 
     def __init__(self, scheduler: str = LOCAL, *, workers: int = 2, threads: int = 0, blocks_per_worker: int = 2,
@@ -197,7 +245,9 @@ class DaskExecutor:
                                                          processes=True, dashboard_address=":0", env=env)
             self.client = distributed.Client(self._cluster)
         else:
-            self.client = distributed.Client(scheduler)
+            timeout_s = connect_timeout_s()
+            check_scheduler(distributed, scheduler, timeout_s)
+            self.client = distributed.Client(scheduler, timeout=timeout_s)
         self.blocks_per_worker = max(1, int(blocks_per_worker))
         self._cache = {}  # (id(array), start, stop) -> (array, future): the measured views of a level
         self.description = f"dask ({scheduler}, {self.n_threads()} worker thread(s))"

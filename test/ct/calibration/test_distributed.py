@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from robot_ct_ros.ct.calibration import calibrate
-from robot_ct_ros.ct.calibration.distributed import (DaskExecutor, DaskUnavailable, InProcess, executor_for,
+from robot_ct_ros.ct.calibration.distributed import (DaskExecutor, DaskUnavailable, InProcess, SchedulerUnreachable,
+                                                     executor_for,
                                                      slab_bounds, view_blocks)
 from robot_ct_ros.ct.calibration.gdc import default_gdc_configs, estimate_views_gdc
 from robot_ct_ros.ct.calibration.lle.estimator import default_lle_configs, estimate_views
@@ -134,3 +135,79 @@ def test_fdk_on_the_cluster_of_a_portrait_detector(cluster):
     mp = np.ascontiguousarray(mask[:, :, ::-1].transpose(0, 2, 1))
     np.testing.assert_allclose(cluster.fdk(lp, portrait, grid, valid_mask=mp), vol, rtol=0,
                                atol=1e-4 * np.abs(vol).max())
+
+
+def _server(answer: bytes | None):
+    """A TCP server on a free local port that answers every connection with ``answer`` (an HTTP server's reply), or
+    with nothing, holding the connection open (None); its address."""
+    import socket
+    import threading
+
+    srv = socket.socket()
+    srv.bind(("127.0.0.1", 0))
+    srv.listen(8)
+    held = []
+
+    def serve():
+        while True:
+            conn, _ = srv.accept()
+            held.append(conn)
+            if answer is not None:
+                conn.recv(65536)
+                conn.sendall(answer)
+    threading.Thread(target=serve, daemon=True).start()
+    return f"tcp://127.0.0.1:{srv.getsockname()[1]}"
+
+
+def _executor_within(settings, seconds: float):
+    """executor_for(settings) on a thread: its outcome (the exception it raised), or None while it still waits."""
+    import threading
+
+    out = []
+
+    def run():
+        try:
+            out.append(executor_for(settings))
+        except BaseException as exc:  # noqa: BLE001 - the outcome under test
+            out.append(exc)
+    t = threading.Thread(target=run, daemon=True)
+    t.start()
+    t.join(seconds)
+    return out[0] if out else None
+
+
+def test_an_http_server_for_a_scheduler_is_named_as_no_dask_scheduler():
+    """From an outside check: --scheduler naming an HTTP server (the dashboard's port, 8787) ended in 'out of memory
+    (Unable to allocate 3.07 EiB)': its reply was read as a message length. Now it says that the address does not
+    answer as a Dask scheduler."""
+    import dask
+
+    with dask.config.set({"distributed.comm.timeouts.connect": "1s"}):
+        http = _server(b"HTTP/1.1 400 Bad Request\r\nconnection: close\r\ncontent-length: 0\r\n\r\n")
+        err = _executor_within(CalibrationSettings(scheduler=http), 30.0)
+        assert isinstance(err, SchedulerUnreachable) and "does not answer as a Dask scheduler" in str(err), err
+        assert "8787" in str(err)
+
+
+def test_a_scheduler_address_that_never_answers_times_out():
+    """From an outside check: a server that accepts the connection and never answers held the run forever
+    (distributed.Client times out only the connection). Now it ends after twice Dask's connect timeout, saying so."""
+    import dask
+
+    with dask.config.set({"distributed.comm.timeouts.connect": "1s"}):
+        err = _executor_within(CalibrationSettings(scheduler=_server(None)), 30.0)
+        assert err is not None, "still waiting for an answer"
+        assert isinstance(err, SchedulerUnreachable) and "no answer as a Dask scheduler within 2 s" in str(err), err
+        assert "distributed.comm.timeouts.connect" in str(err)
+
+
+def test_a_scheduler_address_connects_and_a_worker_address_is_refused():
+    import distributed
+
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, protocol="tcp://",
+                                  dashboard_address=":0") as lc:
+        with DaskExecutor(lc.scheduler_address) as ex:
+            assert ex.n_threads() == 1
+        worker = next(iter(lc.scheduler_info["workers"]))
+        with pytest.raises(SchedulerUnreachable, match="answers as a Dask [Ww]orker, not as a scheduler"):
+            DaskExecutor(worker)
