@@ -23,9 +23,10 @@ reconstruction, edge sharpness, cap thickness (c, on a full-resolution strip: Ca
 iterations, wall time; with --repeats N each LLE method again with N - 1 more sampling seeds on
 the same scan (calibrate(seed=); their scatter, and the mean of their geometries as
 calibrate(ensemble=K) makes it, below each table). Writes results.md,
-results.json and figures (report.py) into --out.
+results.json and figures (report.py) into --out (default out/bench_calibration; the published
+ones, docs/results, only when named, as ``make bench-calibration`` does).
 
-    .venv/bin/python bench/bench_calibration.py                      # defaults: about 7 min on 2 cores (15 with --repeats 3)
+    .venv/bin/python bench/bench_calibration.py --out docs/results   # defaults: about 7 min on 2 cores (15 with --repeats 3)
     .venv/bin/python bench/bench_calibration.py --views 60 --det 48x64 --vol 48 --scenarios a
 """
 
@@ -355,7 +356,9 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=1,
                     help="run each sampling method (LLE) with this many sampling seeds on the same scan and "
                          "report their scatter below each table (default 1: the table's run only)")
-    ap.add_argument("--out", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "docs", "results"))
+    ap.add_argument("--out", default="out/bench_calibration",
+                    help="where results.md, results.json and the figures go (default out/bench_calibration; "
+                         "make bench-calibration: docs/results)")
     ap.add_argument("--no-figures", action="store_true", help="write the tables alone (e.g. for a run with a setting changed)")
     add_settings_arguments(ap, skip=BENCH_OWNS)
     args = ap.parse_args(argv)

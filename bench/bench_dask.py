@@ -15,7 +15,8 @@ each run: the loop sends them once per level and calibration, the volume once pe
 FDK times the filtering in the client process (on N threads) and sending the filtered
 projections. Each figure is the fastest of ``--repeats`` runs after a warm-up run (numba
 compiles in each worker on its first task), the four kinds of run taking turns so that other
-jobs on the machine slow them alike. Writes dask.md and dask.json to ``--out``.
+jobs on the machine slow them alike. Writes dask.md and dask.json to ``--out`` (default
+out/bench_dask; the published ones, docs/results, only when named, as ``make bench-dask`` does).
 
     .venv/bin/python bench/bench_dask.py --out docs/results          # about 5 min on 2 cores
     .venv/bin/python bench/bench_dask.py --views 48 --det 64 --repeats 1
@@ -86,7 +87,8 @@ def main(argv=None) -> int:
     ap.add_argument("--fdk-vox", type=int, default=160, help="grid voxels across (FDK scan)")
     ap.add_argument("--workers", type=int, nargs="+", default=[1, 2], help="worker counts (= in-process threads)")
     ap.add_argument("--repeats", type=int, default=4)
-    ap.add_argument("--out", default="docs/results", help="folder for dask.md and dask.json")
+    ap.add_argument("--out", default="out/bench_dask",
+                    help="folder for dask.md and dask.json (default out/bench_dask; make bench-dask: docs/results)")
     args = ap.parse_args(argv)
     import numba
 
