@@ -57,7 +57,16 @@ _STATE: dict = {}
 
 
 def _init_worker(nice: int, threads: int) -> None:
-    """Worker initializer: lower priority, numba threads (before numba is imported here)."""
+    """Worker initializer: lower priority, numba threads (before numba launches its threads here).
+
+    A ``spawn`` worker imports the caller's main module before this runs (a pip-installed node executable, a
+    script), and with it numba, whose configuration is then read without the worker's thread count: numba is
+    told again (``reload_config``, ``set_num_threads``) before its first parallel call. Without that, a kernel
+    compiled in the worker (a fresh installation, no cache) found the count changed after the threads were
+    launched and every batch failed (RuntimeError: Cannot set NUMBA_NUM_THREADS ...), and with the kernels
+    cached the worker ran on the caller's threads."""
+    import sys
+
     if nice > 0:
         try:
             os.nice(int(nice))
@@ -65,6 +74,14 @@ def _init_worker(nice: int, threads: int) -> None:
             pass
     if threads > 0:
         os.environ["NUMBA_NUM_THREADS"] = str(int(threads))
+        numba = sys.modules.get("numba")
+        if numba is not None:
+            try:
+                numba.config.reload_config()
+            except RuntimeError:  # its threads run already (the caller's main module used them)
+                pass
+            # the pool numba launches keeps the size read at its import: the tasks (this thread's) use threads of it
+            numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
     for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(k, "1")
 

@@ -182,3 +182,30 @@ def test_the_summary_counts_the_dropped_frames_and_keeps_no_error():
         assert stream.summary()["frames_dropped"] == 0
     finally:
         stream.close()
+
+
+def test_the_worker_gets_its_numba_threads_when_numba_was_imported_before_its_initializer():
+    """A spawn worker imports the caller's main module (a node's executable) before its initializer, and with it
+    numba, configured with the caller's thread count. The initializer only set NUMBA_NUM_THREADS: a kernel compiled
+    afterwards (no numba cache yet, as on a fresh installation) found the count changed after the threads were
+    launched, and every live batch failed (RuntimeError: Cannot set NUMBA_NUM_THREADS ...); with a cache the worker
+    ran on the caller's threads. Here in a fresh interpreter, as such a worker."""
+    import subprocess
+    import sys
+
+    code = ("import numba\n"
+            "from robot_ct_ros.jobs.streaming import _init_worker\n"
+            "_init_worker(0, 1)\n"
+            "n = numba.get_num_threads()\n"  # launches the threads, as the projector does before its kernels
+            "@numba.njit(parallel=True, cache=False)\n"
+            "def f(a):\n"
+            "    s = 0.0\n"
+            "    for i in numba.prange(a.size):\n"
+            "        s += a[i]\n"
+            "    return s\n"
+            "import numpy as np\n"
+            "print(n, f(np.ones(4)))\n")
+    env = dict(os.environ, NUMBA_NUM_THREADS="2")  # the caller's count, inherited
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
+    assert out.returncode == 0, out.stderr[-800:]
+    assert out.stdout.split() == ["1", "4.0"]
