@@ -57,6 +57,8 @@ class SourceControlNode(LifecycleNode):
         self._active = False
         self._estop_unconfigured = False
         self.last_error = ""
+        self._refused_settings = ""  # why the source refused kvp/power_w at the last configure
+        self._starting = False
 
         self.beam_pub = self.create_publisher(Bool, "source/beam_on", LATCHED)
         self.estop_pub = self.create_publisher(Bool, "source/estop_latched", LATCHED)
@@ -74,8 +76,14 @@ class SourceControlNode(LifecycleNode):
         self._logged_fault = ""
         self._publish_beam()
         self._publish_estop()
-        if autostart and self.trigger_configure() == TransitionCallbackReturn.SUCCESS:
-            self.trigger_activate()
+        if autostart:
+            self._starting = True  # a refusal of the parameters is then the executable's one line, not a log too
+            configured = self.trigger_configure() == TransitionCallbackReturn.SUCCESS
+            self._starting = False
+            if configured:
+                self.trigger_activate()
+            elif self._refused_settings:  # read-only parameters: no later configure can succeed
+                raise ValueError(f"parameters kvp/power_w: {self._refused_settings}")
 
     # -- lifecycle ---------------------------------------------------------------------------
     @property
@@ -91,7 +99,9 @@ class SourceControlNode(LifecycleNode):
             interlock = self.settings.interlocked(self._source_factory())
         except (SourceError, ValueError, OSError) as exc:
             self.last_error = f"configure failed: {exc}"
-            self.get_logger().error(self.last_error)
+            self._refused_settings = str(exc) if isinstance(exc, SourceError) else ""  # the source said no to them
+            if not (self._starting and self._refused_settings):
+                self.get_logger().error(self.last_error)
             return TransitionCallbackReturn.FAILURE
         if self._estop_unconfigured:
             interlock.estop(self._now_s())

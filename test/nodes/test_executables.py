@@ -27,11 +27,16 @@ CASES = [
 ]
 
 
-@pytest.mark.parametrize("node, assignment, words", CASES, ids=[f"{n}:{a}" for n, a, _ in CASES])
-def test_a_bad_parameter_is_one_line_and_exit_2(node, assignment, words):
+SOURCE_REFUSES = [("source_control", "kvp:=200.0", "kVp 200.0 outside"),  # the source's own range: it stayed up,
+                  ("source_control", "power_w:=500.0", "power 500.0 W outside")]  # unconfigured for good
+
+
+@pytest.mark.parametrize("node, assignment, words, autostart", [c + (False,) for c in CASES] + [
+    c + (True,) for c in SOURCE_REFUSES], ids=[f"{n}:{a}" for n, a, _ in CASES + SOURCE_REFUSES])
+def test_a_bad_parameter_is_one_line_and_exit_2(node, assignment, words, autostart):
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_DOMAIN_ID=str(150 + os.getpid() % 50),
                PYTHONPATH=str(REPO))
-    args = ["--ros-args", "-p", assignment, "-p", "autostart:=false"]
+    args = ["--ros-args", "-p", assignment, "-p", f"autostart:={str(autostart).lower()}"]
     if node == "replay" and not assignment.startswith("bag_path"):
         args += ["-p", "bag_path:=/nonexistent/bag"]
     proc = subprocess.run([sys.executable, "-m", f"robot_ct_ros.nodes.{node}", *args], capture_output=True, text=True,
@@ -118,7 +123,7 @@ def test_a_parameter_the_node_does_not_have_is_named_with_the_closest_one():
     import select
 
     try:
-        deadline, lines = time.monotonic() + 60, []
+        deadline, lines = time.monotonic() + 120, []  # the import takes long on a loaded machine
         while time.monotonic() < deadline and not any("does not have" in line for line in lines):
             if select.select([proc.stderr], [], [], 1.0)[0]:  # never blocks past the deadline
                 lines.append(proc.stderr.readline())

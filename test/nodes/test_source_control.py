@@ -168,9 +168,16 @@ def test_estop_latches_in_every_state(ros):
 
 
 def test_bad_source_parameters_fail_configure(ros):
-    node = ros.add(SourceControlNode(context=ros.context, parameter_overrides=[Parameter("kvp", value=200.0)]))
-    assert node.lifecycle_state == "unconfigured" and node.interlock is None  # autostart stopped at configure
-    assert "kVp" in node.last_error
+    """Without autostart the configure transition fails (a lifecycle manager sees it); with it, the node ends at
+    start as for any bad parameter (it stayed unconfigured for good: its parameters are read-only)."""
+    import pytest
+
+    node = ros.add(SourceControlNode(context=ros.context, parameter_overrides=[Parameter("kvp", value=200.0),
+                                                                                Parameter("autostart", value=False)]))
+    assert node.trigger_configure() == TransitionCallbackReturn.FAILURE
+    assert node.lifecycle_state == "unconfigured" and node.interlock is None and "kVp" in node.last_error
+    with pytest.raises(ValueError, match="kVp 200.0 outside"):
+        SourceControlNode(context=ros.context, parameter_overrides=[Parameter("kvp", value=200.0)])
 
 
 def test_bad_parameter_values_are_refused_with_a_clear_error(ros):
