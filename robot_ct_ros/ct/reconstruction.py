@@ -46,8 +46,9 @@ produce a bright rim ("truncation ring") in the ROI.
 
 Short scans (an arc of half a turn plus the fan angle, as robots that cannot circle the whole
 object take) get Parker's redundancy weights instead of the 1/2 (:func:`short_scan_weights`):
-each ray and its conjugate, measured from both ends of the arc, weigh 2 together. An arc
-shorter than half a turn cannot be weighted so; FDK then warns and is only approximate.
+each ray and its conjugate, measured from both ends of the arc, weigh 2 together. An arc of
+half a turn or less cannot be weighted so; FDK then warns, weighs each ray 1 (it is measured once
+at most: the density keeps its scale) and is only approximate (what the arc misses stays missing).
 """
 
 from __future__ import annotations
@@ -384,7 +385,10 @@ def fdk_filter_projections(line_integrals: np.ndarray, geom: ConeGeometry, *, ce
     # the 1/depth^2, which the back-projection applies, and 1/col_pitch for the discrete
     # convolution in mm. Ideal circle: R dbeta * D/sqrt(..) * D/depth^2 = FDK's weights.
     lin = sgn[:, None] * (sdd[:, None] * g_u[:, None] - a_mm * g_w[:, None])  # (nv, nc)
-    const = sdd * 0.5 / geom.col_pitch_mm
+    # an arc of half a turn or less (no Parker weights) measures each ray once at most: weight 1 keeps the
+    # density's scale (the full scan's 1/2 per ray pair halved it); what the arc misses stays missing
+    once = short_scan and parker is None and geom.n_views >= 3 and scan_arc(geom, cm, axis)[0] <= np.pi
+    const = sdd * (1.0 if once else 0.5) / geom.col_pitch_mm
 
     keep_lo = keep_hi = None
     m_lo = m_hi = 0  # output margins (pixels) beyond the low / high column edge

@@ -117,7 +117,8 @@ def _arc(phi: np.ndarray, min_gap_rad: float):
     ps = phi[order]
     gaps = np.mod(np.roll(ps, -1) - ps, 2 * np.pi)
     k = int(np.argmax(gaps))
-    if gaps[k] <= max(min_gap_rad, 5.0 * float(np.median(gaps))):
+    moved = gaps[gaps > 1e-9]  # views repeated at one angle (several turns) are no gap, as fdk_view_weights counts
+    if gaps[k] <= max(min_gap_rad, 5.0 * float(np.median(moved)) if moved.size else 0.0):
         return 2 * np.pi, None, None
     first = int(order[(k + 1) % nv])
     beta = np.mod(phi - phi[first], 2 * np.pi)
@@ -296,7 +297,10 @@ def displaced_detector_layout(geom: ConeGeometry, center_mm=(0.0, 0.0, 0.0), min
     spread = np.maximum(np.max(d[:, 2:], axis=1) - reach_lo, np.max(-d[:, :2], axis=1) - reach_hi) / geom.col_pitch_mm
     if min_asymmetry_px is None:
         min_asymmetry_px = max(2.0, 0.1 * nc)
-    if np.median(np.abs(asym)) < min_asymmetry_px:
+    # Wang's weights pair each ray with its conjugate on the other side: the short side must be one side
+    # in (nearly) every view. A detector that wobbles about the axis, or an orbit aimed off its own centre,
+    # is asymmetric by turns, measures every ray, and such weights would ruin it
+    if np.median(np.abs(asym)) < min_asymmetry_px or abs(np.mean(np.sign(asym))) < 0.9:
         return np.zeros(nv, dtype=np.int64), None, spread, (cc, rc, p)
     delta = np.minimum(reach_lo, reach_hi)
     if np.any(delta <= 0):
@@ -331,10 +335,12 @@ def displaced_detector_weights(geom: ConeGeometry, center_mm=(0.0, 0.0, 0.0),
     replacing FDK's 1/2 per ray pair.
 
     The scan counts as displaced when the median asymmetry of the reaches is at least
-    ``min_asymmetry_px`` (default 10 % of the row, at least 2 pixels); then every view is
-    weighted (with its own line and delta), otherwise none is: conjugate views
-    must be treated alike, and per-view robot errors of a few pixels must not switch a
-    nearly centred detector to redundancy weighting.
+    ``min_asymmetry_px`` (default 10 % of the row, at least 2 pixels) and the short side is the
+    same side in at least 95 % of the views (the weights pair each ray with its conjugate; a
+    detector asymmetric by turns, wobbling about the axis or on an orbit aimed off its own centre,
+    measures every ray); then every view is weighted (with its own line and delta), otherwise none
+    is: conjugate views must be treated alike, and per-view robot errors of a few pixels must not
+    switch a nearly centred detector to redundancy weighting.
 
     Limit: on a detector rotated in its own plane the weights are right pixel by pixel, but FDK filters
     along the detector rows, which then run slanted to the fan (across the axis's image), and a row and

@@ -24,6 +24,7 @@ A one-row (fan-beam) or one-column detector is left as it is: its single row def
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -166,10 +167,20 @@ def align_rows_to_motion(line_integrals: np.ndarray, geom: ConeGeometry, center_
     u2 = np.where(turn[:, None], sgn[:, None] * gh, geom.u)
     u2 = u2 - np.einsum("ij,ij->i", u2, geom.w)[:, None] * geom.w  # exactly in the plane
     u2 /= np.linalg.norm(u2, axis=1, keepdims=True)
+    cos_t, sin_t = np.abs(np.einsum("ij,ij->i", u2, geom.u)), np.abs(np.einsum("ij,ij->i", u2, geom.v))
+    W, H = geom.n_cols * geom.col_pitch_mm, geom.n_rows * geom.row_pitch_mm
+    with np.errstate(divide="ignore"):
+        chord = np.minimum(W / cos_t, H / sin_t)  # the virtual row through the centre, inside the real detector
+    if np.any(turn & (chord < 0.5 * (W * cos_t + H * sin_t))):
+        # a detector too short for its roll (a few rows): the virtual rows would end at its top and bottom edges,
+        # cut to less than half its reach along them, and their fill would cost more than the roll does
+        warnings.warn(f"detector rows up to {roll.max():.1f} degrees off the source motion, on a detector too "
+                      "short to filter along the motion (its rows are filtered as they are): FDK is approximate",
+                      RuntimeWarning, stacklevel=3)
+        return None
     v2 = np.cross(geom.w, u2)
     pitch = min(geom.row_pitch_mm, geom.col_pitch_mm)
     # extent of the original detector (edge to edge) along u' and v', largest over the views
-    W, H = geom.n_cols * geom.col_pitch_mm, geom.n_rows * geom.row_pitch_mm
     eu = np.max(W * np.abs(np.einsum("ij,ij->i", u2, geom.u)) + H * np.abs(np.einsum("ij,ij->i", u2, geom.v)))
     ev = np.max(W * np.abs(np.einsum("ij,ij->i", v2, geom.u)) + H * np.abs(np.einsum("ij,ij->i", v2, geom.v)))
     # sizes of the parity of the original pixels they mostly run along (the virtual pixel centres
