@@ -95,7 +95,7 @@ def test_simulate_info_reconstruct_calibrate(tmp_path, capsys):
     drifted = read_scan(data_alone / "scan_corrected")  # a drift model: the correction is a polynomial in time
     params = drifted.geom_corrected.params_relative_to(drifted.geom)
     assert np.abs(params).max() > 1e-4
-    np.testing.assert_allclose(fit_drift(params, 2), params, atol=1e-6)
+    np.testing.assert_allclose(fit_drift(params, 2), params, atol=1e-5)  # polynomials, alternated with the gauge fix to 10 nm
 
     def rejected(option, value, message):
         """``calibrate`` refuses the option's value with a message naming it, and writes nothing."""
@@ -203,7 +203,7 @@ def test_simulate_a_drifting_detector_and_calibrate_it_as_a_drift(tmp_path):
     corrected = read_scan(out / "drift_corrected")
     params = corrected.geom_corrected.params_relative_to(corrected.geom)
     t = (corrected.stamps_ns - corrected.stamps_ns[0]).astype(float)
-    np.testing.assert_allclose(fit_drift(params, 1, t), params, atol=1e-6)
+    np.testing.assert_allclose(fit_drift(params, 1, t), params, atol=1e-5)  # polynomials, alternated with the gauge fix to 10 nm
     assert json.loads((out / "report.json").read_text())["drift_order"] == 1
 
 

@@ -194,6 +194,14 @@ def _unused_settings(method, settings) -> str:
         notes.append(f"{', '.join(given)} did not apply: the prior is off (prior_translation_mm or "
                      "prior_rotation_deg 0)")
     # (not exterior_iterations: a schedule field, which a result's settings record resolved)
+    looser = [f"{name} {getattr(settings, name)} (looser than {general} {getattr(settings, general)})"
+              for name, general, looser_if in (("guard_min_ncc_unmodelled", "guard_min_ncc", "<"),
+                                               ("guard_min_ncc_exterior", "guard_min_ncc", "<"),
+                                               ("guard_max_ratio_unmodelled", "guard_max_ratio", ">"))
+              if (getattr(settings, name) < getattr(settings, general)) == (looser_if == "<")
+              and getattr(settings, name) != getattr(settings, general)]
+    if settings.guard and looser:
+        notes.append(f"{', '.join(looser)} did not apply: the guard takes the stricter of the two")
     if settings.exterior == "off" and (given := changed(["exterior_voxel_mm", "exterior_half_width_mm",
                                                           "exterior_subsets", "exterior_reach_guess"])):
         notes.append(f"{', '.join(given)} did not apply: exterior is off")
@@ -368,8 +376,13 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
         skipped.update(fine_info.get("skipped_views", ()))
         params = _in_nominal_gauge(params, nominal, points, held)
         if drift_order is not None:
-            # the polynomial fit puts part of a gauge motion back (a linear drift: 0.09 mm): align again
-            params = _in_nominal_gauge(fit_drift(params, drift_order, drift_times), nominal, points, held)
+            # the polynomial fit puts part of a gauge motion back (a linear drift: 0.09 mm) and the gauge fix takes
+            # the parameters off their polynomials a little: alternate until both hold
+            for _ in range(100):  # alternating projections: a few rounds to 1e-9 mm, a slow (linear) case to 1e-6 mm
+                fitted = fit_drift(params, drift_order, drift_times)
+                params = _in_nominal_gauge(fitted, nominal, points, held)
+                if np.abs(params - fitted).max() < 1e-9:
+                    break
         if focus_modes:
             params, focus = focus_conjugate_modes(li, nominal, params, grid, mask, modes=focus_modes,
                                                   fdk_kwargs=fdk_kwargs)
@@ -446,8 +459,12 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
     explained = history[-1].projection_ncc if history else float("nan")
     # a strongly truncated scan needs a model that explains more, with the exterior modelled or not
     # (docs/calibration.md §11)
-    min_ncc = settings.guard_min_ncc_unmodelled if unmodelled else \
-        settings.guard_min_ncc_exterior if exterior else settings.guard_min_ncc
+    # each the stricter of the general limit and the scan's own (a looser one is named in the notes)
+    min_ncc = settings.guard_min_ncc
+    if unmodelled:
+        min_ncc = max(min_ncc, settings.guard_min_ncc_unmodelled)
+    elif exterior:
+        min_ncc = max(min_ncc, settings.guard_min_ncc_exterior)
     if settings.guard and explained < min_ncc:
         # the data term is dominated by what the model lacks (the object outside the ROI): its optimum is not the
         # geometry's, and no consistency figure can vouch for it
@@ -462,7 +479,8 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
     elif settings.guard and accuracy is not None:
         # where the ROI model's data term is biased (strong truncation, no exterior) the correction may not move the
         # views further than the robots' errors do: its helpful corrections there are partial (docs/calibration.md §11)
-        scan_limit = settings.guard_max_ratio_unmodelled if unmodelled else settings.guard_max_ratio
+        scan_limit = min(settings.guard_max_ratio, settings.guard_max_ratio_unmodelled) if unmodelled \
+            else settings.guard_max_ratio
         checked = plausibility_guard(nominal, params, points, accuracy, max_ratio=settings.guard_max_ratio,
                                      view_quantile=settings.guard_view_quantile, seed=settings.seed,
                                      scan_max_ratio=scan_limit)

@@ -202,18 +202,18 @@ class CalibrationSettings:
                           "robots' stated accuracy (the prior) explains")
     guard_max_ratio: float = setting(1.5, "the scan keeps its nominal geometry when the correction moves the views this "
                                      "many times as far as the stated accuracy does", minimum=1.0)
-    guard_max_ratio_unmodelled: float = setting(1.0, "guard_max_ratio's place on a strongly truncated scan whose "
-                                                "object outside the ROI was not modelled: there the ROI model's data term is "
+    guard_max_ratio_unmodelled: float = setting(1.0, "the same limit (the stricter of the two applies) for a strongly "
+                                                "truncated scan whose object outside the ROI was not modelled: there the ROI model's data term is "
                                                 "biased, and a correction larger than the robots' own errors is not "
                                                 "credited", minimum=0.1)
     guard_min_ncc: float = setting(0.5, "the scan keeps its nominal geometry when the estimation model explains the "
                                    "data this poorly: the final projection NCC of its reprojection against the data",
                                    minimum=0.0, maximum=1.0)
-    guard_min_ncc_unmodelled: float = setting(0.7, "guard_min_ncc's place on a strongly truncated scan whose object "
-                                              "outside the ROI was not modelled: there corrections whose model explained the "
+    guard_min_ncc_unmodelled: float = setting(0.7, "the same floor (the stricter of the two applies) for a strongly "
+                                              "truncated scan whose object outside the ROI was not modelled: there corrections whose model explained the "
                                               "data at about 0.5 have made the geometry worse", minimum=0.0, maximum=1.0)
-    guard_min_ncc_exterior: float = setting(0.85, "guard_min_ncc's place on a scan whose object outside the ROI "
-                                            "was modelled (exterior model): on small interior scans of wide objects, "
+    guard_min_ncc_exterior: float = setting(0.85, "the same floor (the stricter of the two applies) for a scan whose "
+                                            "object outside the ROI was modelled (exterior model): on small interior scans of wide objects, "
                                             "corrections whose model explained the data at 0.64 to 0.82 made the "
                                             "geometry worse", minimum=0.0, maximum=1.0)
     guard_view_quantile: float = setting(0.999, "a view moved beyond guard_max_ratio times this quantile of the "

@@ -83,10 +83,10 @@ def test_a_model_that_explains_little_of_the_data_keeps_the_nominal_geometry():
     np.testing.assert_array_equal(guarded.params, 0.0)
     np.testing.assert_allclose(guarded.params_unguarded, free.params)
     assert any("explains the data poorly" in note for note in guarded.notes), guarded.notes
-    # the unmodelled scan's own limits replace the general ones, looser as well as stricter (they could only tighten)
-    loose = calibrate(data, nominal, roi, guard_min_ncc_unmodelled=0.0, guard_max_ratio_unmodelled=1e3, **roi_model)
-    np.testing.assert_allclose(loose.params, free.params)
-    assert any("(limit 1000)" in note for note in loose.notes), loose.notes
+    # the stricter of the general and the scan's own limits applies; a looser own one is named, not silently ignored
+    loose = calibrate(data, nominal, roi, guard_min_ncc_unmodelled=0.0, **roi_model)
+    np.testing.assert_array_equal(loose.params, 0.0)
+    assert any("guard_min_ncc_unmodelled 0.0 (looser than guard_min_ncc 0.5) did not apply" in n for n in loose.notes)
 
 
 def test_a_stricter_scan_limit_refuses_what_the_default_one_keeps():
