@@ -15,6 +15,11 @@ def run_node(node_factory: Callable[[], "object"], description: str, argv: list[
     passed to rclpy untouched. The node spins on a SingleThreadedExecutor (the Jazzy
     wheel's MultiThreadedExecutor is slow, rclpy issue 1452) until SIGINT/SIGTERM, or until it
     shuts its context down itself; the exit status is then its ``exit_code`` (default 0).
+
+    SIGINT and SIGTERM are this function's, not rclpy's: rclpy's handlers shut the context down
+    first, so the node's own ``destroy_node`` could no longer publish its last word (the
+    orchestrator's abort and ``scan/armed`` false, the source's beam off). Here they stop the
+    spin, the node is destroyed while its context is up, and the context is shut down last.
     """
     argv = list(sys.argv if argv is None else argv)
     prog = argv[0].rsplit("/", 1)[-1] if argv else "node"
@@ -24,31 +29,49 @@ def run_node(node_factory: Callable[[], "object"], description: str, argv: list[
         epilog="ROS arguments follow --ros-args, e.g. --ros-args -p name:=value -r __ns:=/ns")
     parser.parse_args(user_args)
 
+    import signal
+
     import rclpy
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.impl.implementation_singleton import rclpy_implementation
+    from rclpy.signals import SignalHandlerOptions
+
+    def stop(signum, frame):
+        raise KeyboardInterrupt
 
     try:
-        rclpy.init(args=argv)
+        rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     except rclpy_implementation.RCLError as exc:  # rcl refused a ROS argument, e.g. "-p name:=" (no value)
         reason = " ".join(str(exc).split("\n")[0].split())
         print(f"{prog}: bad ROS arguments ({reason}); an empty string value is written -p \"name:=''\"",
               file=sys.stderr)
         return 2
     node = None
+    previous = {s: signal.signal(s, stop) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         node = node_factory()
         warn_undeclared_parameters(node)
         executor = SingleThreadedExecutor()
         executor.add_node(node)
-        executor.spin()
+        while rclpy.ok():  # spins in slices, so that a signal's handler runs within one
+            executor.spin_once(timeout_sec=SIGNAL_POLL_S)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
-        if node is not None:
-            node.destroy_node()
-        shutdown_once(rclpy)
+        for s in previous:  # a second signal during the teardown must not interrupt it
+            signal.signal(s, signal.SIG_IGN)
+        try:
+            if node is not None:
+                node.destroy_node()
+        finally:
+            shutdown_once(rclpy)
+            for s, handler in previous.items():
+                signal.signal(s, handler)
     return int(getattr(node, "exit_code", 0) or 0)  # a node that ends itself (replay's exit_when_done) says how
+
+
+SIGNAL_POLL_S = 0.1
+"""How long a node executable's spin waits at most before a SIGINT or SIGTERM is acted on (run_node)."""
 
 
 def warn_undeclared_parameters(node) -> list[str]:

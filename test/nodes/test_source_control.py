@@ -332,3 +332,36 @@ def test_a_beam_cut_by_max_beam_on_s_is_a_warning_until_the_next_exposure(ros):
     n = len(diag)
     assert ros.spin_until(lambda: keep_reporting() and len(diag) > n)
     assert diag[-1].level == DiagnosticStatus.OK, diag[-1].message
+
+
+def test_sigterm_to_the_executable_switches_the_beam_off_and_says_so(ros):
+    """rclpy's own signal handlers shut the context down before the node was destroyed, so its last word could not
+    be published: after SIGTERM with the beam on, source/beam_on stayed true for every subscriber (and a stopped
+    scan_orchestrator could not abort: the scan stayed armed and the beam on until max_beam_on_s)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    env = dict(os.environ, ROS_DOMAIN_ID=str(ros.domain_id), PYTHONPATH=str(Path(__file__).resolve().parents[2]))
+    proc = subprocess.Popen([sys.executable, "-m", "robot_ct_ros.nodes.source_control"], env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        probe = ros.node("probe")
+        beam = []
+        probe.create_subscription(Bool, "source/beam_on", lambda m: beam.append(m.data), LATCHED)
+        pubs = [probe.create_publisher(Bool, name, 10)
+                for name in ("scan/armed", "source_arm/in_position", "detector_arm/in_position")]
+        probe.create_timer(0.1, lambda: [p.publish(Bool(data=True)) for p in pubs])
+        set_beam = probe.create_client(SetBool, "source/set_beam")
+        assert ros.wait_for_service(set_beam, 60.0)
+        assert ros.spin_until(lambda: ros.call(set_beam, SetBool.Request(data=True), 10.0).success, 20.0)
+        assert ros.spin_until(lambda: beam and beam[-1], 10.0)
+        proc.send_signal(signal.SIGTERM)
+        assert ros.spin_until(lambda: not beam[-1], 10.0), beam
+        assert proc.wait(timeout=20) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        proc.wait(timeout=10)
