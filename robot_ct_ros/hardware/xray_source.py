@@ -105,7 +105,9 @@ class InterlockedSource:
     ``request_beam(True)`` is the only way to switch the beam on; it succeeds only when
     :func:`beam_permitted` says so. ``tick(now_s)`` must be called periodically so that
     stale arm reports, and a beam on for longer than ``max_beam_on_s``, switch the beam off.
-    While the e-stop is latched the scan stays disarmed whatever arrives.
+    While the e-stop is latched the scan stays disarmed whatever arrives. A switch-off the driver refuses
+    (asked for or the interlock's) is retried by every ``tick`` until it succeeds, whether or not the interlock
+    still permits the beam; only a permitted switch-on that succeeds cancels it.
     """
 
     def __init__(self, source: XraySource, max_report_age_s: float = 1.0, max_beam_on_s: float = 10.0):
@@ -117,6 +119,7 @@ class InterlockedSource:
         self.last_cut_reason = ""  # why the interlock last switched the beam off
         self.fault = ""  # the driver's last refusal (SourceError), kept until the same command succeeds
         self.watchdog_cut = ""  # why max_beam_on_s last cut the beam, kept until a scan is armed or the beam is on again
+        self.off_pending = False  # a switch-off was asked for and refused: retried on every tick until it succeeds
         self._fault_switching_on = False
         self._on_since: float | None = None
 
@@ -128,7 +131,11 @@ class InterlockedSource:
         except SourceError as exc:
             self.fault = f"source refused beam {'on' if on else 'off'}: {exc}"
             self._fault_switching_on = on
+            if not on:
+                self.off_pending = True
             return self.fault
+        if not on:
+            self.off_pending = False
         if self.fault and self._fault_switching_on == on:
             self.fault = ""
         return ""
@@ -141,8 +148,9 @@ class InterlockedSource:
                                            f"{self.max_beam_on_s:g} s: no exposure takes that long (is the scan's "
                                            "controller alive?)"), True
         self.last_reason = reason
-        if not ok and self.source.beam_on:
-            if not self._switch(False, now_s):
+        cut = not ok and self.source.beam_on
+        if cut or self.off_pending:  # a refused switch-off is retried even while the interlock permits the beam
+            if not self._switch(False, now_s) and cut:
                 self.last_cut_reason = reason
                 if watchdog:
                     self.watchdog_cut = f"beam cut: {reason}"
@@ -190,6 +198,7 @@ class InterlockedSource:
                 self.fault, self._fault_switching_on = fault, True  # the switch-on fault is the one to report
             return False, f"beam refused: {fault}"
         self.watchdog_cut = ""  # a good exposure
+        self.off_pending = False  # a permitted switch-on that succeeded supersedes a refused switch-off
         return True, "beam on"
 
     @property

@@ -164,3 +164,34 @@ def test_the_max_beam_on_cut_is_remembered_until_a_new_scan_or_exposure():
     src._on_since, src.watchdog_cut = None, "beam cut: x"
     src.update(1.6, scan_armed=True)  # a new scan
     assert src.watchdog_cut == ""
+
+
+def test_a_refused_switch_off_is_retried_while_the_interlock_still_permits_the_beam():
+    """A switch-off asked for and refused was retried only when the interlock itself forbade the beam: with the scan
+    armed and both arms in position the beam stayed on for good. Now it is retried on every tick until it succeeds;
+    a switch-on request refused by the interlock does not cancel it, one that is permitted and succeeds does."""
+    src = InterlockedSource(_FaultySource(), max_report_age_s=1.0)
+    src.update(10.0, **ALL_OK)
+    assert src.request_beam(True, 10.1)[0]
+    src.source.refuse_off = True
+    ok, why = src.request_beam(False, 10.2)
+    assert not ok and "shutter" in why and src.beam_on
+    tries = src.source.off_tries
+    src.tick(10.3)
+    src.tick(10.4)
+    assert src.source.off_tries == tries + 2 and src.beam_on and src.off_pending  # retried on every tick
+    src.source.refuse_off = False
+    src.tick(10.5)
+    assert not src.beam_on and not src.off_pending and src.fault == ""
+
+    assert src.request_beam(True, 10.6)[0]
+    src.source.refuse_off = True
+    assert not src.request_beam(False, 10.7)[0]
+    src.update(10.75, scan_armed=False)
+    assert not src.request_beam(True, 10.8)[0] and src.off_pending  # not permitted: the switch-off stays pending
+    src.update(10.85, scan_armed=True)
+    assert src.request_beam(True, 10.9)[0] and not src.off_pending  # a permitted, successful switch-on supersedes it
+    tries = src.source.off_tries
+    src.tick(11.0)
+    assert src.beam_on and src.source.off_tries == tries
+

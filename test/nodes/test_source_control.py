@@ -365,3 +365,72 @@ def test_sigterm_to_the_executable_switches_the_beam_off_and_says_so(ros):
         if proc.poll() is None:
             proc.kill()
         proc.wait(timeout=10)
+
+
+class _Faulty:
+    """A source driver that refuses the switch-off, or fails with what its transport raises (set ``error``)."""
+
+    @staticmethod
+    def make():
+        from robot_ct_ros.hardware.xray_source import SimulatedXraySource, SourceError
+
+        class Faulty(SimulatedXraySource):
+            refuse_off = False
+            error = None
+            off_tries = 0
+
+            def set_beam(self, on, now_s):
+                if self.error is not None and (on or self._beam_on):
+                    raise self.error
+                if not on and self._beam_on:
+                    self.off_tries += 1
+                    if self.refuse_off:
+                        raise SourceError("HV controller busy")
+                super().set_beam(on, now_s)
+
+        return Faulty
+
+
+def _faulty_setup(ros):
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    node = ros.add(SourceControlNode(context=ros.context, source_factory=_Faulty.make()))
+    probe = ros.node("probe")
+    diag, beam = [], []
+    probe.create_subscription(DiagnosticArray, "/diagnostics",
+                              lambda m: diag.extend(s for s in m.status if s.name.endswith("x-ray source")), 10)
+    sub = probe.create_subscription(Bool, "source/beam_on", lambda m: beam.append(m.data), LATCHED)
+    pubs = {name: probe.create_publisher(Bool, name, 10)
+            for name in ("scan/armed", "source_arm/in_position", "detector_arm/in_position")}
+    for pub in pubs.values():
+        assert ros.wait_for_subscribers(pub)
+    assert ros.wait_for_publishers(sub)
+    set_beam = probe.create_client(SetBool, "source/set_beam")
+    _ready(ros, pubs, node)
+    return node, pubs, diag, beam, set_beam
+
+
+def test_a_refused_switch_off_is_retried_while_the_interlock_permits_the_beam(ros):
+    """set_beam false refused by the driver with the scan armed and both arms in position was never retried (the
+    tick retried only what the interlock itself cut, or out of active): the beam stayed on. Now every tick retries."""
+    node, pubs, diag, beam, set_beam = _faulty_setup(ros)
+    source = node.interlock.source
+
+    def in_position():  # the arms keep reporting, so the interlock never cuts the beam itself
+        for name in ("source_arm/in_position", "detector_arm/in_position"):
+            pubs[name].publish(Bool(data=True))
+        return True
+
+    _ready(ros, pubs, node)
+    assert ros.call(set_beam, SetBool.Request(data=True)).success and node.beam_on
+    source.refuse_off = True
+    in_position()
+    answer = ros.call(set_beam, SetBool.Request(data=False))
+    assert not answer.success and "HV controller busy" in answer.message
+    tries = source.off_tries
+    assert ros.spin_until(lambda: in_position() and source.off_tries >= tries + 3, timeout_s=3.0)
+    assert node.beam_on and node.interlock.last_reason == "ok" and node.lifecycle_state == "active"
+    source.refuse_off = False
+    assert ros.spin_until(lambda: not node.beam_on and beam and beam[-1] is False, timeout_s=2.0)
+    assert node.interlock.fault == ""
+
