@@ -117,7 +117,7 @@ class InterlockedSource:
         self.inputs = InterlockInputs()
         self.last_reason = "scan not armed"
         self.last_cut_reason = ""  # why the interlock last switched the beam off
-        self.fault = ""  # the driver's last refusal (SourceError), kept until the same command succeeds
+        self.fault = ""  # the driver's last refusal or failure, kept until the same command succeeds
         self.watchdog_cut = ""  # why max_beam_on_s last cut the beam, kept until a scan is armed or the beam is on again
         self.off_pending = False  # a switch-off was asked for and refused: retried on every tick until it succeeds
         self._fault_switching_on = False
@@ -125,11 +125,14 @@ class InterlockedSource:
 
     def _switch(self, on: bool, now_s: float) -> str:
         """Command the source; a driver fault is recorded and returned (empty when it obeyed), never raised,
-        so that a refused switch-off is retried by the next tick instead of ending the controller."""
+        so that a refused switch-off is retried by the next tick instead of ending the controller. Any
+        exception from the driver is a fault (a serial or network driver's OSError, TimeoutError...), named
+        with its type where it is not a SourceError."""
         try:
             self.source.set_beam(on, now_s)
-        except SourceError as exc:
-            self.fault = f"source refused beam {'on' if on else 'off'}: {exc}"
+        except Exception as exc:  # noqa: BLE001 - whatever the driver raises, the beam path must go on
+            what = str(exc) if isinstance(exc, SourceError) else f"{type(exc).__name__}: {exc}"
+            self.fault = f"source refused beam {'on' if on else 'off'}: {what}"
             self._fault_switching_on = on
             if not on:
                 self.off_pending = True

@@ -19,7 +19,7 @@ source/reset_estop the beam needs scan/armed true anew.
 Lifecycle: configure builds the (simulated) source at kvp/power_w behind the interlock, activate
 serves source/set_beam and publishes the beam state, deactivate switches the beam off at once and
 refuses beam requests, cleanup/shutdown/error switch it off and release the source. The beam is off
-in every state but active. A driver fault (SourceError) is a refused answer or, for a switch-off,
+in every state but active. A driver fault (SourceError, or any exception the driver raises on the beam path) is a refused answer or, for a switch-off,
 retried every tick until it succeeds (even while the interlock permits the beam); either is an ERROR on /diagnostics until the refused command succeeds. The
 interlock inputs (armed, arm reports, e-stop) are followed in every state, so they are current on activation; an e-stop is latched in any state (one received while
 unconfigured latches the source built by the next configure). With autostart the node configures

@@ -195,3 +195,37 @@ def test_a_refused_switch_off_is_retried_while_the_interlock_still_permits_the_b
     src.tick(11.0)
     assert src.beam_on and src.source.off_tries == tries
 
+
+class _BrokenLinkSource(SimulatedXraySource):
+    """A serial/network driver whose link fails: it raises what its transport raises, not SourceError."""
+
+    error: Exception | None = None
+
+    def set_beam(self, on, now_s):
+        if self.error is not None and (on or self._beam_on):
+            raise self.error
+        super().set_beam(on, now_s)
+
+
+@pytest.mark.parametrize("error", [OSError("serial port gone"), TimeoutError("no answer in 0.5 s"),
+                                   RuntimeError("socket closed")])
+def test_any_driver_exception_is_a_fault_and_a_refused_switch_off_is_retried(error):
+    """Only SourceError was caught: an OSError from a serial driver escaped request_beam and the tick (the node's
+    executor ended with the beam on). Now any exception is a fault named with its type, never raised."""
+    src = InterlockedSource(_BrokenLinkSource(), max_report_age_s=1.0)
+    src.update(10.0, **ALL_OK)
+    src.source.error = error
+    ok, why = src.request_beam(True, 10.1)
+    name = type(error).__name__
+    assert not ok and why == f"beam refused: source refused beam on: {name}: {error}" and not src.beam_on
+    src.source.error = None
+    assert src.request_beam(True, 10.2)[0] and src.fault == ""
+    src.source.error = error
+    ok, why = src.request_beam(False, 10.3)
+    assert not ok and f"source refused beam off: {name}" in why and src.beam_on
+    src.update(10.4, scan_armed=False)  # the interlock's cut is refused too, and does not raise
+    src.tick(10.5)
+    assert src.beam_on and f"{name}: {error}" in src.fault
+    src.source.error = None
+    src.tick(10.6)
+    assert not src.beam_on and src.fault == "" and not src.off_pending

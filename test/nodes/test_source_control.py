@@ -434,3 +434,27 @@ def test_a_refused_switch_off_is_retried_while_the_interlock_permits_the_beam(ro
     assert ros.spin_until(lambda: not node.beam_on and beam and beam[-1] is False, timeout_s=2.0)
     assert node.interlock.fault == ""
 
+
+def test_a_driver_exception_other_than_source_error_is_a_fault_and_the_node_lives_on(ros):
+    """An OSError (a serial or network driver's) escaped source/set_beam and the 10 Hz tick and ended the executor
+    with the beam on. Now it is answered and an ERROR on /diagnostics naming its type; a switch-off is retried."""
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    node, pubs, diag, beam, set_beam = _faulty_setup(ros)
+    source = node.interlock.source
+    source.error = OSError("serial port gone")
+    answer = ros.call(set_beam, SetBool.Request(data=True))
+    assert not answer.success and "OSError: serial port gone" in answer.message and not node.beam_on
+    assert ros.spin_until(lambda: diag and diag[-1].level == DiagnosticStatus.ERROR
+                          and "OSError: serial port gone" in diag[-1].message)
+    source.error = None
+    _ready(ros, pubs, node)
+    assert ros.call(set_beam, SetBool.Request(data=True)).success and node.beam_on
+    source.error = TimeoutError("no answer from the HV generator")
+    pubs["scan/armed"].publish(Bool(data=False))  # the interlock's cut, in a subscription callback, then every tick
+    assert ros.spin_until(lambda: not node.interlock.inputs.scan_armed)
+    ros.spin_for(0.3)
+    assert node.beam_on and node.lifecycle_state == "active"
+    assert ros.spin_until(lambda: diag[-1].level == DiagnosticStatus.ERROR and "TimeoutError" in diag[-1].message)
+    source.error = None
+    assert ros.spin_until(lambda: not node.beam_on and beam and beam[-1] is False, timeout_s=2.0)
