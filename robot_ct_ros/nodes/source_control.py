@@ -18,7 +18,8 @@ source/reset_estop the beam needs scan/armed true anew.
 
 Lifecycle: configure builds the (simulated) source at kvp/power_w behind the interlock, activate
 serves source/set_beam and publishes the beam state, deactivate switches the beam off at once and
-refuses beam requests, cleanup/shutdown/error switch it off and release the source. The beam is off
+refuses beam requests, cleanup/shutdown/error switch it off and release the source (one that refuses to
+switch off is reported on, an ERROR, and retried every tick; configure is refused meanwhile). The beam is off
 in every state but active. A driver fault (SourceError, or any exception the driver raises on the beam path) is a refused answer or, for a switch-off,
 retried every tick until it succeeds (even while the interlock permits the beam); either is an ERROR on /diagnostics until the refused command succeeds. The
 interlock inputs (armed, arm reports, e-stop) are followed in every state, so they are current on activation; an e-stop is latched in any state (one received while
@@ -54,6 +55,7 @@ class SourceControlNode(LifecycleNode):
         autostart = declare_settings(self, LifecycleSettings).autostart
         self._source_factory = source_factory or SimulatedXraySource
         self.interlock: InterlockedSource | None = None  # exists between configure and cleanup
+        self._released_on: InterlockedSource | None = None  # released (shutdown, error) with the beam still on
         self._active = False
         self._estop_unconfigured = False
         self.last_error = ""
@@ -90,11 +92,22 @@ class SourceControlNode(LifecycleNode):
     def lifecycle_state(self) -> str:
         return self._state_machine.current_state[1]
 
+    def _holder(self) -> InterlockedSource | None:
+        """The configured source, or one released while it refused to switch off (the driver's state counts)."""
+        return self.interlock if self.interlock is not None else self._released_on
+
     @property
     def beam_on(self) -> bool:
-        return self.interlock is not None and self.interlock.beam_on
+        holder = self._holder()
+        return holder is not None and holder.beam_on
 
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+        if self._released_on is not None and self._released_on.beam_on:  # not a second source beside a beam on
+            self.last_error = ("configure refused: the source released with the beam on still refuses to switch "
+                               f"off ({self._released_on.fault})")
+            self.get_logger().error(self.last_error)
+            return TransitionCallbackReturn.FAILURE
+        self._released_on = None
         try:
             interlock = self.settings.interlocked(self._source_factory())
         except (SourceError, ValueError, OSError) as exc:
@@ -146,10 +159,19 @@ class SourceControlNode(LifecycleNode):
         self._publish_beam(force=True)  # not after SIGINT: publish_while_up then publishes nothing
 
     def _release(self, why: str) -> None:
+        """Switch the beam off and drop the source. A source that refuses to switch off is not reported off:
+        it is kept aside (the beam state published and on /diagnostics is the driver's, an ERROR) and the
+        switch-off is retried on every tick while the node runs."""
         self._beam_off(why)
-        if self.interlock is not None and self.interlock.inputs.estop_latched:
+        il = self.interlock
+        if il is not None and il.inputs.estop_latched:
             self._estop_unconfigured = True  # the latch outlives the source object
+        if il is not None and il.beam_on:
+            self._released_on = il
+            self.get_logger().error(f"the source refused to switch off: the beam may still be on ({il.fault}); "
+                                    f"source_control {why}, the switch-off is retried while the node runs")
         self.interlock = None
+        self._publish_beam(force=True)
 
     def destroy_node(self):
         self._release("destroyed")
@@ -203,8 +225,8 @@ class SourceControlNode(LifecycleNode):
     def _on_set_beam(self, request, response):
         if not request.data:
             response.success, response.message = True, "beam off"
-            if self.interlock is not None:
-                response.success, response.message = self.interlock.request_beam(False, self._now_s())
+            if self._holder() is not None:
+                response.success, response.message = self._holder().request_beam(False, self._now_s())
             self._publish_beam()
         elif not self._active:
             response.success = False
@@ -238,7 +260,10 @@ class SourceControlNode(LifecycleNode):
         if self._active:
             self._publish_beam(force=True)
         elif self.beam_on:  # every way out of active cuts the beam, unless the source refused: retry
-            self.interlock.request_beam(False, self._now_s())
+            self._holder().request_beam(False, self._now_s())
+            if self._released_on is not None and not self._released_on.beam_on:
+                self.get_logger().info("the released source switched off at last")
+                self._released_on = None
             self._publish_beam(force=True)
 
     def _beam_on_seconds(self, il: InterlockedSource) -> float:
@@ -250,6 +275,9 @@ class SourceControlNode(LifecycleNode):
         il = self.interlock
         latched = self.estop_latched
         fault = il.fault if il is not None else ""
+        if il is None and self._released_on is not None:  # released with the beam on: say so, not the state
+            fault = ("the source refused to switch off: the beam may still be on"
+                     f" ({self._released_on.fault or 'no fault reported'})")
         if latched or self.last_error or fault:
             level = DiagnosticStatus.ERROR
         elif not self._active or (il is not None and il.watchdog_cut):  # the cut says the controller died

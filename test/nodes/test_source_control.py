@@ -458,3 +458,30 @@ def test_a_driver_exception_other_than_source_error_is_a_fault_and_the_node_live
     assert ros.spin_until(lambda: diag[-1].level == DiagnosticStatus.ERROR and "TimeoutError" in diag[-1].message)
     source.error = None
     assert ros.spin_until(lambda: not node.beam_on and beam and beam[-1] is False, timeout_s=2.0)
+
+
+def test_a_source_that_refuses_to_switch_off_at_shutdown_is_not_reported_off(ros):
+    """A shutdown whose switch-off the driver refused logged "beam OFF (finalized)", published source/beam_on false
+    and said WARN 'finalized' on /diagnostics with the beam still on. Now the beam state is the driver's, an ERROR
+    says the beam may still be on, and the switch-off is retried until the source obeys."""
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    node, pubs, diag, beam, set_beam = _faulty_setup(ros)
+    source = node.interlock.source
+    assert ros.call(set_beam, SetBool.Request(data=True)).success
+    source.refuse_off = True
+    assert node.trigger_deactivate() == TransitionCallbackReturn.SUCCESS
+    assert node.trigger_shutdown() == TransitionCallbackReturn.SUCCESS and node.lifecycle_state == "finalized"
+    assert source.beam_on and node.beam_on
+    ros.spin_for(0.3)
+    assert beam[-1] is True
+    assert ros.spin_until(lambda: diag and diag[-1].level == DiagnosticStatus.ERROR
+                          and "the beam may still be on" in diag[-1].message and "HV controller busy" in diag[-1].message)
+    assert dict((v.key, v.value) for v in diag[-1].values)["beam_on"] == "True"
+    tries = source.off_tries
+    assert ros.spin_until(lambda: source.off_tries >= tries + 2, timeout_s=2.0)  # still retried
+    source.refuse_off = False
+    assert ros.spin_until(lambda: not source.beam_on and not node.beam_on and beam[-1] is False, timeout_s=2.0)
+    n = len(diag)
+    assert ros.spin_until(lambda: len(diag) > n)
+    assert diag[-1].level == DiagnosticStatus.WARN and diag[-1].message == "finalized"
