@@ -8,7 +8,8 @@ Topics, relative to the node namespace, under ``<role>_arm/`` (role is "source" 
               powered off: else an ERROR on diagnostics) and the measured pose is within tolerance of
               the goal), at publish_rate_hz while active; <role>_arm/true_tool_pose (PoseStamped,
               simulated arm only: the true, perturbed pose, for the simulated detector);
-              diagnostics (1 Hz).
+              diagnostics (1 Hz, and at once, after in_position, when the arm's fault state
+              changes: a protective stop or power-off begins or ends, the state goes stale or fresh).
   subscribes  <role>_arm/goal_pose (geometry_msgs/PoseStamped in base_frame): a linear move to
               it; moves run on a worker thread, in_position is false while moving. A goal with a
               NaN or infinite value, a non-unit quaternion or another frame is refused at once
@@ -113,6 +114,7 @@ class ArmDriverNode(LifecycleNode):
         self.last_error = ""
         self.goal_rejections = 0
         self.last_goal_problem = ""
+        self._diag_health = self._health()  # the arm's fault state in the last diagnostics published
         if autostart:
             self._autostart_timer = self.create_timer(0.0, self._autostart)
 
@@ -290,8 +292,16 @@ class ArmDriverNode(LifecycleNode):
             if snap.true_tcp_pose is not None:
                 self.true_pose_pub.publish(ur_to_pose_msg(snap.true_tcp_pose, self.base_frame, stamp))
         self.in_position_pub.publish(Bool(data=self.in_position()))
+        if self._health() != self._diag_health:  # a protective stop shorter than the 1 Hz period is seen too
+            self._publish_diagnostics()
+
+    def _health(self) -> tuple[str, bool]:
+        """The arm's fault state as diagnostics report it: the fault it reports and whether its state is stale."""
+        snap = self.runner.latest() if self.runner.active else None
+        return (snap.fault, self.runner.stale()) if snap is not None else ("", False)
 
     def _publish_diagnostics(self) -> None:
+        self._diag_health = self._health()
         level, message, values = arm_health(
             self.runner, self.arm, self.lifecycle_state, self.last_error,
             connecting_s=self.connection.elapsed_s if self.connecting else None,

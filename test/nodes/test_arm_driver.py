@@ -378,3 +378,22 @@ def test_a_connection_lost_while_inactive_is_noticed_and_activate_is_refused(ros
     node.arm.disconnect()
     assert ros.spin_until(lambda: node.lifecycle_state == "unconfigured")
     assert "simulated arm not connected" in node.last_error or "disconnected" in node.last_error, node.last_error
+
+
+def test_a_protective_stop_shorter_than_the_diagnostics_period_is_an_error_at_once(ros):
+    """/diagnostics came only from the 1 Hz timer: a protective stop of a few tenths of a second never showed as an
+    ERROR (the orchestrator aborts on it) and the scan went on. Now its start and its end are published at once."""
+    node = _driver(ros, role="source")
+    probe = Probe(ros)
+    assert ros.spin_until(lambda: node.lifecycle_state == "active" and probe.poses)
+    goal = pose_msg_to_ur(probe.poses[-1]) + np.array([0.01, 0, 0, 0, 0, 0])
+    probe.send_goal(ros, goal)
+    assert ros.spin_until(lambda: probe.in_position and probe.in_position[-1])
+    assert ros.spin_until(lambda: probe.last_level() == DiagnosticStatus.OK)
+    n = len(probe.in_position)
+    node.arm.fault = "safety_mode PROTECTIVE_STOP (3)"
+    assert ros.spin_until(lambda: probe.last_level() == DiagnosticStatus.ERROR, timeout_s=0.5)
+    assert False in probe.in_position[n:]  # in_position false went out with it
+    node.arm.fault = ""
+    assert ros.spin_until(lambda: probe.last_level() == DiagnosticStatus.OK, timeout_s=0.5)
+    assert probe.in_position[-1] is True
