@@ -4,7 +4,7 @@ Topics (relative names; namespace the node to place them):
   subscribes  scan/armed (std_msgs/Bool), source_arm/in_position (std_msgs/Bool),
               detector_arm/in_position (std_msgs/Bool), estop (std_msgs/Bool: true latches the e-stop)
   publishes   source/beam_on (std_msgs/Bool, transient-local: on every change, at 10 Hz while active,
-              and false on every transition out of active), source/estop_latched (std_msgs/Bool,
+              and on every transition out of active: false, unless the source refused to switch off), source/estop_latched (std_msgs/Bool,
               transient-local, on every change: the orchestrator refuses to start a scan while it is true),
               /diagnostics (diagnostic_msgs/DiagnosticArray, 1 Hz)
   services    source/set_beam (std_srvs/SetBool), source/estop (std_srvs/Trigger),
@@ -18,13 +18,15 @@ source/reset_estop the beam needs scan/armed true anew.
 
 Lifecycle: configure builds the (simulated) source at kvp/power_w behind the interlock, activate
 serves source/set_beam and publishes the beam state, deactivate switches the beam off at once and
-refuses beam requests, cleanup/shutdown/error switch it off and release the source (one that refuses to
-switch off is reported on, an ERROR, and retried every tick; configure is refused meanwhile). The beam is off
-in every state but active. A driver fault (SourceError, or any exception the driver raises on the beam path) is a refused answer or, for a switch-off,
-retried every tick until it succeeds (even while the interlock permits the beam); either is an ERROR on /diagnostics until the refused command succeeds. The
-interlock inputs (armed, arm reports, e-stop) are followed in every state, so they are current on activation; an e-stop is latched in any state (one received while
-unconfigured latches the source built by the next configure). With autostart the node configures
-and activates itself in its constructor, so a plain ``ros2 run`` works without a lifecycle manager.
+refuses beam requests, cleanup/shutdown/error switch it off and release the source (one that refuses
+to switch off is reported on, an ERROR, and retried every tick; configure is refused meanwhile). The
+beam is off in every state but active. A driver fault (SourceError, or any exception the driver
+raises on the beam path) is a refused answer or, for a switch-off, retried every tick until it
+succeeds (even while the interlock permits the beam); either is an ERROR on /diagnostics until the
+refused command succeeds. The interlock inputs (armed, arm reports, e-stop) are followed in every
+state, so they are current on activation; an e-stop is latched in any state (one received while
+unconfigured latches the source built by the next configure). With autostart the node configures and
+activates itself in its constructor, so a plain ``ros2 run`` works without a lifecycle manager.
 """
 
 from __future__ import annotations

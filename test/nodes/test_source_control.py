@@ -476,7 +476,8 @@ def test_a_source_that_refuses_to_switch_off_at_shutdown_is_not_reported_off(ros
     ros.spin_for(0.3)
     assert beam[-1] is True
     assert ros.spin_until(lambda: diag and diag[-1].level == DiagnosticStatus.ERROR
-                          and "the beam may still be on" in diag[-1].message and "HV controller busy" in diag[-1].message)
+                          and "the beam may still be on" in diag[-1].message
+                          and "HV controller busy" in diag[-1].message)
     assert dict((v.key, v.value) for v in diag[-1].values)["beam_on"] == "True"
     tries = source.off_tries
     assert ros.spin_until(lambda: source.off_tries >= tries + 2, timeout_s=2.0)  # still retried
