@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 from typing import Callable
@@ -36,8 +37,10 @@ def run_node(node_factory: Callable[[], "object"], description: str, argv: list[
     from rclpy.impl.implementation_singleton import rclpy_implementation
     from rclpy.signals import SignalHandlerOptions
 
-    def stop(signum, frame):
-        raise KeyboardInterrupt
+    stopping = []
+
+    def stop(signum, frame):  # a flag, not an exception: one raised inside rclpy's executor could leave it half-way
+        stopping.append(signum)
 
     try:
         rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
@@ -53,13 +56,13 @@ def run_node(node_factory: Callable[[], "object"], description: str, argv: list[
         warn_undeclared_parameters(node)
         executor = SingleThreadedExecutor()
         executor.add_node(node)
-        while rclpy.ok():  # spins in slices, so that a signal's handler runs within one
+        while rclpy.ok() and not stopping:  # spins in slices, so that a signal is acted on within one
             executor.spin_once(timeout_sec=SIGNAL_POLL_S)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
-        for s in previous:  # a second signal during the teardown must not interrupt it
-            signal.signal(s, signal.SIG_IGN)
+        for s in previous:  # a second signal during the teardown ends the process at once, without a traceback
+            signal.signal(s, lambda signum, frame: os._exit(128 + signum))
         try:
             if node is not None:
                 node.destroy_node()

@@ -360,7 +360,7 @@ def test_sigterm_to_the_executable_switches_the_beam_off_and_says_so(ros):
         assert ros.spin_until(lambda: beam and beam[-1], 10.0)
         proc.send_signal(signal.SIGTERM)
         assert ros.spin_until(lambda: not beam[-1], 10.0), beam
-        assert proc.wait(timeout=20) == 0
+        assert proc.wait(timeout=20) == 0, proc.stderr.read()[-3000:]
     finally:
         if proc.poll() is None:
             proc.kill()
