@@ -36,7 +36,12 @@ class XraySource(Protocol):
 
 @dataclass
 class SimulatedXraySource:
-    """A micro-focus source model: 60-120 kVp, up to 150 W; counts beam-on time."""
+    """A micro-focus source model: 60-120 kVp, up to 150 W; counts beam-on time.
+
+    Fault injection (as :class:`~robot_ct_ros.hardware.simulated_arm.SimulatedArm`'s ``fault``): set
+    ``fault_on`` or ``fault_off`` to the exception a switch-on, or a switch-off of a beam that is on,
+    raises (a ``SourceError``, or what a driver's transport raises); ``off_tries`` counts those
+    switch-offs, refused ones included."""
 
     kvp: float = 90.0
     power_w: float = 150.0
@@ -45,6 +50,9 @@ class SimulatedXraySource:
     _beam_on: bool = False
     beam_on_seconds: float = 0.0
     _on_since: float | None = None
+    fault_on: Exception | None = None
+    fault_off: Exception | None = None
+    off_tries: int = 0
 
     def configure(self, kvp: float, power_w: float) -> None:
         if not (self.kvp_range[0] <= kvp <= self.kvp_range[1]):
@@ -56,6 +64,12 @@ class SimulatedXraySource:
         self.kvp, self.power_w = float(kvp), float(power_w)
 
     def set_beam(self, on: bool, now_s: float) -> None:
+        if on and self.fault_on is not None:
+            raise self.fault_on
+        if not on and self._beam_on:
+            self.off_tries += 1
+            if self.fault_off is not None:
+                raise self.fault_off
         if on and not self._beam_on:
             self._on_since = now_s
         if not on and self._beam_on and self._on_since is not None:

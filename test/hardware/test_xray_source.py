@@ -100,38 +100,21 @@ def test_after_an_estop_the_scan_must_be_armed_anew():
     assert src.request_beam(True, 10.7)[0]
 
 
-class _FaultySource(SimulatedXraySource):
-    """A driver that refuses to switch on (an arcing tube) or off (a shutter that does not confirm)."""
-
-    refuse_on = False
-    refuse_off = False
-    off_tries = 0
-
-    def set_beam(self, on, now_s):
-        if on and self.refuse_on:
-            raise SourceError("tube arc detected")
-        if not on and self._beam_on:
-            self.off_tries += 1
-            if self.refuse_off:
-                raise SourceError("shutter did not confirm closed")
-        super().set_beam(on, now_s)
-
-
 def test_a_driver_fault_is_an_answer_not_an_exception():
     """SourceError from the driver once escaped request_beam and the tick (the node's callbacks crashed and a
     refused switch-off was never retried): now a refused switch-on is a refusal naming the fault, a refused
     switch-off is retried on every tick, and the fault stays until the refused command succeeds."""
-    src = InterlockedSource(_FaultySource(), max_report_age_s=1.0)
+    src = InterlockedSource(SimulatedXraySource(), max_report_age_s=1.0)
     src.update(10.0, **ALL_OK)
-    src.source.refuse_on = True
+    src.source.fault_on = SourceError("tube arc detected")
     ok, why = src.request_beam(True, 10.1)
     assert not ok and "beam refused: source refused beam on: tube arc detected" == why and not src.beam_on
     assert "tube arc" in src.fault
     assert src.request_beam(False, 10.15)[0] and "tube arc" in src.fault  # switching off does not clear it
-    src.source.refuse_on = False
+    src.source.fault_on = None
     assert src.request_beam(True, 10.2)[0] and src.fault == ""
 
-    src.source.refuse_off = True
+    src.source.fault_off = SourceError("shutter did not confirm closed")
     src.update(10.3, scan_armed=False)
     assert src.beam_on and "shutter did not confirm closed" in src.fault and src.last_cut_reason == ""
     ok, why = src.request_beam(False, 10.35)
@@ -140,7 +123,7 @@ def test_a_driver_fault_is_an_answer_not_an_exception():
     src.tick(10.4)
     src.tick(10.5)
     assert src.source.off_tries == tries + 2 and src.beam_on  # retried on every tick
-    src.source.refuse_off = False
+    src.source.fault_off = None
     src.tick(10.6)
     assert not src.beam_on and src.fault == "" and "not armed" in src.last_cut_reason
 
@@ -170,22 +153,22 @@ def test_a_refused_switch_off_is_retried_while_the_interlock_still_permits_the_b
     """A switch-off asked for and refused was retried only when the interlock itself forbade the beam: with the scan
     armed and both arms in position the beam stayed on for good. Now it is retried on every tick until it succeeds;
     a switch-on request refused by the interlock does not cancel it, one that is permitted and succeeds does."""
-    src = InterlockedSource(_FaultySource(), max_report_age_s=1.0)
+    src = InterlockedSource(SimulatedXraySource(), max_report_age_s=1.0)
     src.update(10.0, **ALL_OK)
     assert src.request_beam(True, 10.1)[0]
-    src.source.refuse_off = True
+    src.source.fault_off = SourceError("shutter did not confirm closed")
     ok, why = src.request_beam(False, 10.2)
     assert not ok and "shutter" in why and src.beam_on
     tries = src.source.off_tries
     src.tick(10.3)
     src.tick(10.4)
     assert src.source.off_tries == tries + 2 and src.beam_on and src.off_pending  # retried on every tick
-    src.source.refuse_off = False
+    src.source.fault_off = None
     src.tick(10.5)
     assert not src.beam_on and not src.off_pending and src.fault == ""
 
     assert src.request_beam(True, 10.6)[0]
-    src.source.refuse_off = True
+    src.source.fault_off = SourceError("shutter did not confirm closed")
     assert not src.request_beam(False, 10.7)[0]
     src.update(10.75, scan_armed=False)
     assert not src.request_beam(True, 10.8)[0] and src.off_pending  # not permitted: the switch-off stays pending
@@ -196,36 +179,25 @@ def test_a_refused_switch_off_is_retried_while_the_interlock_still_permits_the_b
     assert src.beam_on and src.source.off_tries == tries
 
 
-class _BrokenLinkSource(SimulatedXraySource):
-    """A serial/network driver whose link fails: it raises what its transport raises, not SourceError."""
-
-    error: Exception | None = None
-
-    def set_beam(self, on, now_s):
-        if self.error is not None and (on or self._beam_on):
-            raise self.error
-        super().set_beam(on, now_s)
-
-
 @pytest.mark.parametrize("error", [OSError("serial port gone"), TimeoutError("no answer in 0.5 s"),
                                    RuntimeError("socket closed")])
 def test_any_driver_exception_is_a_fault_and_a_refused_switch_off_is_retried(error):
     """Only SourceError was caught: an OSError from a serial driver escaped request_beam and the tick (the node's
     executor ended with the beam on). Now any exception is a fault named with its type, never raised."""
-    src = InterlockedSource(_BrokenLinkSource(), max_report_age_s=1.0)
+    src = InterlockedSource(SimulatedXraySource(), max_report_age_s=1.0)
     src.update(10.0, **ALL_OK)
-    src.source.error = error
+    src.source.fault_on = src.source.fault_off = error
     ok, why = src.request_beam(True, 10.1)
     name = type(error).__name__
     assert not ok and why == f"beam refused: source refused beam on: {name}: {error}" and not src.beam_on
-    src.source.error = None
+    src.source.fault_on = src.source.fault_off = None
     assert src.request_beam(True, 10.2)[0] and src.fault == ""
-    src.source.error = error
+    src.source.fault_on = src.source.fault_off = error
     ok, why = src.request_beam(False, 10.3)
     assert not ok and f"source refused beam off: {name}" in why and src.beam_on
     src.update(10.4, scan_armed=False)  # the interlock's cut is refused too, and does not raise
     src.tick(10.5)
     assert src.beam_on and f"{name}: {error}" in src.fault
-    src.source.error = None
+    src.source.fault_on = src.source.fault_off = None
     src.tick(10.6)
     assert not src.beam_on and src.fault == "" and not src.off_pending

@@ -7,6 +7,7 @@ from rclpy.parameter import Parameter
 from std_msgs.msg import Bool
 from std_srvs.srv import SetBool, Trigger
 
+from robot_ct_ros.hardware.xray_source import SimulatedXraySource, SourceError
 from robot_ct_ros.nodes.source_control import LATCHED, SourceControlNode
 
 
@@ -245,22 +246,7 @@ def test_a_source_driver_fault_is_answered_reported_and_the_node_lives_on(ros):
     fault, /diagnostics is ERROR naming it, the switch-off is retried on every tick, and destroy_node logs."""
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 
-    from robot_ct_ros.hardware.xray_source import SimulatedXraySource, SourceError
-
-    class Faulty(SimulatedXraySource):
-        refuse_on = refuse_off = False
-        off_tries = 0
-
-        def set_beam(self, on, now_s):
-            if on and self.refuse_on:
-                raise SourceError("tube arc detected")
-            if not on and self._beam_on:
-                self.off_tries += 1
-                if self.refuse_off:
-                    raise SourceError("shutter did not confirm closed")
-            super().set_beam(on, now_s)
-
-    node = ros.add(SourceControlNode(context=ros.context, source_factory=Faulty))
+    node = ros.add(SourceControlNode(context=ros.context, source_factory=SimulatedXraySource))
     probe = ros.node("probe")
     diag = []
     probe.create_subscription(DiagnosticArray, "/diagnostics",
@@ -273,17 +259,17 @@ def test_a_source_driver_fault_is_answered_reported_and_the_node_lives_on(ros):
     _ready(ros, pubs, node)
     source = node.interlock.source
 
-    source.refuse_on = True
+    source.fault_on = SourceError("tube arc detected")
     answer = ros.call(set_beam, SetBool.Request(data=True))
     assert not answer.success and "tube arc detected" in answer.message and not node.beam_on
     assert ros.spin_until(lambda: diag and diag[-1].level == DiagnosticStatus.ERROR
                           and "tube arc detected" in diag[-1].message)
     assert node.lifecycle_state == "active"
 
-    source.refuse_on = False
+    source.fault_on = None
     _ready(ros, pubs, node)
     assert ros.call(set_beam, SetBool.Request(data=True)).success and node.beam_on
-    source.refuse_off = True
+    source.fault_off = SourceError("shutter did not confirm closed")
     pubs["scan/armed"].publish(Bool(data=False))
     assert ros.spin_until(lambda: not node.interlock.inputs.scan_armed)
     tries = source.off_tries
@@ -367,34 +353,10 @@ def test_sigterm_to_the_executable_switches_the_beam_off_and_says_so(ros):
         proc.wait(timeout=10)
 
 
-class _Faulty:
-    """A source driver that refuses the switch-off, or fails with what its transport raises (set ``error``)."""
-
-    @staticmethod
-    def make():
-        from robot_ct_ros.hardware.xray_source import SimulatedXraySource, SourceError
-
-        class Faulty(SimulatedXraySource):
-            refuse_off = False
-            error = None
-            off_tries = 0
-
-            def set_beam(self, on, now_s):
-                if self.error is not None and (on or self._beam_on):
-                    raise self.error
-                if not on and self._beam_on:
-                    self.off_tries += 1
-                    if self.refuse_off:
-                        raise SourceError("HV controller busy")
-                super().set_beam(on, now_s)
-
-        return Faulty
-
-
 def _faulty_setup(ros):
     from diagnostic_msgs.msg import DiagnosticArray
 
-    node = ros.add(SourceControlNode(context=ros.context, source_factory=_Faulty.make()))
+    node = ros.add(SourceControlNode(context=ros.context, source_factory=SimulatedXraySource))
     probe = ros.node("probe")
     diag, beam = [], []
     probe.create_subscription(DiagnosticArray, "/diagnostics",
@@ -423,14 +385,14 @@ def test_a_refused_switch_off_is_retried_while_the_interlock_permits_the_beam(ro
 
     _ready(ros, pubs, node)
     assert ros.call(set_beam, SetBool.Request(data=True)).success and node.beam_on
-    source.refuse_off = True
+    source.fault_off = SourceError("HV controller busy")
     in_position()
     answer = ros.call(set_beam, SetBool.Request(data=False))
     assert not answer.success and "HV controller busy" in answer.message
     tries = source.off_tries
     assert ros.spin_until(lambda: in_position() and source.off_tries >= tries + 3, timeout_s=3.0)
     assert node.beam_on and node.interlock.last_reason == "ok" and node.lifecycle_state == "active"
-    source.refuse_off = False
+    source.fault_off = None
     assert ros.spin_until(lambda: not node.beam_on and beam and beam[-1] is False, timeout_s=2.0)
     assert node.interlock.fault == ""
 
@@ -442,21 +404,21 @@ def test_a_driver_exception_other_than_source_error_is_a_fault_and_the_node_live
 
     node, pubs, diag, beam, set_beam = _faulty_setup(ros)
     source = node.interlock.source
-    source.error = OSError("serial port gone")
+    source.fault_on = source.fault_off = OSError("serial port gone")
     answer = ros.call(set_beam, SetBool.Request(data=True))
     assert not answer.success and "OSError: serial port gone" in answer.message and not node.beam_on
     assert ros.spin_until(lambda: diag and diag[-1].level == DiagnosticStatus.ERROR
                           and "OSError: serial port gone" in diag[-1].message)
-    source.error = None
+    source.fault_on = source.fault_off = None
     _ready(ros, pubs, node)
     assert ros.call(set_beam, SetBool.Request(data=True)).success and node.beam_on
-    source.error = TimeoutError("no answer from the HV generator")
+    source.fault_on = source.fault_off = TimeoutError("no answer from the HV generator")
     pubs["scan/armed"].publish(Bool(data=False))  # the interlock's cut, in a subscription callback, then every tick
     assert ros.spin_until(lambda: not node.interlock.inputs.scan_armed)
     ros.spin_for(0.3)
     assert node.beam_on and node.lifecycle_state == "active"
     assert ros.spin_until(lambda: diag[-1].level == DiagnosticStatus.ERROR and "TimeoutError" in diag[-1].message)
-    source.error = None
+    source.fault_on = source.fault_off = None
     assert ros.spin_until(lambda: not node.beam_on and beam and beam[-1] is False, timeout_s=2.0)
 
 
@@ -469,7 +431,7 @@ def test_a_source_that_refuses_to_switch_off_at_shutdown_is_not_reported_off(ros
     node, pubs, diag, beam, set_beam = _faulty_setup(ros)
     source = node.interlock.source
     assert ros.call(set_beam, SetBool.Request(data=True)).success
-    source.refuse_off = True
+    source.fault_off = SourceError("HV controller busy")
     assert node.trigger_deactivate() == TransitionCallbackReturn.SUCCESS
     assert node.trigger_shutdown() == TransitionCallbackReturn.SUCCESS and node.lifecycle_state == "finalized"
     assert source.beam_on and node.beam_on
@@ -481,7 +443,7 @@ def test_a_source_that_refuses_to_switch_off_at_shutdown_is_not_reported_off(ros
     assert dict((v.key, v.value) for v in diag[-1].values)["beam_on"] == "True"
     tries = source.off_tries
     assert ros.spin_until(lambda: source.off_tries >= tries + 2, timeout_s=2.0)  # still retried
-    source.refuse_off = False
+    source.fault_off = None
     assert ros.spin_until(lambda: not source.beam_on and not node.beam_on and beam[-1] is False, timeout_s=2.0)
     n = len(diag)
     assert ros.spin_until(lambda: len(diag) > n)
