@@ -338,14 +338,20 @@ def test_a_publish_rate_that_would_look_silent_is_refused(ros):
         assert "publish_rate_hz" in str(err.value) and "\n" not in str(err.value)
 
 
-def test_a_protective_stop_clears_in_position_and_is_an_error(ros):
-    """The robot's mode (protective stop, power off) once left in_position true and /diagnostics OK."""
+def _in_position(ros):
+    """An active simulated source arm that reached a goal 1 cm away: (node, probe)."""
     node = _driver(ros, role="source")
     probe = Probe(ros)
     assert ros.spin_until(lambda: node.lifecycle_state == "active" and probe.poses)
     goal = pose_msg_to_ur(probe.poses[-1]) + np.array([0.01, 0, 0, 0, 0, 0])
     probe.send_goal(ros, goal)
     assert ros.spin_until(lambda: probe.in_position and probe.in_position[-1])
+    return node, probe
+
+
+def test_a_protective_stop_clears_in_position_and_is_an_error(ros):
+    """The robot's mode (protective stop, power off) once left in_position true and /diagnostics OK."""
+    node, probe = _in_position(ros)
     node.arm.fault = "safety_mode PROTECTIVE_STOP (3)"
     assert ros.spin_until(lambda: probe.in_position[-1] is False)
     assert ros.spin_until(lambda: probe.last_level() == DiagnosticStatus.ERROR)
@@ -383,12 +389,7 @@ def test_a_connection_lost_while_inactive_is_noticed_and_activate_is_refused(ros
 def test_a_protective_stop_shorter_than_the_diagnostics_period_is_an_error_at_once(ros):
     """/diagnostics came only from the 1 Hz timer: a protective stop of a few tenths of a second never showed as an
     ERROR (the orchestrator aborts on it) and the scan went on. Now its start and its end are published at once."""
-    node = _driver(ros, role="source")
-    probe = Probe(ros)
-    assert ros.spin_until(lambda: node.lifecycle_state == "active" and probe.poses)
-    goal = pose_msg_to_ur(probe.poses[-1]) + np.array([0.01, 0, 0, 0, 0, 0])
-    probe.send_goal(ros, goal)
-    assert ros.spin_until(lambda: probe.in_position and probe.in_position[-1])
+    node, probe = _in_position(ros)
     assert ros.spin_until(lambda: probe.last_level() == DiagnosticStatus.OK)
     n = len(probe.in_position)
     node.arm.fault = "safety_mode PROTECTIVE_STOP (3)"
