@@ -194,12 +194,12 @@ def _unused_settings(method, settings) -> str:
         notes.append(f"{', '.join(given)} did not apply: the prior is off (prior_translation_mm or "
                      "prior_rotation_deg 0)")
     # (not exterior_iterations: a schedule field, which a result's settings record resolved)
+    # a floor is looser when lower, a ratio limit when higher
     looser = [f"{name} {getattr(settings, name)} (looser than {general} {getattr(settings, general)})"
-              for name, general, looser_if in (("guard_min_ncc_unmodelled", "guard_min_ncc", "<"),
-                                               ("guard_min_ncc_exterior", "guard_min_ncc", "<"),
-                                               ("guard_max_ratio_unmodelled", "guard_max_ratio", ">"))
-              if (getattr(settings, name) < getattr(settings, general)) == (looser_if == "<")
-              and getattr(settings, name) != getattr(settings, general)]
+              for name, general, sign in (("guard_min_ncc_unmodelled", "guard_min_ncc", 1),
+                                          ("guard_min_ncc_exterior", "guard_min_ncc", 1),
+                                          ("guard_max_ratio_unmodelled", "guard_max_ratio", -1))
+              if sign * (getattr(settings, general) - getattr(settings, name)) > 0]
     if settings.guard and looser:
         notes.append(f"{', '.join(looser)} did not apply: the guard takes the stricter of the two")
     if settings.exterior == "off" and (given := changed(["exterior_voxel_mm", "exterior_half_width_mm",
