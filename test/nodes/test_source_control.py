@@ -353,10 +353,10 @@ def test_sigterm_to_the_executable_switches_the_beam_off_and_says_so(ros):
         proc.wait(timeout=10)
 
 
-def _faulty_setup(ros):
+def _faulty_setup(ros, node_class=SourceControlNode):
     from diagnostic_msgs.msg import DiagnosticArray
 
-    node = ros.add(SourceControlNode(context=ros.context, source_factory=SimulatedXraySource))
+    node = ros.add(node_class(context=ros.context, source_factory=SimulatedXraySource))
     probe = ros.node("probe")
     diag, beam = [], []
     probe.create_subscription(DiagnosticArray, "/diagnostics",
@@ -448,3 +448,26 @@ def test_a_source_that_refuses_to_switch_off_at_shutdown_is_not_reported_off(ros
     n = len(diag)
     assert ros.spin_until(lambda: len(diag) > n)
     assert diag[-1].level == DiagnosticStatus.WARN and diag[-1].message == "finalized"
+
+
+def test_configure_is_refused_while_a_source_released_on_error_keeps_the_beam_on(ros):
+    """A transition that fails (here an unforeseen exception in deactivate) ends in on_error, which releases the
+    source; one that refused to switch off is kept aside with the beam on. A configure then must not build a second
+    source beside it: it fails, saying why, until the retried switch-off succeeds; then it configures again."""
+    class FailingDeactivate(SourceControlNode):
+        def on_deactivate(self, state):
+            raise RuntimeError("unforeseen fault in a transition")
+
+    node, pubs, diag, beam, set_beam = _faulty_setup(ros, FailingDeactivate)
+    source = node.interlock.source
+    assert ros.call(set_beam, SetBool.Request(data=True)).success and node.beam_on
+    source.fault_off = SourceError("HV controller busy")
+    assert node.trigger_deactivate() != TransitionCallbackReturn.SUCCESS
+    assert node.lifecycle_state == "unconfigured" and node.interlock is None and node.beam_on
+    assert node.trigger_configure() == TransitionCallbackReturn.FAILURE
+    assert node.lifecycle_state == "unconfigured" and node.interlock is None
+    assert "configure refused" in node.last_error and "HV controller busy" in node.last_error
+    source.fault_off = None
+    assert ros.spin_until(lambda: not node.beam_on and beam and beam[-1] is False, timeout_s=2.0)
+    assert node.trigger_configure() == TransitionCallbackReturn.SUCCESS
+    assert node.interlock is not None and node.interlock.source is not source and not node.beam_on
