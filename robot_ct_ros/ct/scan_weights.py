@@ -21,11 +21,18 @@ __all__ = ["estimate_scan_axis", "estimate_scan_centre", "fdk_view_weights", "sc
 
 
 def estimate_scan_axis(geom: ConeGeometry) -> np.ndarray:
-    """Unit rotation axis of the scan: normal of the plane fitted to the source positions.
+    """Unit rotation axis of the scan, from the geometry alone (any frame).
 
-    The sign is chosen so the axis points along the mean detector v (row) direction, i.e.
-    the axial direction of a usual scan. With fewer than 3 views, or sources on a line,
-    the mean v direction itself is returned.
+    The normal of the plane fitted to the source positions where they fix it: 4 views or more whose
+    scatter off the plane is under 5 % of their bend within it (the normal then known to about 3
+    degrees). On a short arc of noisy positions (a live scan's first views, a few degrees of a
+    robot's orbit) the bend is hardly above the noise and that normal can be anywhere; there the
+    axis is the one across both the sources' motion (their principal direction) and the mean
+    viewing direction (the detector normal w), which a short arc fixes well, as long as the views
+    look along much the same way (a mean w of length 0.5 or more: an arc up to about 240 degrees).
+    The sign is chosen so the axis points along the mean detector v (row) direction, i.e. the
+    axial direction of a usual scan. With fewer than 3 views, or sources on a line, or none of the
+    above, the mean v direction itself is returned.
     """
     s = geom.source_mm
     vmean = geom.v.mean(axis=0)
@@ -33,9 +40,18 @@ def estimate_scan_axis(geom: ConeGeometry) -> np.ndarray:
     if geom.n_views < 3:
         return vmean
     _, sv, vt = np.linalg.svd(s - s.mean(axis=0), full_matrices=False)
-    if sv[1] <= 1e-9 * max(sv[0], 1e-12):  # degenerate (collinear) trajectory
+    if sv[0] <= 0:
         return vmean
-    n = vt[2]
+    n = None
+    plane_fixed = sv[1] > 1e-9 * sv[0] and (geom.n_views == 3 or sv[2] <= 0.05 * sv[1])
+    wmean = geom.w.mean(axis=0)
+    if not (plane_fixed and geom.n_views > 3) and np.linalg.norm(wmean) >= 0.5:
+        n = np.cross(vt[0], wmean)
+        n = n / np.linalg.norm(n) if np.linalg.norm(n) > 1e-9 else None
+    if n is None and plane_fixed:
+        n = vt[2]
+    if n is None:  # degenerate (collinear, or looking along the motion) trajectory
+        return vmean
     return n if np.dot(n, vmean) >= 0 else -n
 
 

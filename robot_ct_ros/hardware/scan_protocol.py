@@ -21,7 +21,7 @@ import numpy as np
 import yaml
 
 from robot_ct_ros.bag import format as fmt
-from robot_ct_ros.ct.geometry import ConeGeometry
+from robot_ct_ros.ct.geometry import ConeGeometry, axis_frame
 from robot_ct_ros.ct.trajectory import SeedSystem, robotic_roi_scan
 
 __all__ = ["ScanProtocol", "PROTOCOL_ERRORS"]
@@ -143,5 +143,9 @@ class ScanProtocol:
             kw["roi_size_mm"] = np.asarray(self.roi_size_m) * 1e3
         notes = {"scan_id": scan_id, "protocol": self.name, "kvp": self.kvp, "power_w": self.power_w,
                  "exposure_s": self.exposure_s, "settle_s": self.settle_s, **self.notes}
+        # the grid's orientation stated, z along the protocol's axis: a live reconstruction starts from the first few
+        # views, whose short arc tells the axis far less well than the protocol does
+        direction = axis_frame(self.axis)
         return fmt.scan_info_for(geom, binning=self.binning, projection_units="counts",
-                                 roi_center_mm=np.asarray(self.roi_center_m) * 1e3, notes=notes, **kw)
+                                 roi_center_mm=np.asarray(self.roi_center_m) * 1e3, notes=notes,
+                                 roi_direction=[float(x) for x in direction.reshape(-1)], **kw)

@@ -59,6 +59,23 @@ def test_scan_info_records_the_protocol():
     assert "voxel_size_m" not in ScanProtocol.from_dict(SMALL).scan_info(p.geometry(), "scan-2")
 
 
+def test_scan_info_states_the_grid_orientation_about_the_protocol_axis():
+    """A live reconstruction starts from the first views, whose short arc tells the axis poorly: the scan info
+    states the grid's orientation, z along the protocol's axis, and the bag's default grid follows it."""
+    from robot_ct_ros.bag.reader import ScanData
+
+    for axis in ((0.0, 0.0, 1.0), (0.0, 1.0, 0.0), (1.0, -2.0, 0.5)):
+        p = ScanProtocol.from_dict(dict(SMALL, n_views=360, axis=list(axis)))
+        info = p.scan_info(p.geometry(), "scan-1")
+        d = np.asarray(info["roi_direction"]).reshape(3, 3)
+        np.testing.assert_allclose(d.T @ d, np.eye(3), atol=1e-12)
+        assert abs(d[:, 2] @ np.asarray(axis)) == pytest.approx(np.linalg.norm(axis))
+        first = p.geometry().subset(np.arange(4))
+        ones = np.ones((4, 6, 8), bool)
+        scan = ScanData(None, ones.astype(np.float32), np.arange(4, dtype=np.int64), first, None, ones[0], ones, info)
+        np.testing.assert_allclose(scan.default_grid().direction_matrix, d)
+
+
 def test_yaml_files_and_bad_files(tmp_path):
     path = tmp_path / "p.yaml"
     path.write_text(yaml.safe_dump({"scan_protocol": SMALL}))
