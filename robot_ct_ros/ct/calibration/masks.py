@@ -7,7 +7,7 @@ import numpy as np
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
 
 __all__ = ["roi_support_mask", "ray_chords_mm", "as_view_mask", "usable_data", "bin_masked", "usable_views", "view_chunks",
-           "estimator_inputs", "summarise_views", "MIN_VIEW_PIXELS", "FACE_MARGIN_SHARE"]
+           "estimator_inputs", "summarise_views", "MIN_VIEW_PIXELS", "FACE_MARGIN_SHARE", "AXIS_ALIGNED_DEG"]
 
 MIN_VIEW_PIXELS = 16
 """A view with fewer usable pixels than this (its rays barely cross the grid, or its detector is
@@ -15,40 +15,57 @@ mostly dead) is not estimated: it keeps its current geometry, i.e. the nominal o
 
 
 def ray_chords_mm(geom: ConeGeometry, grid: VolumeGrid, z_stretch: float = 1.0,
-                  chunk_pixels: int = 1 << 21) -> np.ndarray:
+                  chunk_pixels: int = 1 << 21, axis=None) -> np.ndarray:
     """Exact length (mm) of every pixel's ray, source to pixel centre, inside the box of ``grid``
-    (its voxels' outer faces), float32 (n, rows, cols). ``z_stretch`` > 1 stretches the box along
-    the grid's own z axis about its centre (the comparison box of the axial test of
-    :func:`roi_support_mask`). Pure geometry, slab clipping in the grid's index frame, batched
-    over views (no interpolation: a thin grid's chords are as exact as a thick one's)."""
+    (its voxels' outer faces), float32 (n, rows, cols). ``z_stretch`` > 1 sweeps the box along
+    ``axis`` (a world unit vector; default the grid's own z axis) about its centre, to ``z_stretch``
+    times its length along that axis (the comparison body of the axial test of
+    :func:`roi_support_mask`): along the grid's z that is the box stretched, along any other
+    direction the box swept by a segment, a zonotope (its faces: the normals of each pair of the
+    box's three edges and the segment). Pure geometry, slab clipping in the grid's own frame
+    (mm about its centre), batched over views (no interpolation: a thin grid's chords are as
+    exact as a thick one's)."""
     from robot_ct_ros.ct.projector import ray_geometry
 
     rg = ray_geometry(geom, grid)  # source, pixel (0, 0), column and row steps in index units
     n = np.asarray(grid.shape_xyz, np.float64)
-    lo = np.full(3, -0.5)
-    hi = n - 0.5
-    half_z = 0.5 * n[2] * z_stretch
-    lo[2], hi[2] = 0.5 * (n[2] - 1) - half_z, 0.5 * (n[2] - 1) + half_z
     vs = np.asarray(grid.voxel_size_mm, np.float64)
+    half = 0.5 * n * vs  # the box's half edges along the grid's x, y, z (mm)
+    gens = [np.eye(3)[k] * half[k] for k in range(3)]
+    a = np.array([0.0, 0.0, 1.0]) if axis is None else grid.direction_matrix.T @ np.asarray(axis, np.float64)
+    a = a / np.linalg.norm(a)
+    if z_stretch != 1.0:  # the sweep: a segment along a, half as long as (z_stretch - 1) times the box's length there
+        gens.append(a * 0.5 * (z_stretch - 1.0) * 2.0 * float(np.abs(a * half).sum()))
+    slabs = []  # (unit normal, half width): the zonotope's faces, one per non-parallel pair of generators
+    for i in range(len(gens)):
+        for j in range(i + 1, len(gens)):
+            nrm = np.cross(gens[i], gens[j])
+            if np.linalg.norm(nrm) > 1e-9 * np.linalg.norm(gens[i]) * np.linalg.norm(gens[j]):
+                nrm = nrm / np.linalg.norm(nrm)
+                slabs.append((nrm, sum(abs(float(nrm @ g)) for g in gens)))
+    normals = np.array([x[0] for x in slabs])  # (m, 3) in the grid's frame
+    widths = np.array([x[1] for x in slabs])
+    centre_idx = 0.5 * (n - 1.0)
     rows = np.arange(geom.n_rows, dtype=np.float64)
     cols = np.arange(geom.n_cols, dtype=np.float64)
     out = np.empty((geom.n_views, geom.n_rows, geom.n_cols), np.float32)
     step = max(1, int(chunk_pixels) // max(1, geom.n_rows * geom.n_cols))
     for v0 in range(0, geom.n_views, step):
         g = rg[v0:v0 + step]
-        src = g[:, None, None, 0:3]
-        pix = (g[:, None, None, 3:6] + cols[None, None, :, None] * g[:, None, None, 6:9]
-               + rows[None, :, None, None] * g[:, None, None, 9:12])
+        src = (g[:, None, None, 0:3] - centre_idx) * vs  # mm about the grid's centre, along its axes
+        pix = ((g[:, None, None, 3:6] + cols[None, None, :, None] * g[:, None, None, 6:9]
+                + rows[None, :, None, None] * g[:, None, None, 9:12]) - centre_idx) * vs
         d = pix - src
+        s_n, d_n = src @ normals.T, d @ normals.T  # (..., m)
         with np.errstate(divide="ignore", invalid="ignore"):
-            t1 = (lo - src) / d
-            t2 = (hi - src) / d
-        inside = (src >= lo) & (src <= hi)  # a ray parallel to a face: all or nothing
-        t_in = np.where(d == 0, np.where(inside, -np.inf, np.inf), np.minimum(t1, t2))
-        t_out = np.where(d == 0, np.where(inside, np.inf, -np.inf), np.maximum(t1, t2))
+            t1 = (-widths - s_n) / d_n
+            t2 = (widths - s_n) / d_n
+        inside = np.abs(s_n) <= widths  # a ray parallel to a face: all or nothing
+        t_in = np.where(d_n == 0, np.where(inside, -np.inf, np.inf), np.minimum(t1, t2))
+        t_out = np.where(d_n == 0, np.where(inside, np.inf, -np.inf), np.maximum(t1, t2))
         t0 = np.maximum(t_in.max(axis=-1), 0.0)
         t1 = np.minimum(t_out.min(axis=-1), 1.0)
-        out[v0:v0 + step] = np.maximum(t1 - t0, 0.0) * np.linalg.norm(d * vs, axis=-1)
+        out[v0:v0 + step] = np.maximum(t1 - t0, 0.0) * np.linalg.norm(d, axis=-1)
     return out
 
 
@@ -60,6 +77,11 @@ more (thin, few-row detectors on the slab their cone sees, whose every ray runs 
 the margin keeps about half of them)."""
 
 
+AXIS_ALIGNED_DEG = 1.0
+""":func:`roi_support_mask` takes a grid's z within this angle of the scan axis as along it (the
+robots' errors tilt an estimated axis by a fraction of a degree)."""
+
+
 def roi_support_mask(nominal: ConeGeometry, params: np.ndarray, grid: VolumeGrid, fraction: float,
                      axial_tolerance: float = 0.02) -> np.ndarray:
     """(n, rows, cols) pixels whose reprojection of the ROI volume is meaningful.
@@ -68,8 +90,9 @@ def roi_support_mask(nominal: ConeGeometry, params: np.ndarray, grid: VolumeGrid
     chord of that view, and leaves it through the sides, not through the top or bottom
     face: a ray that exits axially also crosses object outside the reconstructed slab
     (the long-object problem), which no offset or gain can absorb. "Exits axially" means its
-    chord in the grid is shorter, by more than ``axial_tolerance``, than in the grid stretched
-    three times along its own z axis.
+    chord in the grid is shorter, by more than ``axial_tolerance``, than in the grid swept to three
+    times its length along the scan axis (:func:`~robot_ct_ros.ct.scan_weights.estimate_scan_axis`),
+    whichever way the grid is turned: the object goes on along the axis, not along the grid's z.
 
     Two measures of the chords: ray-cast through coarse ones-volumes (4x larger voxels), whose
     interpolation falls off over the outer half voxel of the top and bottom faces, so rays
@@ -77,15 +100,22 @@ def roi_support_mask(nominal: ConeGeometry, params: np.ndarray, grid: VolumeGrid
     bottom of a normal detector); and exact (:func:`ray_chords_mm`), no margin. The margin is
     kept unless it drops 40 % or more of the rays the exact test keeps (:data:`FACE_MARGIN_SHARE`,
     over the whole scan): a thin (few-row) detector whose grid is the slab its cone sees runs
-    every ray near the faces, and keeps them all.
+    every ray near the faces, and keeps them all. The margin needs the grid's z along the scan axis
+    (within :data:`AXIS_ALIGNED_DEG`); a grid turned otherwise gets the exact test alone.
     """
     from robot_ct_ros.ct.projector import forward_project
 
+    from robot_ct_ros.ct.scan_weights import estimate_scan_axis
+
     geom = nominal.perturbed(params)
+    axis = estimate_scan_axis(geom)
+    aligned = abs(float(axis @ grid.direction_matrix[:, 2])) >= np.cos(np.deg2rad(AXIS_ALIGNED_DEG))
     chord = ray_chords_mm(geom, grid)
-    chord_tall = ray_chords_mm(geom, grid, z_stretch=3.0)
+    chord_tall = ray_chords_mm(geom, grid, z_stretch=3.0, axis=None if aligned else axis)
     peak = chord.reshape(chord.shape[0], -1).max(axis=1)
     exact = (chord > (fraction * peak)[:, None, None]) & (chord >= (1.0 - axial_tolerance) * chord_tall)
+    if not aligned:
+        return exact
     coarse = grid.resized(tuple(max(2, s // 4) for s in grid.shape_zyx),
                           tuple(e / max(2, s // 4) for e, s in zip(grid.extent_mm, grid.shape_xyz)))
     nz, ny, nx = coarse.shape_zyx

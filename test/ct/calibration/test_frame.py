@@ -87,3 +87,62 @@ def test_views_that_see_little_of_the_grid_do_not_stop_the_calibration(method):
     before = reprojection_error(nominal.subset(others), true.subset(others), pts)["mean_px"]
     after = reprojection_error(result.geom.subset(others), true.subset(others), pts)["mean_px"]
     assert after < before, (before, after)
+
+
+def test_the_axial_test_follows_the_scan_axis_not_the_grid_z():
+    """A cube left world-aligned around a scan about +y (RTK's axis): the pixel mask's axial test stretched the
+    grid along its own z, across the scan axis, so most views kept no pixels ("saw too little of the grid") and
+    the correction ended 7 times worse than on a grid turned with the scan. The test now sweeps the grid along the
+    scan axis: the same correction whichever way the cube is turned."""
+    from robot_ct_ros.ct.calibration.masks import ray_chords_mm, roi_support_mask
+
+    nominal, true, _, measured = _scan()
+    cube = VolumeGrid.centered((28, 28, 28), 12.0 / 28)
+    about_y = Rotation.from_rotvec([-np.pi / 2, 0.0, 0.0]).as_matrix()  # the scan's z axis to +y
+    assert np.allclose(about_y @ [0.0, 0.0, 1.0], [0.0, 1.0, 0.0])
+    t = np.array([3.0, -2.0, 5.0])
+    world_cube = VolumeGrid.centered(cube.shape_zyx, cube.voxel_size_mm, center_mm=t)  # world axes: z across the scan
+    turned_cube = cube.moved(about_y, t)
+    zeros = np.zeros((nominal.n_views, 9))
+    kept_world = roi_support_mask(nominal.moved(about_y, t), zeros, world_cube, 0.2)
+    kept_turned = roi_support_mask(nominal.moved(about_y, t), zeros, turned_cube, 0.2)
+    # the world cube is the turned one (a quarter turn maps a cube onto itself): the same swept body
+    moved = nominal.moved(about_y, t)
+    np.testing.assert_allclose(ray_chords_mm(moved, world_cube, 3.0, axis=[0.0, 1.0, 0.0]),
+                               ray_chords_mm(moved, turned_cube, 3.0), atol=1e-4)
+    assert kept_world.sum() > 0.9 * kept_turned.sum()  # the exact test alone: no margin at the end faces
+    pts = roi_points(cube)
+    before = reprojection_error(nominal, true, pts)["mean_px"]
+    here = calibrate(measured, nominal.moved(about_y, t), world_cube, method="ncc-lle-exact", iterations=1)
+    after = reprojection_error(here.geom, true.moved(about_y, t), pts @ about_y.T + t)["mean_px"]
+    assert after < 0.5 * before, (before, after)
+    assert not any("saw too little" in n for n in here.notes), here.notes
+
+
+def test_ray_chords_in_a_grid_swept_along_an_oblique_axis():
+    """The zonotope (box swept along a direction) chords against points sampled along each ray."""
+    from robot_ct_ros.ct.calibration.masks import ray_chords_mm
+
+    nominal, _, _, _ = _scan(n_views=3, n_det=12)
+    grid = VolumeGrid.centered((6, 10, 8), (0.9, 0.7, 1.1), center_mm=(1.0, -2.0, 0.5))
+    axis = np.array([0.3, 0.5, 0.8]) / np.linalg.norm([0.3, 0.5, 0.8])
+    chords = ray_chords_mm(nominal, grid, z_stretch=3.0, axis=axis)
+    # brute force: a point is in the swept body when some shift along the axis puts it in the box
+    half = 0.5 * np.asarray(grid.shape_xyz) * np.asarray(grid.voxel_size_mm)
+    a = grid.direction_matrix.T @ axis
+    reach = 2.0 * np.abs(a * half).sum()  # (3 - 1) / 2 times the box's length along the axis, each way
+    shifts = np.linspace(-reach, reach, 801)
+    r0 = 0.5 * (nominal.n_rows - 1) * nominal.row_pitch_mm
+    c0 = 0.5 * (nominal.n_cols - 1) * nominal.col_pitch_mm
+    t = np.linspace(0.0, 1.0, 4001)
+    for v in range(nominal.n_views):
+        for row, col in ((0, 0), (5, 7), (11, 3), (6, 6)):
+            pix = (nominal.detector_mm[v] + (col * nominal.col_pitch_mm - c0) * nominal.u[v]
+                   + (row * nominal.row_pitch_mm - r0) * nominal.v[v])
+            p = nominal.source_mm[v] + t[:, None] * (pix - nominal.source_mm[v])
+            local = (p - np.asarray(grid.center_mm)) @ grid.direction_matrix  # grid frame, mm about its centre
+            inside = np.zeros(len(t), bool)
+            for s in shifts:
+                inside |= np.all(np.abs(local - s * a) <= half, axis=1)
+            expect = inside.mean() * np.linalg.norm(pix - nominal.source_mm[v])
+            assert chords[v, row, col] == pytest.approx(expect, abs=0.05 + 0.02 * expect)
