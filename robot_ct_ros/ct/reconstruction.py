@@ -64,6 +64,7 @@ from numba import njit, prange
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
 from robot_ct_ros.ct.virtual_detector import DEFAULT_TOL_DEG, align_rows_to_motion, outside_footprint
 from robot_ct_ros.ct.scan_weights import (  # noqa: F401  (re-exported: FDK's weights live there)
+    FDKWarning,
     centre_column,
     displaced_detector_layout,
     displaced_detector_weights,
@@ -76,6 +77,7 @@ from robot_ct_ros.ct.scan_weights import (  # noqa: F401  (re-exported: FDK's we
 )
 
 __all__ = [
+    "FDKWarning",
     "fdk",
     "fdk_filter_projections",
     "fdk_backproject",
@@ -369,13 +371,16 @@ def fdk_filter_projections(line_integrals: np.ndarray, geom: ConeGeometry, *, ce
 
     c0, r0, sdd, w_s = _principal_point(geom)
     parker = short_scan_weights(geom, cm, axis) if short_scan else None
-    _, g = fdk_view_weights(geom, cm, axis, short_scan_weighted=parker is not None)
+    # an arc of half a turn or less (no Parker weights) measures each ray once at most: weight 1 keeps the
+    # density's scale (the full scan's 1/2 per ray pair halved it); what the arc misses stays missing
+    once = short_scan and parker is None and geom.n_views >= 3 and scan_arc(geom, cm, axis)[0] <= np.pi
+    _, g = fdk_view_weights(geom, cm, axis, short_scan_weighted=parker is not None or once)
     g_u = np.einsum("ij,ij->i", g, geom.u)
     g_w = np.einsum("ij,ij->i", g, w_s)
     if np.any(np.abs(g_u) < 0.5 * np.linalg.norm(g, axis=1)):
         warnings.warn("detector rows (u) are not along the source motion for some views; this filters along u "
                       "(fdk() filters on a virtual detector: fdk_filter_motion_rows)",
-                      RuntimeWarning, stacklevel=2)
+                      FDKWarning, stacklevel=2)
     sgn = np.sign(g_u)
     sgn[sgn == 0] = 1.0
     a_mm = (np.arange(nc)[None, :] - c0[:, None]) * geom.col_pitch_mm  # (nv, nc)
@@ -385,9 +390,6 @@ def fdk_filter_projections(line_integrals: np.ndarray, geom: ConeGeometry, *, ce
     # the 1/depth^2, which the back-projection applies, and 1/col_pitch for the discrete
     # convolution in mm. Ideal circle: R dbeta * D/sqrt(..) * D/depth^2 = FDK's weights.
     lin = sgn[:, None] * (sdd[:, None] * g_u[:, None] - a_mm * g_w[:, None])  # (nv, nc)
-    # an arc of half a turn or less (no Parker weights) measures each ray once at most: weight 1 keeps the
-    # density's scale (the full scan's 1/2 per ray pair halved it); what the arc misses stays missing
-    once = short_scan and parker is None and geom.n_views >= 3 and scan_arc(geom, cm, axis)[0] <= np.pi
     const = sdd * (1.0 if once else 0.5) / geom.col_pitch_mm
 
     keep_lo = keep_hi = None
@@ -404,7 +406,7 @@ def fdk_filter_projections(line_integrals: np.ndarray, geom: ConeGeometry, *, ce
             m_hi = int(math.ceil(asym[side == 1].max())) if np.any(side == 1) else 0
             if parker is not None:  # each covers half of the rays' redundancy; both at once is not derived here
                 warnings.warn("a short scan with a displaced detector: only the displaced-detector weights are "
-                              "applied, and FDK is approximate", RuntimeWarning, stacklevel=2)
+                              "applied, and FDK is approximate", FDKWarning, stacklevel=2)
                 parker = None
     if parker is not None:
         lin = lin * parker
@@ -469,13 +471,28 @@ def fdk_filter_projections(line_integrals: np.ndarray, geom: ConeGeometry, *, ce
 
 # --------------------------------------------------------------------- back-projection
 @njit(inline="always")
-def _affine_ratio_range(a, b, aw, bw, lo, hi, n):
-    """Real interval [t0, t1] of i in [0, n-1] with lo <= (a + i b) / (aw + i bw) <= hi.
+def _in_front_range(aw, bw, n):
+    """Real interval [t0, t1] of i in [0, n-1] with aw + i bw > 0: the voxels of a row in front of the
+    source (a positive depth). Those at or behind it lie on no ray from the source to the detector, though
+    the projection matrix maps them onto it (and a depth of 0 divides by zero)."""
+    t0 = 0.0
+    t1 = n - 1.0
+    if bw > 0:
+        t0 = max(t0, -aw / bw + 1e-6)
+    elif bw < 0:
+        t1 = min(t1, -aw / bw - 1e-6)
+    elif aw <= 0:
+        t1 = -1.0
+    return t0, t1
 
-    The denominator (a voxel's depth) keeps one sign along a voxel row, so each bound is
-    a linear inequality in i.
+
+@njit(inline="always")
+def _affine_ratio_range(a, b, aw, bw, lo, hi, n):
+    """Real interval [t0, t1] of i in [0, n-1] with lo <= (a + i b) / (aw + i bw) <= hi, for the
+    i where the denominator (a voxel's depth) is positive (:func:`_in_front_range` bounds them):
+    each bound is then a linear inequality in i.
     """
-    s = 1.0 if aw + 0.5 * (n - 1) * bw > 0 else -1.0
+    s = 1.0
     t0 = 0.0
     t1 = n - 1.0
     # lower bound: s * ((a - lo aw) + i (b - lo bw)) >= 0
@@ -540,12 +557,13 @@ def _fdk_backproject_kernel(q, pm, vol, ox, oy, oz, dx, dy, dz, view_chunk):
                 bv = pm[v, 1, 0] * dx
                 bw = pm[v, 2, 0] * dx
                 # voxels whose projection lies on the detector (pixel centres +- 1/2)
+                l0, h0 = _in_front_range(aw, bw, nx)
                 l1, h1 = _affine_ratio_range(au, bu, aw, bw, -0.5, nc - 0.5, nx)
                 l2, h2 = _affine_ratio_range(av, bv, aw, bw, -0.5, nr - 0.5, nx)
                 # clamp in floating point before converting: a view nearly parallel to a grid axis gives
                 # bounds near +-1e19, whose int() would overflow and wrap the loop's trip count
-                i0 = int(math.ceil(min(max(max(l1, l2), 0.0), nx * 1.0)))
-                i1 = int(math.floor(max(min(min(h1, h2), nx - 1.0), -1.0))) + 1
+                i0 = int(math.ceil(min(max(max(l0, l1, l2), 0.0), nx * 1.0)))
+                i1 = int(math.floor(max(min(min(h0, h1, h2), nx - 1.0), -1.0))) + 1
                 fau = np.float32(au)
                 fbu = np.float32(bu)
                 fav = np.float32(av)
@@ -578,7 +596,8 @@ def fdk_backproject(filtered: np.ndarray, geom: ConeGeometry, grid: VolumeGrid,
 
     ``depth`` is the distance of the voxel from the source along the detector normal
     (third row of ``geom.projection_matrices()``). Pixels are sampled with bilinear
-    interpolation; voxels projecting outside the detector receive nothing from that view.
+    interpolation; voxels projecting outside the detector, and voxels at or behind the source
+    (a grid reaching past the source), receive nothing from that view.
     A one-row detector (fan beam) back-projects onto the voxels within half a pixel of its
     row's plane: the slice(s) it sees; the grid may be one voxel thick.
     """
@@ -591,7 +610,10 @@ def fdk_backproject(filtered: np.ndarray, geom: ConeGeometry, grid: VolumeGrid,
     T = np.eye(4)
     T[:3, :3] = grid.direction_matrix
     T[:3, 3] = centre
-    pm = np.ascontiguousarray(geom.projection_matrices() @ T)
+    pm = geom.projection_matrices() @ T
+    # P's scale sign follows w's; flipped so that lambda > 0 in front of the source in every view (the kernel's test)
+    pm *= np.sign(np.einsum("ij,ij->i", geom.detector_mm - geom.source_mm, geom.w))[:, None, None]
+    pm = np.ascontiguousarray(pm)
     origin = -0.5 * (np.array(grid.shape_xyz) - 1) * np.asarray(grid.voxel_size_mm)
     dx, dy, dz = grid.voxel_size_mm
     vol = np.zeros(grid.shape_zyx, dtype=np.float32)
@@ -618,7 +640,7 @@ def fdk_filter_motion_rows(line_integrals: np.ndarray, geom: ConeGeometry, *, ce
                 and outside_footprint(virt.geom, virt.original).any():
             warnings.warn("a displaced detector turned in its plane: its redundancy weights are taken on the "
                           "virtual detector, which reaches beyond the real one, and FDK is approximate",
-                          RuntimeWarning, stacklevel=3)
+                          FDKWarning, stacklevel=3)
     q, q_geom = fdk_filter_projections(virt.projections, virt.geom, center_mm=center_mm, axis=axis,
                                        valid_mask=virt.valid_mask, **filter_kwargs)
     q[outside_footprint(q_geom, virt.original) & ~outside_footprint(q_geom, virt.geom)] = 0.0
@@ -672,7 +694,14 @@ def fdk(line_integrals: np.ndarray, geom: ConeGeometry, grid: VolumeGrid, *, win
                                        pad_factor=pad_factor, valid_mask=valid_mask,
                                        displaced_detector=displaced_detector, short_scan=short_scan,
                                        mu_water_per_mm=mu_water_per_mm)
-    return fdk_backproject(q, q_geom, grid)
+    vol = fdk_backproject(q, q_geom, grid)
+    if not vol.any() and np.any(q):
+        # not an error (a slab beyond the cone's ends is legitimately empty), but nothing of the data is in it
+        hint = (": a one-row detector back-projects onto the voxels within half a pixel of its plane, and no voxel "
+                "centre lies there (a grid one slice thick, or an odd number of slices centred on the row, has one)"
+                if geom.n_rows == 1 else ": the grid lies outside every view's cone")
+        warnings.warn(f"FDK put nothing into the grid{hint}", FDKWarning, stacklevel=2)
+    return vol
 
 
 def resample(volume: np.ndarray, src: VolumeGrid, dst: VolumeGrid) -> np.ndarray:

@@ -15,9 +15,14 @@ import numpy as np
 
 from robot_ct_ros.ct.geometry import ConeGeometry
 
-__all__ = ["estimate_scan_axis", "estimate_scan_centre", "fdk_view_weights", "scan_arc", "source_angles",
+__all__ = ["FDKWarning", "estimate_scan_axis", "estimate_scan_centre", "fdk_view_weights", "scan_arc", "source_angles",
            "short_scan_weights", "displaced_detector_weights", "displaced_detector_layout", "displaced_pixel_weights",
            "centre_column"]
+
+
+class FDKWarning(RuntimeWarning):
+    """What FDK can only approximate on this geometry (a short or gapped arc, a rolled or displaced detector, a grid
+    the rays miss): the jobs report these in their notes, where numpy's own RuntimeWarnings are not."""
 
 
 def estimate_scan_axis(geom: ConeGeometry) -> np.ndarray:
@@ -172,7 +177,7 @@ def short_scan_weights(geom: ConeGeometry, center_mm=None, axis=None, min_gap_ra
     delta = 0.5 * (arc - np.pi)
     if delta <= 0:
         warnings.warn(f"the scan's arc ({np.degrees(beta.max()):.1f} degrees) is no longer than half a turn: "
-                      "no redundancy weights make FDK exact", RuntimeWarning, stacklevel=3)
+                      "no redundancy weights make FDK exact", FDKWarning, stacklevel=3)
         return None
     # fan angle of each column's centre (the middle row), in the plane normal to the axis
     cols = (np.arange(nc) - 0.5 * (nc - 1)) * geom.col_pitch_mm
@@ -186,7 +191,7 @@ def short_scan_weights(geom: ConeGeometry, center_mm=None, axis=None, min_gap_ra
     if delta < float(np.abs(gamma).max()):
         warnings.warn(f"short scan: the arc exceeds half a turn by {np.degrees(2 * delta):.1f} degrees, less than the "
                       f"fan angle ({np.degrees(2 * np.abs(gamma).max()):.1f} degrees); the rays at the fan's edge are "
-                      "measured once only and FDK is approximate there", RuntimeWarning, stacklevel=3)
+                      "measured once only and FDK is approximate there", FDKWarning, stacklevel=3)
     b = beta[:, None]
     with np.errstate(divide="ignore", invalid="ignore"):
         rise = np.sin(0.25 * np.pi * b / (delta - gamma)) ** 2
@@ -230,7 +235,7 @@ def fdk_view_weights(geom: ConeGeometry, center_mm=None, axis=None, *, short_sca
         if first is not None:  # a short arc: the gap before its first view is not measured
             if not short_scan_weighted:
                 warnings.warn("scan does not cover 360 degrees; FDK full-scan weighting (1/2 per ray pair) "
-                              "is then only approximate (no Parker weights)", RuntimeWarning, stacklevel=3)
+                              "is then only approximate (no Parker weights)", FDKWarning, stacklevel=3)
             end = (int(np.flatnonzero(order == first)[0]) - 1) % nv
             d_next[end] = 0.0  # trapezoid rule at the ends of the arc
             inner[end] = False
@@ -240,7 +245,7 @@ def fdk_view_weights(geom: ConeGeometry, center_mm=None, axis=None, *, short_sca
         if np.any(wide):
             warnings.warn(f"the views leave {int(wide.sum())} gap(s) of up to {np.degrees(d_next[wide].max()):.1f} "
                           f"degrees (median {np.degrees(med):.2f}); the views beside each stand in for half of it "
-                          "and FDK is only approximate there", RuntimeWarning, stacklevel=3)
+                          "and FDK is only approximate there", FDKWarning, stacklevel=3)
         d_prev = np.roll(d_next, 1)
         gaps = 0.5 * (d_next + d_prev)
         dbeta = np.empty(nv)
@@ -321,7 +326,7 @@ def displaced_detector_layout(geom: ConeGeometry, center_mm=(0.0, 0.0, 0.0), min
     delta = np.minimum(reach_lo, reach_hi)
     if np.any(delta <= 0):
         warnings.warn("the scan centre projects off the detector in some views; "
-                      "displaced-detector weights cannot fill the missing half", RuntimeWarning, stacklevel=3)
+                      "displaced-detector weights cannot fill the missing half", FDKWarning, stacklevel=3)
     return np.where(asym >= 0, -1, 1), delta, spread, (cc, rc, p)
 
 

@@ -31,7 +31,7 @@ import numpy as np
 from numba import njit, prange
 
 from robot_ct_ros.ct.geometry import ConeGeometry
-from robot_ct_ros.ct.scan_weights import fdk_view_weights
+from robot_ct_ros.ct.scan_weights import FDKWarning, fdk_view_weights
 
 __all__ = ["VirtualDetector", "row_roll_deg", "align_rows_to_motion", "outside_footprint"]
 
@@ -152,13 +152,18 @@ def align_rows_to_motion(line_integrals: np.ndarray, geom: ConeGeometry, center_
     """The projections on a virtual detector whose rows follow the source motion (module
     docstring), or None when every view's rows are within ``tol_deg`` of it (or the detector has
     one row or one column): then FDK filters the data as they are."""
-    if geom.n_rows < 2 or geom.n_cols < 2 or geom.n_views == 0:
+    if geom.n_views == 0:
         return None
     gh = _motion_in_plane(geom, center_mm, axis)
     cos_r = np.einsum("ij,ij->i", gh, geom.u)
     roll = np.degrees(np.arccos(np.clip(np.abs(cos_r), 0.0, 1.0)))
     turn = (roll > tol_deg) & (np.linalg.norm(gh, axis=1) > 0)
     if not np.any(turn):
+        return None
+    if geom.n_rows < 2 or geom.n_cols < 2:  # nothing to resample onto: a rolled row's rays leave the fan plane
+        warnings.warn(f"a one-{'row' if geom.n_rows < 2 else 'column'} detector up to {roll[turn].max():.1f} degrees "
+                      "off the source motion: its rays leave the plane of the slice FDK reconstructs, which it "
+                      "filters as they are: FDK is approximate", FDKWarning, stacklevel=3)
         return None
     # u' = +-g: the sign closer to u; at a quarter turn (a tie, up to rounding) the one along -v,
     # so that (u', v') = (-v, u): the portrait detector (u, v) = (v0, -u0) gives back (u0, v0)
@@ -176,7 +181,7 @@ def align_rows_to_motion(line_integrals: np.ndarray, geom: ConeGeometry, center_
         # cut to less than half its reach along them, and their fill would cost more than the roll does
         warnings.warn(f"detector rows up to {roll.max():.1f} degrees off the source motion, on a detector too "
                       "short to filter along the motion (its rows are filtered as they are): FDK is approximate",
-                      RuntimeWarning, stacklevel=3)
+                      FDKWarning, stacklevel=3)
         return None
     v2 = np.cross(geom.w, u2)
     pitch = min(geom.row_pitch_mm, geom.col_pitch_mm)

@@ -20,7 +20,7 @@ from robot_ct_ros.bag.reader import ScanData, read_scan
 from robot_ct_ros.ct.calibration import CalibrationResult, CalibrationSettings, calibrate, get_method
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
 from robot_ct_ros.jobs.output import say as _say
-from robot_ct_ros.jobs.output import check_memory, start_output, write_json, write_volume
+from robot_ct_ros.jobs.output import check_memory, fdk_warnings, start_output, write_json, write_volume
 
 __all__ = ["Correction", "correct_scan", "write_correction", "calibrate_bag", "scan_grid", "drift_times",
            "geometry_error", "truth_metrics", "markdown_report"]
@@ -153,7 +153,8 @@ def correct_scan(scan: ScanData, settings: CalibrationSettings | None = None, gr
         + ("" if settings.method == "none" else f", at most {settings.iterations_text()} iteration(s), schedule "
                                                  f"{settings.schedule}"))
     times = drift_times(scan) if settings.drift_order is not None else None
-    result = calibrate(li, scan.geom, grid, settings, valid_mask=mask, drift_times=times, progress=say)
+    with fdk_warnings(say) as approximate:  # what FDK only approximates on this geometry goes into the notes
+        result = calibrate(li, scan.geom, grid, settings, valid_mask=mask, drift_times=times, progress=say)
     used = result.settings
     report = base_report(scan, grid)
     report.update({"job": "calibrate", "method": settings.method, "method_used": result.method,
@@ -163,7 +164,8 @@ def correct_scan(scan: ScanData, settings: CalibrationSettings | None = None, gr
                    else list(used.prior_sigma),
                    "drift_order": used.drift_order, "seed": used.seed, "padding": used.padding,
                    "ensemble": result.members, "iterations_run": len(result.history),
-                   "history": [dict(h.__dict__) for h in result.history], "notes": list(result.notes)})
+                   "history": [dict(h.__dict__) for h in result.history],
+                   "notes": list(result.notes) + [f"FDK: {w}" for w in approximate]})
     if result.members > 1:  # the members' spread around their mean: the estimate's sampling noise
         report["ensemble_spread_px"] = result.spread_px
     d = result.params

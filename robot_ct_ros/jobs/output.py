@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["say", "json_default", "clean_json", "write_json", "write_volume", "write_ome_tiff", "prepare_out",
+__all__ = ["say", "fdk_warnings", "json_default", "clean_json", "write_json", "write_volume", "write_ome_tiff", "prepare_out",
            "available_memory_bytes", "check_memory", "MEMORY_FACTORS", "GRID_OPTIONS"]
 
 MEMORY_FACTORS = {"reconstruct": (2.0, 3.0), "calibrate": (8.0, 8.0), "report": (10.0, 8.0)}
@@ -109,6 +109,43 @@ def check_memory(grid, n_views: int, det_shape, job: str, available: int | None 
                      f"({_gib(vol)} per volume), {_gib(avail)} are available; at most about "
                      f"{shape_hint.format(*fit)} would fit, or the same field of view with "
                      f"{voxel_hint.format(max(voxel) * per_mm)}")
+
+
+class fdk_warnings:
+    """``with fdk_warnings(say) as seen:`` collects the :class:`~robot_ct_ros.ct.reconstruction.FDKWarning` raised
+    inside (what FDK only approximates on this geometry), each distinct message once, in ``seen`` and said as
+    ``warning: ...``: the reports keep them, where the command line ignores numpy's RuntimeWarnings."""
+
+    def __init__(self, say_=None):
+        self.say = say_
+        self.seen: list[str] = []
+        self._catch = None
+
+    def __enter__(self) -> list:
+        import warnings
+
+        from robot_ct_ros.ct.scan_weights import FDKWarning
+
+        self._catch = warnings.catch_warnings(record=True)
+        self._log = self._catch.__enter__()
+        warnings.simplefilter("always", FDKWarning)
+        self._cls = FDKWarning
+        return self.seen
+
+    def __exit__(self, *exc) -> bool:
+        import warnings
+
+        self._catch.__exit__(*exc)
+        for w in self._log:
+            if issubclass(w.category, self._cls):
+                text = str(w.message)
+                if text not in self.seen:
+                    self.seen.append(text)
+                    if self.say is not None:
+                        self.say(f"warning: {text}")
+            else:  # anything else goes on, through the filters that were in force, as if it had not been caught
+                warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+        return False
 
 
 def say(message: str) -> None:

@@ -11,7 +11,7 @@ from robot_ct_ros.bag.reader import read_scan
 from robot_ct_ros.bag.format import ScanBagError
 from robot_ct_ros.jobs.calibrate import base_report, geometry_error, scan_grid
 from robot_ct_ros.jobs.output import say as _say
-from robot_ct_ros.jobs.output import check_memory, start_output, write_json, write_volume
+from robot_ct_ros.jobs.output import check_memory, fdk_warnings, start_output, write_json, write_volume
 
 __all__ = ["reconstruct_bag", "GEOMETRIES"]
 
@@ -50,7 +50,8 @@ def reconstruct_bag(bag, out, *, geometry: str = "auto", voxel_mm=None, shape_xy
     li, mask = scan.to_line_integrals()
     say(f"{scan.n_views} views, detector {geom.n_rows}x{geom.n_cols}; FDK on {grid.shape_zyx[::-1]} voxels of "
         f"{grid.voxel_size_mm[0] * 1000:.1f} um ({'corrected' if use_corrected else 'nominal'} geometry)")
-    vol = fdk(li, geom, grid, valid_mask=mask)
+    with fdk_warnings(say) as approximate:
+        vol = fdk(li, geom, grid, valid_mask=mask)
     out = start_output(out)  # report.json is written last: without it, the folder holds an unfinished run
     outside = 1.0 - float(np.mean(field_of_view_mask(geom, grid)))  # across the axis: rows are not checked
     if outside > 0.3:  # beyond a square grid's corners (21 %): FDK puts streaks there, not the object
@@ -60,7 +61,7 @@ def reconstruct_bag(bag, out, *, geometry: str = "auto", voxel_mm=None, shape_xy
     report = base_report(scan, grid)
     report.update({"job": "reconstruct", "geometry": "corrected" if use_corrected else "nominal",
                    "geometry_error": geometry_error(scan, geom, grid), "outside_field_of_view_fraction": outside,
-                   "files": files, "wall_s": time.perf_counter() - t0})
+                   "notes": list(approximate), "files": files, "wall_s": time.perf_counter() - t0})
     write_json(out / "report.json", report)
     say(f"wrote {out}/volume.npy, volume.tif, report.json ({report['wall_s']:.1f} s)")
     return report

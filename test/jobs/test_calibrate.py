@@ -102,6 +102,13 @@ def test_a_one_row_bag_reconstructs_and_calibrates(tmp_path):
     assert main(["reconstruct", str(bag), "--shape", "300,300,1", "--out", str(tmp_path / "wide")]) == 0
     wide = json.loads((tmp_path / "recon" / "report.json").read_text())["outside_field_of_view_fraction"]
     assert wide < 0.3 < json.loads((tmp_path / "wide" / "report.json").read_text())["outside_field_of_view_fraction"]
+    # a grid whose slices all miss the fan plane: FDK's warning reaches the report and the user (the command line
+    # ignores RuntimeWarnings, and the report said nothing about a volume of zeros)
+    assert main(["reconstruct", str(bag), "--shape", "32,32,2", "--voxel-mm", "0.3", "--out",
+                 str(tmp_path / "even")]) == 0
+    assert not np.load(tmp_path / "even" / "volume.npy").any()
+    notes = json.loads((tmp_path / "even" / "report.json").read_text())["notes"]
+    assert any("put nothing into the grid" in n for n in notes), notes
     correction = calibrate_bag(bag, tmp_path / "calib", CalibrationSettings(iterations=2), evaluate_truth=True,
                                say=lambda s: None)
     truth = correction.report["truth"]

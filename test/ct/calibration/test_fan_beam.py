@@ -150,3 +150,24 @@ def test_the_field_of_view_support_keeps_fdk_streaks_in_the_corners_out_of_the_e
                                                   seed=seed).geom, true, pts)["mean_px"] for fs in ("on", "off", "auto")}
         assert moved["on"] < 0.85 * moved["off"], moved
         assert moved["auto"] == moved["on"], moved
+
+
+def test_a_one_row_scan_on_a_grid_whose_slices_all_miss_the_fan_plane(fan):
+    """A one-row detector back-projects onto the voxels within half a pixel of its plane: a grid of an even number
+    of thick slices centred on it has none. The calibration still corrects (its estimation volumes are its own),
+    and FDK of that grid says that it put nothing there (it returned zeros silently)."""
+    import warnings
+
+    from robot_ct_ros.ct.reconstruction import FDKWarning
+
+    nominal, true, grid, measured = fan
+    thick = VolumeGrid.centered((8,) + grid.shape_zyx[1:], grid.voxel_size_mm[:2] + (0.4,))  # slices at +-0.2 mm...
+    pts = roi_points(grid)
+    before = reprojection_error(nominal, true, pts)["mean_px"]
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always", FDKWarning)
+        result = calibrate(measured, nominal, thick, method="ncc-lle-exact", iterations=2)
+    after = reprojection_error(result.geom, true, pts)["mean_px"]
+    assert after < 0.3 * before, (before, after)
+    assert result.volume.shape == thick.shape_zyx and not result.volume.any()
+    assert any(issubclass(w.category, FDKWarning) and "put nothing into the grid" in str(w.message) for w in seen)
