@@ -13,14 +13,15 @@ Parameters
   flush_period_s (s: how often arm and diagnostics messages are pushed to disk).
 
 A bag opens with the first /ct/scan_info (frames and geometries that come just before it, up to
-EARLY_FRAMES, follow it into the bag) and starts with the latest scan_info, flat field and
-dead-pixel map received (a flat field or map of another detector shape than the scan_info's, an
-earlier scan's, is left out); a different scan_info after frames, or the bag's first frame stamp
-again (the same scan replayed), closes it and opens the next. Every frame and geometry is
-flushed to disk as it arrives, so a killed recorder leaves a recoverable bag; shutdown
-(SIGINT/SIGTERM) and ~/stop close the bag cleanly. A write error (a full disk, the bag folder
-removed) gives that bag up with an ERROR in the log and on /diagnostics (1 Hz; also "recording",
-"waiting for a scan"), and the node stays up for the next scan.
+EARLY_FRAMES, follow it into the bag, and the scan_info, flat field and dead-pixel map take the
+earliest of their log times, so that by log time too the bag starts with them) and starts with the
+latest scan_info, flat field and dead-pixel map received (a flat field or map of another detector
+shape than the scan_info's, an earlier scan's, is left out); a different scan_info after frames,
+or the bag's first frame stamp again (the same scan replayed), closes it and opens the next.
+Every frame and geometry is flushed to disk as it arrives, so a killed recorder leaves a
+recoverable bag; shutdown (SIGINT/SIGTERM) and ~/stop close the bag cleanly. A write error (a
+full disk, the bag folder removed) gives that bag up with an ERROR in the log and on /diagnostics
+(1 Hz; also "recording", "waiting for a scan"), and the node stays up for the next scan.
 """
 
 from __future__ import annotations
@@ -126,7 +127,9 @@ class RecorderNode(Node):
         self.bag_path = self._new_bag_path()
         self.writer = ScanBagWriter(self.bag_path, None, flush_every_frame=False).open()
         self._first_stamp = None
-        now = self.get_clock().now().nanoseconds
+        # the latched messages go first in the file and, by log time, before the frames that came just before the
+        # scan_info (readers and `ros2 bag play` go by log time): no later than the earliest of those
+        now = min([self.get_clock().now().nanoseconds] + [early[3] for early in self._early])
         shape = _detector_shape(self._latched.get(fmt.TOPIC_SCAN_INFO, (None, None))[1])
         for topic in fmt.LATCHED_TOPICS:  # scan_info first
             if topic in self._latched:

@@ -206,6 +206,37 @@ def test_scans_in_a_row_keep_their_own_flat_frames_and_bags(ros, tmp_path):
     assert len(bags) == 2 and all(read_scan(b).n_views == N and not read_scan(b).warnings for b in bags)
 
 
+def test_frames_before_the_scan_info_follow_it_by_log_time_too(ros, tmp_path):
+    """Frames that came before the scan_info were written after it in the file but kept their earlier log times:
+    by log time (rosbags, MCAP readers, `ros2 bag play`) the bag started with frames, not /ct/scan_info."""
+    import time
+
+    from rosbags.rosbag2 import Reader
+
+    node = ros.add(RecorderNode(context=ros.context, parameter_overrides=[Parameter("output_dir", value=str(tmp_path))]))
+    geom, frames, stamps = _scan()
+    for i in range(3):  # frames and geometries first
+        for topic, data in zip((fmt.TOPIC_PROJECTION, fmt.TOPIC_GEOMETRY), _raw(geom, frames, stamps, i)):
+            node._on_message(topic, fmt.TOPIC_TYPES[topic], data)
+    time.sleep(0.01)
+    node._on_message(fmt.TOPIC_FLAT_FIELD, fmt.IMAGE,
+                     fmt.serialize(fmt.image_from_array(np.full((6, 10), 900.0, np.float32), 1), fmt.IMAGE))
+    time.sleep(0.01)
+    node._on_message(fmt.TOPIC_SCAN_INFO, fmt.STRING, fmt.serialize(fmt.scan_info_to_msg(scan_info_for(geom)),
+                                                                    fmt.STRING))
+    for i in range(3, N):
+        for topic, data in zip((fmt.TOPIC_PROJECTION, fmt.TOPIC_GEOMETRY), _raw(geom, frames, stamps, i)):
+            node._on_message(topic, fmt.TOPIC_TYPES[topic], data)
+    bag = node.close_bag()
+    with Reader(bag) as reader:
+        topics = [conn.topic for conn, _, _ in reader.messages()]  # by log time (ties: file order)
+    assert topics[:2] == [fmt.TOPIC_SCAN_INFO, fmt.TOPIC_FLAT_FIELD], topics[:4]
+    assert topics.count(fmt.TOPIC_PROJECTION) == N
+    scan = read_scan(bag)
+    assert scan.n_views == N and scan.flat is not None and not scan.warnings
+    np.testing.assert_array_equal(scan.counts, frames)
+
+
 def test_a_write_error_gives_the_bag_up_and_keeps_the_node_up(ros, tmp_path):
     """A full disk raised out of the subscription callback and ended the recorder (no /diagnostics at all)."""
     node = ros.add(RecorderNode(context=ros.context, parameter_overrides=[Parameter("output_dir", value=str(tmp_path))]))
