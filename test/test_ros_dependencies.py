@@ -16,7 +16,8 @@ REPO = Path(__file__).resolve().parents[1]
 ROSDEP_PYTHON_KEYS_NOBLE = {"python3-numpy", "python3-scipy", "python3-yaml", "python3-matplotlib", "python3-tqdm",
                             "python3-pil", "python3-pytest", "python3-psutil", "python3-lxml"}
 ROS_PACKAGES = {"rclpy", "rcl_interfaces", "builtin_interfaces", "lifecycle_msgs", "std_msgs", "std_srvs",
-                "sensor_msgs", "geometry_msgs", "diagnostic_msgs", "ament_copyright", "ament_index_python"}
+                "sensor_msgs", "geometry_msgs", "diagnostic_msgs", "ament_copyright", "ament_index_python",
+                "launch_ros", "launch_xml", "ros2launch"}
 NOT_ROSDEP_KEYS = {"python3-threadpoolctl", "python3-tifffile", "python3-numba", "python3-rosbags-pip",
                    "python3-mcap-pip", "python3-mcap-ros2-support-pip", "python3-ur-rtde-pip"}
 
@@ -80,6 +81,14 @@ def test_every_imported_module_has_a_provider():
             assert provider[4:] in reqs, f"requirements-ros.txt lacks {provider[4:]} (for import {module})"
         else:
             assert provider in deps["exec"], f"package.xml lacks {provider} (for import {module})"
+
+
+def test_the_launch_files_run_after_rosdep_install():
+    """README: `ros2 launch robot_ct_ros robot_ct.launch.xml` works after `rosdep install`; package.xml declared
+    none of what that needs (the launch verb, the XML front end, launch_ros's actions)."""
+    assert list((REPO / "launch").glob("*.launch.xml"))
+    missing = {"launch_ros", "launch_xml", "ros2launch"} - set(_depends()["exec"])
+    assert not missing, f"package.xml lacks <exec_depend> for {sorted(missing)}"
 
 
 def test_requirements_ros_never_pulls_ros_wheels_or_numpy_2():
