@@ -4,7 +4,8 @@ Collects the scan's topics as received (/ct/scan_info, /ct/flat_field, /ct/dead_
 /ct/projection, /ct/geometry, /ct/geometry_true); recon/run (std_srvs/Trigger), or scan/status
 "done" with auto_run, starts a correction on a worker thread: the scan is written as a bag into
 ``<output_dir>/scan`` and corrected by the calibration job (robot_ct_ros.jobs.calibrate), exactly
-as ``robot-ct calibrate`` corrects a recorded bag. Publishes recon/progress, /ct/geometry_corrected
+as ``robot-ct calibrate`` corrects a recorded bag (with bag_path, that bag is corrected instead:
+no ``scan``, the corrected copy is ``<output_dir>/<bag name>_corrected``). Publishes recon/progress, /ct/geometry_corrected
 (one PoseArray per frame, the frame's stamp), recon/slice_{axial,sagittal,coronal},
 recon/report and /diagnostics. every_n_views > 0 also corrects the frames so far every N frames
 during the scan, into ``<output_dir>/partial_NNNN`` (not published on /ct/geometry_corrected).
@@ -43,6 +44,13 @@ STREAM = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST, reliability=Reli
 STATUS = QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 SLICES = ("axial", "sagittal", "coronal")
 PUBLISH_BATCH = 10  # corrected geometries per 50 ms tick: subscribers keep up, their depth-100 history never overflows
+
+
+def method_text(settings: CalibrationSettings) -> str:
+    """The method and its outer iterations, as the start-up line says them (method none corrects nothing)."""
+    if settings.method == "none":
+        return "method none (no correction: reconstructs with the nominal geometry)"
+    return f"method {settings.method}, {settings.iterations_text()} iteration(s)"
 
 
 class ReconServiceNode(Node):
@@ -87,8 +95,9 @@ class ReconServiceNode(Node):
             threads=self.service.stream_threads, voxel_mm=self.service.voxel_mm, shape_xyz=self.service.shape_xyz)
         self.create_timer(0.05, self._tick)
         self.create_timer(1.0, self._publish_diagnostics)
-        self.get_logger().info(f"recon_service: method {self.settings.method}, {self.settings.iterations_text()} "
-                               f"iteration(s), output {self.output_dir}/, auto_run {self.service.auto_run}")
+        self.get_logger().info(f"recon_service: {method_text(self.settings)}, output {self.output_dir}/, "
+                               f"auto_run {self.service.auto_run}"
+                               + (f", bag_path {self.service.bag_path}" if self.service.bag_path else ""))
 
     @property
     def method(self) -> str:
@@ -201,12 +210,13 @@ class ReconServiceNode(Node):
         self.full_runs += not partial
         self.planner.full_started |= not partial
         self.state, self.error, self._t_run = "running", "", time.monotonic()
-        self.message = f"run {self.runs}: {n if n is not None else 'bag'} views, {self.method}"
+        self.message = f"run {self.runs}: {f'{n} views' if n is not None else f'bag {bag}'}, {self.method}"
         self._progress("start", self.message, self.runs, n)
         self._worker = threading.Thread(target=self._job, args=(self.runs, bag, out, n, partial), name="recon",
                                         daemon=True)
         self._worker.start()
-        return True, f"started run {self.runs} on {bag} ({n if n is not None else '?'} views) into {out}"
+        # the view count of a bag given by path is known once the job has read it (recon/progress, the report)
+        return True, f"started run {self.runs} on {bag}{f' ({n} views)' if n is not None else ''} into {out}"
 
     def _progress(self, stage: str, message: str, run: int, n) -> None:
         self.message = message
@@ -290,7 +300,8 @@ class ReconServiceNode(Node):
 
     # -- health -------------------------------------------------------------------------------------
     def _publish_diagnostics(self) -> None:
-        values = [("state", self.state), ("method", self.method), ("iterations", self.settings.iterations_text()),
+        values = [("state", self.state), ("method", self.method),
+                  ("iterations", "none" if self.method == "none" else self.settings.iterations_text()),
                   ("frames", self.scan.n_frames), ("paired", self.n_paired), ("runs", self.runs),
                   ("output_dir", self.output_dir), ("last_error", self.error),
                   ("report", (self.report or {}).get("paths", {}).get("report_json", ""))]

@@ -16,7 +16,7 @@ from std_srvs.srv import Trigger
 from robot_ct_ros.bag import format as fmt
 from robot_ct_ros.bag import read_scan
 from robot_ct_ros.jobs.simulate import simulate_bag
-from robot_ct_ros.nodes.recon_service import LATCHED, SLICES, STATUS, STREAM, ReconServiceNode, mid_slices
+from robot_ct_ros.nodes.recon_service import LATCHED, SLICES, STATUS, STREAM, ReconServiceNode, method_text, mid_slices
 from robot_ct_ros.nodes.replay import ReplayNode
 
 N = 10
@@ -112,6 +112,8 @@ def test_run_service_on_a_bag_path_and_refusals(ros, tmp_path):
         output_dir=str(out), method="none", bag_path=str(bag), auto_run=False, evaluate_truth=False)))
     answer = ros.call(client, Trigger.Request())
     assert answer.success, answer.message
+    # the bag's view count is not known yet: no "(? views)" in the answer
+    assert answer.message == f"started run 1 on {bag} into {recon.output_dir}", answer.message
     busy = ros.call(client, Trigger.Request())
     assert not busy.success and "in progress" in busy.message
     assert ros.spin_until(lambda: recon.done and len(probe.corrected) == N and len(probe.slices) == 3, timeout_s=60.0)
@@ -122,6 +124,16 @@ def test_run_service_on_a_bag_path_and_refusals(ros, tmp_path):
         np.testing.assert_allclose(src, scan.geom.source_mm[i], atol=1e-6)
         np.testing.assert_allclose(u, scan.geom.u[i], atol=1e-9)
     assert probe.reports[-1]["method_used"] == "none" and probe.reports[-1].get("truth") is None
+
+
+def test_the_start_up_line_says_method_none_corrects_nothing():
+    """method none was announced as "method none, 2 (8 with the exterior model) iteration(s)"."""
+    from robot_ct_ros.ct.calibration import CalibrationSettings
+
+    none = method_text(CalibrationSettings(method="none"))
+    assert "iteration" not in none and "no correction" in none, none
+    assert method_text(CalibrationSettings(method="ncc-lle-exact", iterations=3)) == \
+        "method ncc-lle-exact, 3 iteration(s)"
 
 
 def _graph_scan(name: str, n_views: int, exposure_s: float) -> tuple[dict, dict]:
