@@ -343,7 +343,10 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
     history = []
     undone_note = None  # set when undo_inconsistent undoes an iteration: the result must say so
     still_note = None  # set when the first iteration already moves the views less than stop_update_px
-    skipped = set()  # views that saw too little of the grid to be estimated at some level
+    # views that saw too little of the grid to be estimated, per level, and the views estimated at some level
+    skipped = {"coarse": set(), "fine": set()}
+    estimated = set()
+    all_views = set(range(nominal.n_views))
     # the coarse level's reconstruction with the geometry entering each iteration: its volume
     # for the coarse estimate, its FDK's NCC for undo_inconsistent, its SIRT correction for a
     # fine level without SIRT
@@ -363,7 +366,8 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
             if rep:
                 cfg = method.fresh_samples(cfg, rep)
             params, coarse_info = executor.estimate(estimate, li_c, nom_c, params, rec_c.volume, grid_c, cfg, mask_c)
-            skipped.update(coarse_info.get("skipped_views", ()))
+            skipped["coarse"].update(coarse_info.get("skipped_views", ()))
+            estimated.update(all_views - set(coarse_info.get("skipped_views", ())))
             moved = moved_px(nom_c, params, before, points)
             say(f"iteration {it + 1}/{n_iter}: coarse estimate {rep + 1} done, views moved {moved:.3f} coarse px "
                 f"({time.perf_counter() - t0:.1f} s)")
@@ -373,7 +377,8 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
         vol = rebuild(li_f, nom_f.perturbed(params), grid_f, mask_f, sirt_iterations if fine_volume == "sirt" else 0,
                       inner_f, fov_f, correction=correction, measure_fdk=False).volume
         params, fine_info = executor.estimate(estimate, li_f, nom_f, params, vol, grid_f, narrowed(fine_cfg, it), mask_f)
-        skipped.update(fine_info.get("skipped_views", ()))
+        skipped["fine"].update(fine_info.get("skipped_views", ()))
+        estimated.update(all_views - set(fine_info.get("skipped_views", ())))
         params = _in_nominal_gauge(params, nominal, points, held)
         if drift_order is not None:
             # the polynomial fit puts part of a gauge motion back (a linear drift: 0.09 mm) and the gauge fix takes
@@ -438,10 +443,17 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
                     f"of {n_iter} iterations")
             break
     notes = []
-    if skipped:
-        notes.append(f"{len(skipped)} view(s) saw too little of the grid to be estimated and kept their geometry, "
+    never = sorted(all_views - estimated)
+    if never:
+        notes.append(f"{len(never)} view(s) saw too little of the grid to be estimated and kept their geometry, "
                      "moved only with the whole scan by the gauge fix (its common rigid motion and magnification): "
-                     f"{sorted(skipped)[:20]}{' ...' if len(skipped) > 20 else ''}")
+                     f"{never[:20]}{' ...' if len(never) > 20 else ''}")
+    for level, other in (("coarse", "fine"), ("fine", "coarse")):
+        partly = sorted(skipped[level] & estimated)
+        if partly:  # estimated, on the other level only (a binned level may keep no pixel of a thin detector's rays)
+            notes.append(f"{len(partly)} view(s) saw too little of the grid on the {level} level to be estimated "
+                         f"there and were estimated on the {other} level only: "
+                         f"{partly[:20]}{' ...' if len(partly) > 20 else ''}")
     if exterior:
         notes.append("the object outside the ROI was modelled (exterior model)")
     notes += exterior_notes

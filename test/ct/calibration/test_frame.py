@@ -146,3 +146,22 @@ def test_ray_chords_in_a_grid_swept_along_an_oblique_axis():
                 inside |= np.all(np.abs(local - s * a) <= half, axis=1)
             expect = inside.mean() * np.linalg.norm(pix - nominal.source_mm[v])
             assert chords[v, row, col] == pytest.approx(expect, abs=0.05 + 0.02 * expect)
+
+
+def test_views_skipped_on_one_level_only_are_not_said_to_have_kept_their_geometry():
+    """A two-row detector rolled 10 degrees on a three-slice grid: the coarse level (its rows binned to one) keeps no
+    pixel of any view, the fine level estimates them all. The note said every view "kept its geometry", yet the
+    result moved them; it now says on which level they were skipped and that the other estimated them."""
+    from robot_ct_ros.ct.simulation import ellipsoid_line_integrals
+    from robot_ct_ros.ct.simulation.phantoms import ellipsoid
+
+    g0 = circular_scan(48, 100.0, 200.0, 2, 48, 0.5, 0.5)
+    rot = Rotation.from_rotvec(np.deg2rad(10.0) * g0.w)
+    geom = g0.replace(u=rot.apply(np.array(g0.u)), v=rot.apply(np.array(g0.v)))
+    grid = VolumeGrid.centered((3, 24, 24), (0.4, 0.4, 0.25))
+    li = ellipsoid_line_integrals([ellipsoid((0, 0, 0), (3.5, 3.0, 3.2), 0.02, mode="add"),
+                                   ellipsoid((1.2, -0.8, 0.5), (1.0, 0.6, 0.9), 0.03, mode="add")], geom)
+    result = calibrate(li, geom, grid, method="ncc-lle-exact", iterations=1)
+    assert not any("kept their geometry" in n for n in result.notes), result.notes
+    assert any("on the coarse level to be estimated there and were estimated on the fine level only" in n
+               for n in result.notes), result.notes
