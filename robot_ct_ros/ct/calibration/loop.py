@@ -23,7 +23,8 @@ from robot_ct_ros.ct.calibration.masks import bin_masked, usable_data
 from robot_ct_ros.ct.calibration.registry import get_method
 from robot_ct_ros.ct.calibration.result import CalibrationResult, IterationRecord
 from robot_ct_ros.ct.calibration.settings import CalibrationSettings
-from robot_ct_ros.ct.calibration.volume import (EXTERIOR_ABOVE, TRUNCATED_ABOVE, EstimationVolume, estimation_grid,
+from robot_ct_ros.ct.calibration.volume import (EXTERIOR_ABOVE, TRUNCATED_ABOVE, EstimationVolume, axis_last,
+                                                estimation_grid,
                                                 projection_consistency, reconstruct_for_estimation,
                                                 truncation_level)
 from robot_ct_ros.ct.field_of_view import field_of_view_mask
@@ -260,6 +261,9 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
         volume = fdk(li, nominal, grid, valid_mask=mask, **(fdk_kwargs or {})) if final_volume else None
         return CalibrationResult(method.name, np.zeros((nominal.n_views, 9)), nominal, volume, (),
                                  time.perf_counter() - t_start, settings=settings.resolved())
+    # the estimation's grid: the ROI grid, its axes renamed so that z runs along the scan axis (it is widened across
+    # x and y); the final volume is reconstructed on the user's grid, and the gauge is fixed on its points
+    est_grid = axis_last(grid, nominal)
     # how much object the detector's edges see: decides the volumes (projections auto) and the exterior model
     level = truncation_level(li, mask) if settings.projections == "auto" or settings.exterior != "on" else None
     truncated = settings.projections == "truncated"
@@ -290,7 +294,7 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
         if settings.exterior == "auto":
             say(f"truncation level {level:.3f}: {'the object outside the ROI is modelled' if exterior else 'ROI model'}")
     if exterior and guess_reach:
-        settings, exterior, unmodelled = _guess_reach(li, mask, nominal, grid, settings, exterior_notes, say,
+        settings, exterior, unmodelled = _guess_reach(li, mask, nominal, est_grid, settings, exterior_notes, say,
                                                       memo=reach_memo)
     reach_mm = settings.exterior_half_width_mm
     # the schedule (auto: exterior with the exterior model, else accurate) and the fields it sets; the result records them
@@ -319,10 +323,10 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
                                           measure_fdk=measure_fdk, fdk=fdk, support=support)
 
     points = roi_points(grid) if gauge_points_mm is None else np.asarray(gauge_points_mm, float)
-    grid_e = estimation_grid(grid, settings.padding)
+    grid_e = estimation_grid(est_grid, settings.padding)
     has_coarse = coarse_binning > fine_binning
     li_f, mask_f, nom_f, grid_f = _level(li, mask, nominal, grid_e, fine_binning)
-    inner_f = grid.binned(fine_binning).shape_zyx[1:]
+    inner_f = est_grid.binned(fine_binning).shape_zyx[1:]
     # FDK's field of view on each level, from the nominal geometry (the corrections move it by far less than a voxel):
     # auto where the detector's edges see air, so the object lies inside it (docs/calibration.md §6)
     fov = not exterior and (settings.fov_support == "on" or (settings.fov_support == "auto" and level is not None
@@ -332,7 +336,7 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
         say(f"field of view: the estimation volumes' FDK is zero in the {1 - fov_f.mean():.0%} of the grid outside it")
     if has_coarse:
         li_c, mask_c, nom_c, grid_c = _level(li, mask, nominal, grid_e, coarse_binning)
-        inner_c = grid.binned(coarse_binning).shape_zyx[1:]
+        inner_c = est_grid.binned(coarse_binning).shape_zyx[1:]
         fov_c = field_of_view_mask(nom_c, grid_c) if fov else None
     else:  # one level: it also runs the data consistency check (undo_inconsistent)
         li_c, mask_c, nom_c, grid_c, inner_c, fov_c = li_f, mask_f, nom_f, grid_f, inner_f, fov_f
@@ -389,7 +393,7 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
                 if np.abs(params - fitted).max() < 1e-9:
                     break
         if focus_modes:
-            params, focus = focus_conjugate_modes(li, nominal, params, grid, mask, modes=focus_modes,
+            params, focus = focus_conjugate_modes(li, nominal, params, est_grid, mask, modes=focus_modes,
                                                   fdk_kwargs=fdk_kwargs)
             say(f"iteration {it + 1}/{n_iter}: sharpness focus of {len(focus['modes'])} conjugate modes, entropy "
                 f"{focus['entropy_before']:.6f} -> {focus['entropy_after']:.6f}")

@@ -8,10 +8,10 @@ import numpy as np
 
 from robot_ct_ros.ct.calibration.masks import as_view_mask
 from robot_ct_ros.ct.calibration.model import project
-from robot_ct_ros.ct.geometry import VolumeGrid
+from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
 from robot_ct_ros.ct.metrics import ncc
 
-__all__ = ["EstimationVolume", "reconstruct_for_estimation", "projection_consistency", "estimation_grid",
+__all__ = ["EstimationVolume", "reconstruct_for_estimation", "projection_consistency", "estimation_grid", "axis_last",
            "truncation_level", "TRUNCATED_ABOVE", "EXTERIOR_ABOVE"]
 
 
@@ -113,3 +113,24 @@ def estimation_grid(grid: VolumeGrid, padding: float) -> VolumeGrid:
     the part of the object outside the ROI that the truncated rays still cross."""
     nz, ny, nx = grid.shape_zyx
     return grid.resized((nz, int(round(ny * padding)), int(round(nx * padding))))
+
+
+def axis_last(grid: VolumeGrid, geom: ConeGeometry) -> VolumeGrid:
+    """The same box and voxels as ``grid``, its axes named so that z is the one along the scan axis
+    (:func:`~robot_ct_ros.ct.scan_weights.estimate_scan_axis`, within
+    :data:`~robot_ct_ros.ct.calibration.masks.AXIS_ALIGNED_DEG`): a cyclic renaming, so the voxel centres are the
+    very same points. The estimation widens a grid across its x and y (:func:`estimation_grid`) and keeps the FDK
+    to its central x-y part: a world-aligned grid around a scan about +y (RTK's axis) was widened along the axis and
+    not across it. ``grid`` itself where its z already is along the axis, or none of its axes is."""
+    from robot_ct_ros.ct.calibration.masks import AXIS_ALIGNED_DEG
+    from robot_ct_ros.ct.scan_weights import estimate_scan_axis
+
+    D = grid.direction_matrix
+    along = np.abs(estimate_scan_axis(geom) @ D) >= np.cos(np.deg2rad(AXIS_ALIGNED_DEG))
+    if along[2] or not along.any():
+        return grid
+    k = int(np.flatnonzero(along)[0])
+    order = [(k + 1) % 3, (k + 2) % 3, k]  # cyclic: keeps the frame right-handed
+    n_xyz, vs = np.asarray(grid.shape_xyz), np.asarray(grid.voxel_size_mm)
+    return VolumeGrid.centered(tuple(int(n) for n in n_xyz[order][::-1]), tuple(vs[order]), grid.center_mm,
+                               D[:, order])

@@ -165,3 +165,27 @@ def test_views_skipped_on_one_level_only_are_not_said_to_have_kept_their_geometr
     assert not any("kept their geometry" in n for n in result.notes), result.notes
     assert any("on the coarse level to be estimated there and were estimated on the fine level only" in n
                for n in result.notes), result.notes
+
+
+def test_the_estimation_widens_a_grid_across_the_scan_axis_whichever_axis_of_the_grid_runs_along_it():
+    """The estimation grid is the ROI widened across its x and y (padding); a world-aligned grid around a scan about
+    +y was widened along the axis and not across it. axis_last renames the grid's axes (the same voxel centres) so
+    that its z runs along the scan axis."""
+    from robot_ct_ros.ct.calibration.volume import axis_last, estimation_grid
+
+    nominal, _, _, _ = _scan(n_views=12, n_det=8)
+    about_y = Rotation.from_rotvec([-np.pi / 2, 0.0, 0.0]).as_matrix()
+    geom = nominal.moved(about_y, np.zeros(3))
+    box = VolumeGrid.centered((6, 10, 14), (0.3, 0.4, 0.5), center_mm=(1.0, 2.0, -3.0))  # world axes: y along the scan
+    renamed = axis_last(box, geom)
+    assert abs(renamed.direction_matrix[:, 2] @ [0.0, 1.0, 0.0]) == pytest.approx(1.0)
+    assert np.linalg.det(renamed.direction_matrix) == pytest.approx(1.0)
+    def centres(g):  # every voxel centre, in world mm, as a sorted set
+        idx = np.stack(np.meshgrid(*[np.arange(n) for n in g.shape_xyz], indexing="ij"), -1).reshape(-1, 3)
+        pts = np.round(g.index_to_world(idx), 9)
+        return pts[np.lexsort(pts.T)]
+
+    np.testing.assert_allclose(centres(renamed), centres(box), atol=1e-9)
+    wide = estimation_grid(renamed, 1.5)
+    assert wide.shape_zyx[0] == box.shape_xyz[1]  # along the axis: as it was
+    assert axis_last(renamed, geom) is renamed and axis_last(box, nominal) is box  # z along the axis already
