@@ -2,14 +2,16 @@
 
 Conventions are those of :mod:`robot_ct_ros.ct.geometry`. The mapping to RTK is exact:
 
-* A view is added with RTK's vector form
+* A view is the vector form of RTK's
   ``AddProjection(sourcePosition, detectorPosition, detectorRowVector, detectorColumnVector)``
   with ``source_mm``, ``detector_mm``, ``u`` and ``v``. In RTK, ``detectorPosition`` is the
   world position of the point whose *physical* projection coordinates are (0, 0), the row
   vector is the direction of increasing first image index (our column, ``u``) and the column
   vector that of the second index (our row, ``v``); the normal is ``n = r x c`` (our ``w``).
   RTK stores it as 9 parameters (SID = n.S, SDD = n.(S - R), ZXY Euler angles of (r, c, n),
-  offsets S.r, S.c, R.r, R.c), see rtkThreeDCircularProjectionGeometry.cxx.
+  offsets S.r, S.c, R.r, R.c), see rtkThreeDCircularProjectionGeometry.cxx. We compute these
+  parameters ourselves (the same values) and add them in that form: RTK's own Euler
+  decomposition is inexact within ~0.003 deg of 90 deg out of plane (gimbal lock), ours is not.
 * The RTK projection stack is an ``itk.Image[F, 3]`` of size (n_cols, n_rows, n_views),
   spacing (col_pitch_mm, row_pitch_mm, 1), identity direction and origin
   (-(n_cols-1)/2*col_pitch_mm, -(n_rows-1)/2*row_pitch_mm, 0): its physical (0, 0) is the
@@ -45,15 +47,60 @@ def _rtk():
 
 
 # ------------------------------------------------------------------ geometry
+def _rtk_vector_parameters(geom: ConeGeometry) -> np.ndarray:
+    """RTK's 9 parameters per view, (n, 9), angles in *radians*, of the vector form (S, R, r, c).
+
+    The same parameters as RTK's own vector ``AddProjection`` (SID = n.S, SDD = n.(S - R),
+    offsets S.r, S.c, R.r, R.c, negated ZXY Euler angles of the rows (r, c, n)), but the Euler
+    decomposition is well conditioned everywhere. RTK's (ITK's ``Euler3DTransform``) takes the
+    out-of-plane angle as asin(n_y) and switches to a fixed gimbal-lock branch under
+    cos = 5e-5, which loses up to 2.5e-2 mm within ~0.003 deg of 90 deg. Here the out-of-plane
+    angle is atan2(n_y, |(n_x, n_z)|), the gantry angle atan2(-n_x, n_z), and the in-plane angle
+    is solved from the full rotation with those two removed: near the lock an error in the
+    gantry angle is then a rotation about the normal, which the in-plane angle absorbs, so the
+    rebuilt rotation is exact to rounding whatever the tilt.
+    """
+    def dot(x, y):
+        return np.einsum("ij,ij->i", x, y)
+
+    # the rotation RTK will hold: the nearest one to the rows (u, v, u x v) (ConeGeometry keeps
+    # them orthonormal to 1e-6 only); source and detector are then placed exactly in its frame
+    m = np.stack([geom.u, geom.v, np.cross(geom.u, geom.v)], axis=1)
+    a, _, bt = np.linalg.svd(m)
+    rot = a @ bt
+    r, c, n = rot[:, 0], rot[:, 1], rot[:, 2]
+    oa = np.arctan2(n[:, 1], np.hypot(n[:, 0], n[:, 2]))   # in [-90, 90] deg, as ITK's asin
+    ga = np.arctan2(-n[:, 0], n[:, 2])
+    # rot = Rz(ia) Rx(oa) Ry(ga) (ITK's ZXY order)  =>  Rz(ia) = rot Ry(ga)^T Rx(oa)^T
+    z = rot @ _rot_y(ga).transpose(0, 2, 1) @ _rot_x(oa).transpose(0, 2, 1)
+    ia = np.arctan2(z[:, 1, 0] - z[:, 0, 1], z[:, 0, 0] + z[:, 1, 1])
+    src, det = geom.source_mm, geom.detector_mm
+    sid, sdd = dot(n, src), dot(n, src - det)
+    sdd[np.abs(sdd) < 1e-6] = 0.0  # as RTK: a zero SDD means parallel
+    # RTK negates the angles it is given (its rotation is Euler(-oop, -gantry, -in-plane))
+    return np.stack([sid, sdd, -ga, dot(det, r), dot(det, c), -oa, -ia, dot(src, r), dot(src, c)], axis=1)
+
+
+def _rot_x(a):
+    c, s, o, i = np.cos(a), np.sin(a), np.zeros_like(a), np.ones_like(a)
+    return np.stack([np.stack([i, o, o], -1), np.stack([o, c, -s], -1), np.stack([o, s, c], -1)], -2)
+
+
+def _rot_y(a):
+    c, s, o, i = np.cos(a), np.sin(a), np.zeros_like(a), np.ones_like(a)
+    return np.stack([np.stack([c, o, s], -1), np.stack([o, i, o], -1), np.stack([-s, o, c], -1)], -2)
+
+
 def to_rtk_geometry(geom: ConeGeometry):
-    """An ``rtk.ThreeDCircularProjectionGeometry`` with the views of ``geom`` (vector form, exact)."""
+    """An ``rtk.ThreeDCircularProjectionGeometry`` with the views of ``geom`` (vector form, exact).
+
+    The parameters are those of RTK's vector ``AddProjection`` but decomposed here (see
+    :func:`_rtk_vector_parameters`): RTK's own decomposition is inexact near 90 deg out of plane.
+    """
     _, rtk = _rtk()
     g = rtk.ThreeDCircularProjectionGeometry.New()
-    for i in range(geom.n_views):
-        ok = g.AddProjection([float(x) for x in geom.source_mm[i]], [float(x) for x in geom.detector_mm[i]],
-                             [float(x) for x in geom.u[i]], [float(x) for x in geom.v[i]])
-        if not ok:
-            raise ValueError(f"RTK rejected view {i} of the geometry")
+    for row in _rtk_vector_parameters(geom):
+        g.AddProjectionInRadians(*[float(x) for x in row])
     return g
 
 
