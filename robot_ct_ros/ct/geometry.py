@@ -522,3 +522,18 @@ def bin_projections(proj: np.ndarray, factor: int, mean: bool = False) -> np.nda
     p = proj[..., : nr * fr, : nc * fc]
     p = p.reshape(p.shape[:-2] + (nr, fr, nc, fc))
     return p.mean(axis=(-3, -1)) if mean else p.sum(axis=(-3, -1))
+
+
+def view_mask(valid_mask, shape) -> np.ndarray:
+    """``valid_mask`` (None: all valid) as a read-only bool array of the projections' ``shape``
+    (n_views, n_rows, n_cols): one (n_rows, n_cols) map for all views, or one per view.
+    ValueError naming both shapes where it does not fit (numpy's broadcast error names neither)."""
+    shape = tuple(shape)
+    if valid_mask is None:
+        return np.ones(shape, bool)
+    m = np.asarray(valid_mask, dtype=bool)
+    try:
+        return np.broadcast_to(m, shape)
+    except ValueError:
+        raise ValueError(f"valid_mask must have shape {shape[-2:]} (one map for all views) or {shape}, "
+                         f"got {m.shape}") from None

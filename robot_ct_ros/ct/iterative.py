@@ -9,10 +9,18 @@ from __future__ import annotations
 
 import numpy as np
 
-from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
+from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid, view_mask
 from robot_ct_ros.ct.projector import back_project as bp, forward_project as fp
 
 __all__ = ["sirt", "cgls"]
+
+
+def _projections(line_integrals, geom: ConeGeometry) -> np.ndarray:
+    """float32 projections, checked against the geometry (numpy's broadcast error would name no cause)."""
+    b = np.asarray(line_integrals, dtype=np.float32)
+    if b.shape != (geom.n_views,) + geom.det_shape:
+        raise ValueError(f"projections must have shape {(geom.n_views,) + geom.det_shape}, got {b.shape}")
+    return b
 
 
 def sirt(line_integrals: np.ndarray, geom: ConeGeometry, grid: VolumeGrid, n_iter: int, x0=None,
@@ -25,9 +33,8 @@ def sirt(line_integrals: np.ndarray, geom: ConeGeometry, grid: VolumeGrid, n_ite
     valid ray crosses keeps its ``x0`` value. ``callback(it, x, residual_norm)`` is called after
     each iteration with the norm of the masked residual of the iterate *before* the update.
     """
-    b = np.asarray(line_integrals, dtype=np.float32)
-    mask = np.isfinite(b) if valid_mask is None else (np.broadcast_to(np.asarray(valid_mask, bool), b.shape)
-                                                      & np.isfinite(b))
+    b = _projections(line_integrals, geom)
+    mask = view_mask(valid_mask, b.shape) & np.isfinite(b)
     b = np.where(mask, b, 0.0).astype(np.float32)
     row_sum = fp(np.ones(grid.shape_zyx, dtype=np.float32), grid, geom)
     eps = np.float32(1e-6)
@@ -52,7 +59,7 @@ def cgls(line_integrals: np.ndarray, geom: ConeGeometry, grid: VolumeGrid, n_ite
     ``callback(it, x, residual_norm)`` gets the residual norm ``||b - A x||`` of the new
     iterate (monotonically non-increasing in exact arithmetic).
     """
-    b = np.asarray(line_integrals, dtype=np.float32)
+    b = _projections(line_integrals, geom)
     x = np.zeros(grid.shape_zyx, dtype=np.float32) if x0 is None else np.array(x0, dtype=np.float32)
     r = b - fp(x, grid, geom) if x0 is not None else b.copy()
     s = bp(r, geom, grid)

@@ -61,7 +61,7 @@ import scipy.fft
 from scipy import ndimage
 from numba import njit, prange
 
-from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
+from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid, view_mask
 from robot_ct_ros.ct.virtual_detector import DEFAULT_TOL_DEG, align_rows_to_motion, outside_footprint
 from robot_ct_ros.ct.scan_weights import (  # noqa: F401  (re-exported: FDK's weights live there)
     FDKWarning,
@@ -190,7 +190,7 @@ def fill_invalid_pixels(proj: np.ndarray, valid_mask: np.ndarray) -> np.ndarray:
     views) or (n_views, n_rows, n_cols).
     """
     out = np.array(proj, dtype=np.float32, copy=True)
-    mask = np.broadcast_to(np.asarray(valid_mask, dtype=bool), out.shape)
+    mask = view_mask(valid_mask, out.shape)
     nv, nr, nc = out.shape
     rows = out.reshape(nv * nr, nc)
     _fill_invalid_rows(rows, np.ascontiguousarray(mask).reshape(nv * nr, nc))
@@ -312,7 +312,7 @@ def _refuse_non_finite(p: np.ndarray, valid_mask) -> None:
     if not bad.any():
         return
     if valid_mask is not None:
-        bad &= np.broadcast_to(np.asarray(valid_mask, dtype=bool), p.shape)
+        bad &= view_mask(valid_mask, p.shape)
     n_bad = int(np.count_nonzero(bad))
     if n_bad:
         raise ValueError(f"{n_bad} projection pixel(s) are NaN or infinite and not excluded by valid_mask; FDK needs "
@@ -363,6 +363,7 @@ def fdk_filter_projections(line_integrals: np.ndarray, geom: ConeGeometry, *, ce
         raise ValueError(f"projections must have shape {(geom.n_views,) + geom.det_shape}, got {p.shape}")
     if geom.n_views == 0:
         raise ValueError("FDK needs at least one view, got none")
+    valid_mask = None if valid_mask is None else view_mask(valid_mask, p.shape)  # a clear error if it does not fit
     _refuse_non_finite(p, valid_mask)
     if valid_mask is not None:
         p = fill_invalid_pixels(p, valid_mask)

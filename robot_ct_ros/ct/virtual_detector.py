@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
-from robot_ct_ros.ct.geometry import ConeGeometry
+from robot_ct_ros.ct.geometry import ConeGeometry, view_mask
 from robot_ct_ros.ct.scan_weights import FDKWarning, fdk_view_weights
 
 __all__ = ["VirtualDetector", "row_roll_deg", "align_rows_to_motion", "outside_footprint"]
@@ -198,8 +198,7 @@ def align_rows_to_motion(line_integrals: np.ndarray, geom: ConeGeometry, center_
     p = np.ascontiguousarray(line_integrals, dtype=np.float32)
     if p.shape != (geom.n_views,) + geom.det_shape:
         raise ValueError(f"projections must have shape {(geom.n_views,) + geom.det_shape}, got {p.shape}")
-    mask = np.ones(p.shape, bool) if valid_mask is None else \
-        np.ascontiguousarray(np.broadcast_to(np.asarray(valid_mask, dtype=bool), p.shape))
+    mask = np.ascontiguousarray(view_mask(valid_mask, p.shape))
     out = np.empty((geom.n_views, n_rows, n_cols), np.float32)
     out_valid = np.empty(out.shape, bool)
     _resample_kernel(p, mask, _pixel_maps(geom, vgeom), out, out_valid)

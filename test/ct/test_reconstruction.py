@@ -723,6 +723,35 @@ def test_a_one_column_detector_is_refused_by_the_calibration_in_one_line():
         calibration.calibrate(li, geom, VolumeGrid.centered((4, 4, 4), 1.0), calibration.CalibrationSettings())
 
 
+def test_mismatched_shapes_say_what_differs():
+    """From an outside check: the calibration said '24 frames but 24 geometries, or detector shape mismatch' for
+    frames one row short, and SIRT, CGLS, FDK and the calibration answered a wrong frame count or valid_mask
+    with numpy's 'operands could not be broadcast'; each now names the expected and the given shape."""
+    from robot_ct_ros.ct import calibration
+    from robot_ct_ros.ct.trajectory import circular_scan
+
+    geom = circular_scan(6, 60.0, 150.0, 8, 10, 1.0, 1.0)
+    grid = VolumeGrid.centered((4, 4, 4), 1.0)
+    li = np.ones((6, 8, 10), np.float32)
+    settings = calibration.CalibrationSettings()
+    with pytest.raises(ValueError, match=r"detector shapes differ: frames of 7 x 10 pixels, the geometry's "
+                                         r"detector 8 x 10"):
+        calibration.calibrate(li[:, :7], geom, grid, settings)
+    with pytest.raises(ValueError, match="5 frames but 6 views"):
+        calibration.calibrate(li[:5], geom, grid, settings)
+    for solve in (lambda b: sirt(b, geom, grid, 1), lambda b: cgls(b, geom, grid, 1)):
+        with pytest.raises(ValueError, match=r"projections must have shape \(6, 8, 10\), got \(5, 8, 10\)"):
+            solve(li[:5])
+    bad = np.ones((3, 3), bool)
+    want = r"valid_mask must have shape \(8, 10\) \(one map for all views\) or \(6, 8, 10\), got \(3, 3\)"
+    rolled = geom.replace(u=geom.v, v=-geom.u)  # rows across the motion: FDK resamples on a virtual detector first
+    for run in (lambda: fdk(li, geom, grid, valid_mask=bad), lambda: fdk(li, rolled, grid, valid_mask=bad),
+                lambda: sirt(li, geom, grid, 1, valid_mask=bad),
+                lambda: calibration.calibrate(li, geom, grid, settings, valid_mask=bad)):
+        with pytest.raises(ValueError, match=want):
+            run()
+
+
 def test_a_detector_asymmetric_by_turns_gets_no_displaced_detector_weights():
     """From an outside check: a centred detector wobbling along u by 6 mm (A sin of the view angle) measures every
     ray, yet its median asymmetry passed the displaced-detector test and Wang's weights, which pair each ray with a

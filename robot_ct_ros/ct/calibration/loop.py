@@ -252,9 +252,14 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
         raise ValueError("calibration needs at least one view, got none")
     if nominal.n_cols < 2:  # a column alone shows no shift along the row: nothing to register
         raise ValueError(f"calibration needs a detector at least 2 columns wide, got {nominal.n_rows} x {nominal.n_cols}")
-    if np.shape(line_integrals) != (nominal.n_views,) + nominal.det_shape:
-        raise ValueError(f"{np.shape(line_integrals)[0]} frames but {nominal.n_views} geometries, or detector "
-                         f"shape mismatch")
+    shape, want = np.shape(line_integrals), (nominal.n_views,) + nominal.det_shape
+    if shape != want:  # say which of the three differs
+        if len(shape) != 3:
+            raise ValueError(f"line integrals must have shape {want} (views, rows, columns), got {shape}")
+        if shape[0] != want[0]:
+            raise ValueError(f"{shape[0]} frames but {want[0]} views in the geometry")
+        raise ValueError(f"the detector shapes differ: frames of {shape[1]} x {shape[2]} pixels, the geometry's "
+                         f"detector {want[1]} x {want[2]} (rows x columns)")
     li, mask = usable_data(line_integrals, valid_mask)
     say = progress or (lambda message: None)
     if method.estimate is None:  # no correction: the nominal geometry

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
+from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid, view_mask
 
 __all__ = ["roi_support_mask", "ray_chords_mm", "as_view_mask", "usable_data", "bin_masked", "usable_views", "view_chunks",
            "estimator_inputs", "summarise_views", "MIN_VIEW_PIXELS", "FACE_MARGIN_SHARE", "AXIS_ALIGNED_DEG"]
@@ -128,9 +128,7 @@ def roi_support_mask(nominal: ConeGeometry, params: np.ndarray, grid: VolumeGrid
 
 
 def as_view_mask(valid_mask, shape) -> np.ndarray:
-    if valid_mask is None:
-        return np.ones(shape, bool)
-    return np.broadcast_to(np.asarray(valid_mask, bool), shape)
+    return view_mask(valid_mask, shape)
 
 
 def usable_data(line_integrals, valid_mask) -> tuple[np.ndarray, np.ndarray]:
