@@ -262,8 +262,8 @@ def report_markdown(out: dict) -> str:
         f"{g['grid_xyz'][2]} voxels of {g['voxel_um']:.0f} um ({g['volume_gb']:.2f} GB float32); projection stack "
         f"{g['stack_mb']:.0f} MB.", "",
         f"Machine: {out['machine']}, numba threads {out['numba_threads']}, {out['memory_total_gb']:.0f} GB; "
-        f"1-min load average {out['loadavg_start']:.1f} at the start and per stage below (above the cores' count: "
-        "other jobs shared the machine, and the wall times read high). Peak resident memory: VmRSS sampled every 20 ms "
+        f"1-min load average {out['loadavg_start']:.1f} at the start and per stage below (where it stands above the "
+        "cores' count, other jobs shared the machine and the wall times read high). Peak resident memory: VmRSS sampled every 20 ms "
         "by a thread, reset per stage; ru_maxrss is the process's peak so far. RTK ran in a spawned child process "
         "(its memory is its own; the child's ru_maxrss starts from the parent's resident size at the fork, so its "
         "sampled peak is the figure to read).", "",
