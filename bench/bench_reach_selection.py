@@ -150,7 +150,8 @@ def main(argv=None) -> int:
             calibrate_at.setdefault(r, []).append(why)
         for reach, why in sorted(calibrate_at.items()):
             t0 = time.perf_counter()
-            res = calibration.calibrate(sc.li, sc.nominal, sc.grid,  # 0: up to the sources, not a guess
+            # reach 0 with the guess off: exterior auto keeps the ROI model (it does not reach up to the sources)
+            res = calibration.calibrate(sc.li, sc.nominal, sc.grid,
                                         settings.replace(exterior_half_width_mm=reach, exterior_reach_guess=False),
                                         valid_mask=sc.mask)
             err = reprojection_error(res.geom, sc.true, pts)["mean_px"]
