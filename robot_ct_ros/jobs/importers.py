@@ -27,7 +27,8 @@ coordinate of pixel (0, 0) in RTK's projection frame (ITK's image origin, second
 component). The default is RTK's usual centred stack, origin ``(-(n_rows-1)/2 * row_pitch,
 -(n_cols-1)/2 * col_pitch)``, whose physical (0, 0) is the pixel-grid centre (what
 ``robot-ct export --format rtk`` assumes); another origin moves our detector centre to the
-world point of the grid centre.
+world point of the grid centre. RTK's parallel beam (``SourceToDetectorDistance`` 0) and its
+cylindrical detector are refused: a bag describes flat-panel cone and fan beams only.
 
 ASTRA (:func:`astra_geometry`): ``cone_vec`` rows of 12 numbers ``(src, d, u, v)`` (mm; d the
 detector centre, u and v one column and one row step, :meth:`ConeGeometry.from_astra_vec`) or
@@ -156,6 +157,11 @@ def rtk_geometry(xml_path, n_rows: int, n_cols: int, row_pitch_mm: float, col_pi
     if radius != 0.0:  # RTK's curved detector: a flat-panel geometry would misplace every column but the centre
         raise ValueError(f"{xml_path}: a cylindrical detector (RadiusCylindricalDetector {radius:g} mm); a scan bag "
                          "describes flat detectors only")
+    sdd = np.asarray(rtk_geom.GetSourceToDetectorDistances(), np.float64)
+    if np.any(sdd == 0.0):  # RTK's parallel beam: read back as a cone, its source would sit 2 SID from the detector
+        view = int(np.argmax(sdd == 0.0))
+        raise ValueError(f"{xml_path}: a parallel-beam geometry (SourceToDetectorDistance 0 in view {view}, RTK's "
+                         "parallel convention); a scan bag describes cone and fan beams only")
     geom = rtk_bridge.from_rtk_geometry(rtk_geom, n_rows, n_cols, row_pitch_mm, col_pitch_mm)
     if origin_mm is not None:
         o_row, o_col = (float(x) for x in origin_mm)

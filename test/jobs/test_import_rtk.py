@@ -153,3 +153,15 @@ def test_geometries_no_scanner_has_are_refused_and_radians_are_warned(tmp_path, 
     assert run(degrees, "o", "--origin-mm", "-1.25,-2.25") == 0
     g, go = read_scan(tmp_path / "d").geom, read_scan(tmp_path / "o").geom
     assert go.allclose(g, atol=1e-9)  # that origin is the centred stack's
+
+
+def test_an_rtk_parallel_beam_is_refused(tmp_path, capsys):
+    """RTK's AddProjection with a source-to-detector distance of 0 is a parallel beam; it was imported as a cone
+    beam with its source 2 SID from the detector, and every projection through the bag differed from RTK's."""
+    pytest.importorskip("itk")
+    np.save(tmp_path / "p.npy", np.ones((12, 6, 10), np.float32))
+    xml = _write_xml([[600.0, 0.0, 30.0 * i, 0, 0, 0, 0, 0, 0] for i in range(12)], tmp_path / "par.xml")
+    assert main(["import", "rtk", "--projections", str(tmp_path / "p.npy"), "--geometry", str(xml),
+                 "--pitch-mm", "0.5,0.5", "--out", str(tmp_path / "bag")]) == 2
+    _one_line_error(capsys, "par.xml", "parallel-beam", "SourceToDetectorDistance 0")
+    assert not (tmp_path / "bag").exists()
