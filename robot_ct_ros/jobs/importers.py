@@ -289,11 +289,17 @@ def counts_warnings(frames: np.ndarray, flat: np.ndarray) -> list[str]:
 MAX_HALF_FAN_DEG = 60.0
 """The widest half angle a detector may subtend from the source: beyond it the distances are not in
 millimetres, or the vectors not a cone or fan beam's (a parallel-beam vector file has the same columns)."""
+MIN_SDD_MM = 10.0
+"""The shortest source-to-detector distance accepted: no X-ray scanner has its focal spot within 10 mm of the
+detector (the tube's housing and the object lie between), while a real scanner's distances written in metres
+(0.1 to 2 m) and an ASTRA parallel-beam file (a unit ray direction where the source stands, the detector through
+the origin: 1 mm) fall below it, on a detector too small for :data:`MAX_HALF_FAN_DEG` to catch them."""
 
 
 def check_plausible(geom: ConeGeometry, source: str, say=_say) -> None:
     """Refuse a geometry no scanner has (the source on or behind the detector plane, a detector wider than
-    ``MAX_HALF_FAN_DEG`` allows from the source), naming the likely mix-up; warn where the views span less
+    ``MAX_HALF_FAN_DEG`` allows from the source, a source closer than ``MIN_SDD_MM`` to the detector), naming
+    the likely mix-up; warn where the views span less
     than 20 degrees (angles in radians where degrees were meant). ``source``: the geometry's file."""
     from robot_ct_ros.ct.scan_weights import scan_arc
 
@@ -309,6 +315,11 @@ def check_plausible(geom: ConeGeometry, source: str, say=_say) -> None:
                          f"source at {sdd.min():g} mm (more than {MAX_HALF_FAN_DEG:g}): are the distances in metres, "
                          "or the vectors a parallel beam's (ASTRA parallel_vec / parallel3d_vec have the same "
                          "columns as fanflat_vec / cone_vec)?")
+    if sdd.min() < MIN_SDD_MM:
+        view = int(np.argmin(sdd))
+        raise ValueError(f"{source}: view {view} has its source {sdd[view]:g} mm from the detector, closer than any "
+                         f"scanner ({MIN_SDD_MM:g} mm): are the distances in metres, or the vectors a parallel beam's "
+                         "(ASTRA parallel_vec / parallel3d_vec have the same columns as fanflat_vec / cone_vec)?")
     if geom.n_views >= 10:
         arc = float(np.degrees(scan_arc(geom)[0]))
         if arc < 20.0:

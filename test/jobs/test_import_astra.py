@@ -232,3 +232,28 @@ def test_a_frame_of_line_integrals_with_no_finite_value_is_warned(tmp_path, caps
     assert main(["import", "astra", "--projections", str(tmp_path / "p.npy"), "--vectors", str(tmp_path / "v.txt"),
                  "--out", str(tmp_path / "bag")]) == 0
     assert "warning: 1 frames have no usable pixel" in capsys.readouterr().out
+
+
+def test_metres_and_parallel_beam_vectors_on_a_small_detector_are_refused(tmp_path, capsys):
+    """On a detector of 8 x 8 pixels of 0.2 mm, distances in metres (SDD 0.55) and ASTRA parallel3d_vec rows (a unit
+    ray direction where the source stands: SDD 1) subtend less than 60 deg and were imported as cone beams; a source
+    closer than 10 mm to the detector is now refused. The HTC2022 scanner's own geometry still imports."""
+    angles = np.arange(0.0, 360.0, 10.0)
+    t, n, p = np.deg2rad(angles), 8, 0.2
+    np.save(tmp_path / "p.npy", _proj((angles.size, n, n)))
+    z = np.zeros_like(t)
+    parallel = np.stack([-np.sin(t), np.cos(t), z, z, z, z, p * np.cos(t), p * np.sin(t), z, z, z, p + z], axis=1)
+    htc = fan_beam_geometry(angles, 410.66, 553.74, n, p, n_rows=n).to_astra_vec()
+    metres = htc.copy()
+    metres[:, :6] *= 1e-3
+
+    def run(name, vec):
+        np.savetxt(tmp_path / f"{name}.txt", vec)
+        return main(["import", "astra", "--projections", str(tmp_path / "p.npy"), "--vectors",
+                     str(tmp_path / f"{name}.txt"), "--out", str(tmp_path / name)])
+
+    for name, vec, sdd in (("par", parallel, "1 mm"), ("m", metres, "0.55374 mm")):
+        assert run(name, vec) == 2
+        _one_line_error(capsys, f"{name}.txt", sdd, "metres", "parallel")
+        assert not (tmp_path / name).exists()
+    assert run("htc", htc) == 0

@@ -165,3 +165,20 @@ def test_an_rtk_parallel_beam_is_refused(tmp_path, capsys):
                  "--pitch-mm", "0.5,0.5", "--out", str(tmp_path / "bag")]) == 2
     _one_line_error(capsys, "par.xml", "parallel-beam", "SourceToDetectorDistance 0")
     assert not (tmp_path / "bag").exists()
+
+
+def test_rtk_distances_in_metres_on_a_small_detector_are_refused(tmp_path, capsys):
+    """SID 0.6, SDD 0.9 (metres) on 8 x 8 pixels of 0.2 mm subtend 51 deg, under the 60 deg half-fan that caught
+    larger detectors: imported as a cone beam 0.9 mm long. The seed system's 342 mm still imports."""
+    pytest.importorskip("itk")
+    np.save(tmp_path / "p.npy", np.ones((36, 8, 8), np.float32))
+
+    def run(sid, sdd, name):
+        xml = _write_xml([[sid, sdd, 10.0 * i, 0, 0, 0, 0, 0, 0] for i in range(36)], tmp_path / f"{name}.xml")
+        return main(["import", "rtk", "--projections", str(tmp_path / "p.npy"), "--geometry", str(xml),
+                     "--pitch-mm", "0.2,0.2", "--out", str(tmp_path / name)])
+
+    assert run(0.6, 0.9, "m") == 2
+    _one_line_error(capsys, "m.xml", "0.9 mm from the detector", "metres")
+    assert not (tmp_path / "m").exists()
+    assert run(200.0, 342.0, "seed") == 0
