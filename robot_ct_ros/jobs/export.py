@@ -23,6 +23,9 @@ paired frame in stamp order (the order of the bag's frames as :func:`read_scan` 
   (n, 3) ZYZ, ``offOrigin``, ``offDetector``, ``rotDetector``) with ``nDetector``, ``dDetector``,
   ``sDetector`` and ``center_mm``, our world position of TIGRE's origin (the bag's ROI centre):
   :mod:`robot_ct_ros.jobs.tigre` states the exact mapping and the views it refuses.
+
+The output file must lie outside the bag (and the corrected bag, and be no calibration's report.json):
+writing into a bag's folder or over its ``.mcap`` would destroy the scan being exported.
 """
 
 from __future__ import annotations
@@ -47,6 +50,35 @@ def _read(bag):
     return read_scan(bag)
 
 
+def _corrected_paths(path) -> tuple[Path | None, Path]:
+    """(report.json or None, corrected bag) of a calibration output ``path`` (:func:`corrected_geometry`)."""
+    path = Path(path)
+    report = path / "report.json" if path.is_dir() and (path / "report.json").exists() else path
+    if report.suffix != ".json":
+        return None, path
+    try:
+        rep = json.loads(report.read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{report}: not a JSON report ({exc})") from None
+    name = rep.get("corrected_bag") if isinstance(rep, dict) else None
+    if not name:
+        raise ValueError(f"{report}: no corrected_bag in it; is it a report of robot-ct calibrate?")
+    bag = Path(name)
+    if not bag.exists():  # the output folder was moved: the bag sits next to report.json
+        bag = report.parent / bag.name
+    return report, bag
+
+
+def _check_out_spares(out: Path, bag: Path, what: str) -> None:
+    """Refuse an ``out`` that is the bag's file or lies in its folder (a bag folder, or the folder of an .mcap
+    file with its metadata.yaml): the export would overwrite the scan it reads."""
+    out_r, bag_r = out.resolve(), bag.resolve()  # through links, which may point into the bag
+    folder = bag_r if bag_r.is_dir() else bag_r.parent if (bag_r.parent / "metadata.yaml").is_file() else None
+    if out_r == bag_r or (folder is not None and folder in out_r.parents):
+        raise ValueError(f"--out {out} lies in {what} {bag}: writing it would overwrite the bag; give a file "
+                         "outside it")
+
+
 def corrected_geometry(path, nominal_scan=None) -> ConeGeometry:
     """The corrected geometry of a calibration output.
 
@@ -55,20 +87,7 @@ def corrected_geometry(path, nominal_scan=None) -> ConeGeometry:
     With ``nominal_scan`` (a :class:`~robot_ct_ros.bag.reader.ScanData`), the corrected bag must
     hold the same views (same stamps) and the same projections.
     """
-    path = Path(path)
-    report = path / "report.json" if path.is_dir() and (path / "report.json").exists() else path
-    bag = path
-    if report.suffix == ".json":
-        try:
-            rep = json.loads(report.read_text())
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"{report}: not a JSON report ({exc})") from None
-        name = rep.get("corrected_bag") if isinstance(rep, dict) else None
-        if not name:
-            raise ValueError(f"{report}: no corrected_bag in it; is it a report of robot-ct calibrate?")
-        bag = Path(name)
-        if not bag.exists():  # the output folder was moved: the bag sits next to report.json
-            bag = report.parent / bag.name
+    _, bag = _corrected_paths(path)
     scan = _read(bag)
     if scan.geom_corrected is None:
         raise ValueError(f"{bag}: no /ct/geometry_corrected covering every frame")
@@ -137,6 +156,12 @@ def export_geometry(bag, out, fmt: str = "rtk", *, corrected=None, say=_say) -> 
         raise ValueError(f"--out {out} is a folder; give a file name")
     if not out.parent.is_dir():
         raise ValueError(f"cannot write {out}: {out.parent} is not a folder")
+    _check_out_spares(out, Path(bag), "the bag")
+    if corrected is not None:
+        report, corrected_bag = _corrected_paths(corrected)
+        _check_out_spares(out, corrected_bag, "the corrected bag")
+        if report is not None and out.resolve() == report.resolve():
+            raise ValueError(f"--out {out} is the calibration's report; give another file")
     scan = _read(bag)
     geom = scan.geom if corrected is None else corrected_geometry(corrected, scan)
     which = "nominal" if corrected is None else "corrected"

@@ -136,6 +136,15 @@ def test_export_of_a_corrected_geometry(tmp_path, bag, capsys):
     assert main(["export", str(bag), "--format", "astra", "--corrected", str(moved), "--out",
                  str(tmp_path / "m.npy")]) == 0
     assert astra_geometry(read_astra_vectors(tmp_path / "m.npy"), 12, 20).allclose(expected, atol=1e-9)
+    # the corrected bag and the report are spared as the bag is; a new file beside them is fine
+    mcap = next((moved / "scan_corrected").glob("*.mcap"))
+    for out, words in ((mcap, "lies in the corrected bag"), (moved / "report.json", "the calibration's report")):
+        before = out.read_bytes()
+        assert main(["export", str(bag), "--format", "astra", "--corrected", str(moved), "--out", str(out)]) == 2
+        _one_line_error(capsys, words)
+        assert out.read_bytes() == before
+    assert main(["export", str(bag), "--format", "astra", "--corrected", str(moved), "--out",
+                 str(moved / "v.npy")]) == 0
 
     other = _geometry(seed=1, n=6)
     other_bag = write_scan(tmp_path / "other", np.ones((6, 12, 20), np.float32), other,
@@ -281,3 +290,20 @@ def test_astra_vectors_in_an_upper_case_npy_file_import_back(tmp_path, bag):
     nominal = read_scan(bag).geom
     assert np.load(out).shape == (nominal.n_views, 12)
     assert astra_geometry(read_astra_vectors(out), nominal.n_rows, nominal.n_cols).allclose(nominal, atol=1e-9)
+
+
+def test_an_out_inside_the_bag_is_refused(tmp_path, bag, capsys):
+    """export --out BAG/its.mcap overwrote the bag's own file with the geometry (exit 0): the scan was lost."""
+    files = {p: p.read_bytes() for p in bag.iterdir()}
+    mcap = next(p for p in files if p.suffix == ".mcap")
+    for out in (mcap, bag / "metadata.yaml", bag / "new.npz"):
+        assert main(["export", str(bag), "--format", "tigre", "--out", str(out)]) == 2
+        _one_line_error(capsys, "lies in the bag", "overwrite")
+    assert main(["export", str(mcap), "--format", "astra", "--out", str(mcap)]) == 2  # the bag as its .mcap file
+    _one_line_error(capsys, "lies in the bag")
+    (tmp_path / "link.npy").symlink_to(mcap)  # a link into the bag writes there too
+    assert main(["export", str(bag), "--format", "astra", "--out", str(tmp_path / "link.npy")]) == 2
+    _one_line_error(capsys, "lies in the bag")
+    assert {p: p.read_bytes() for p in bag.iterdir()} == files
+    assert read_scan(bag).n_views == 8
+    assert main(["export", str(bag), "--format", "astra", "--out", str(tmp_path / "v.txt")]) == 0
