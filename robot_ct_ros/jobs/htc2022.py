@@ -35,7 +35,8 @@ opposite rotation sense (test/jobs/test_htc2022.py checks 01a when the shared re
 
 The angles run 0 to 360 degrees in 0.5 degree steps: the last repeats the first. It is
 **dropped** (720 views over a full turn), so a full turn is not weighted twice; a last angle that
-is not a repeat of the first (modulo 360 degrees) is kept.
+is not a repeat of the first (modulo 360 degrees) is kept. A file with fewer than 4 views (with a finite
+value) is refused: no reader accepts such a bag.
 """
 
 from __future__ import annotations
@@ -185,8 +186,11 @@ def import_htc2022(mat_path, out, *, say=_say) -> Path:
     out = Path(out)
     if out.exists():
         raise ValueError(f"{out} exists already; a bag is never overwritten")
+    from robot_ct_ros.jobs.importers import check_view_count
+
     d = read_htc2022(mat_path)
     n_views, n_det = d.sinogram.shape
+    check_view_count(int(np.isfinite(d.sinogram).any(axis=1).sum()), n_views, d.path)  # the reader's pairing
     geom = fan_beam_geometry(d.angles_deg, d.dso_mm, d.dsd_mm, n_det, d.pitch_mm)
     eff = d.effective_pixel_mm
     info = scan_info_for(geom, projection_units="line_integral", roi_center_mm=(0.0, 0.0, 0.0),

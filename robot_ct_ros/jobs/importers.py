@@ -13,7 +13,8 @@ frames ``I - D`` and flat field ``F - D`` (float32); the reader then forms
 ``log((F - D) / max(I - D, 0.5)) = -log((I - D) / (F - D))``. A pixel with ``I - D <= 0`` is
 stored as NaN (unusable in that frame) and one with ``F - D <= 0`` is unusable in every frame
 (the reader masks a non-positive flat). Dark-corrected counts in (0, 0.5) meet the bag's
-photon-starvation floor of 0.5.
+photon-starvation floor of 0.5. Fewer than 4 frames with a usable pixel are refused before anything is
+written: no reader accepts such a bag (docs/bag-format.md, Pairing).
 
 RTK (:func:`rtk_geometry`): the ``rtk.ThreeDCircularProjectionGeometry`` XML, read with
 itk-rtk's ``ThreeDCircularProjectionGeometryXMLFileReader`` (itk-rtk is a test dependency:
@@ -47,7 +48,7 @@ from robot_ct_ros.ct.geometry import ConeGeometry
 from robot_ct_ros.jobs.output import say as _say
 
 __all__ = ["read_stack", "read_frame", "dark_corrected", "rtk_geometry", "read_astra_vectors", "astra_geometry",
-           "import_rtk", "import_astra", "LAYOUTS"]
+           "import_rtk", "import_astra", "check_view_count", "LAYOUTS"]
 
 LAYOUTS = ("views-first", "astra")
 """Projection array layouts: (views, rows, cols), or ASTRA's 3-D (rows, views, cols)."""
@@ -219,6 +220,17 @@ def astra_geometry(vectors, n_rows: int, n_cols: int, row_pitch_mm: float | None
 
 
 # ------------------------------------------------------------------------------- import
+def check_view_count(n_usable: int, n_frames: int, source) -> None:
+    """Refuse a scan of fewer than ``MIN_VIEWS`` frames with a usable pixel before its bag is written: every
+    reader refuses such a bag (docs/bag-format.md, Pairing). ``source``: the projections' file."""
+    from robot_ct_ros.bag.reader import MIN_VIEWS
+
+    if n_usable < MIN_VIEWS:
+        held = f"{n_frames} views" if n_usable == n_frames else \
+            f"{n_usable} of its {n_frames} frames with a usable pixel"
+        raise ValueError(f"{source} holds {held}; a scan needs at least {MIN_VIEWS} (no reader would accept the bag)")
+
+
 def _write(out, proj, geom: ConeGeometry, *, counts: bool, flat, dark, notes: dict, say) -> Path:
     from robot_ct_ros.bag import scan_info_for, write_scan
 
@@ -242,12 +254,13 @@ def _write(out, proj, geom: ConeGeometry, *, counts: bool, flat, dark, notes: di
             raise ValueError("--flat and --dark go with --counts (raw counts); without it the projections are "
                              "line integrals")
         frames, flat_frame, units = np.asarray(proj, np.float32), None, "line_integral"
-    info = scan_info_for(geom, projection_units=units, notes=notes)
-    write_scan(out, frames, geom, info=info, flat=flat_frame)
-    bad = int(np.isnan(frames).sum()) if counts else 0
     if not counts:  # line integrals: a frame with no finite value is no view either
         usable = np.isfinite(frames)
     empty = int((~usable.any(axis=(1, 2))).sum())
+    check_view_count(geom.n_views - empty, geom.n_views, notes["projections"])
+    info = scan_info_for(geom, projection_units=units, notes=notes)
+    write_scan(out, frames, geom, info=info, flat=flat_frame)
+    bad = int(np.isnan(frames).sum()) if counts else 0
     say(f"wrote {out}: {geom.n_views} views, {geom.n_rows} x {geom.n_cols} detector of {geom.row_pitch_mm:g} x "
         f"{geom.col_pitch_mm:g} mm, {units}"
         f"{f' ({bad} pixel values at or below the dark, or not finite, marked unusable)' if bad else ''}"
@@ -345,6 +358,7 @@ def import_rtk(projections, geometry_xml, out, *, pitch_mm, origin_mm=None, coun
     proj = read_stack(projections)
     geom = rtk_geometry(geometry_xml, proj.shape[1], proj.shape[2], pitch_mm[0], pitch_mm[1], origin_mm)
     _same_views(proj.shape[0], geom.n_views, projections, geometry_xml)
+    check_view_count(geom.n_views, geom.n_views, projections)
     check_plausible(geom, geometry_xml, say)
     notes = {"generator": "robot-ct import rtk", "projections": Path(projections).name,
              "geometry": f"{Path(geometry_xml).name} (RTK ThreeDCircularProjectionGeometry, rotation about y)",
@@ -361,6 +375,7 @@ def import_astra(projections, vectors, out, *, layout: str = "views-first", row_
     vec = read_astra_vectors(vectors)
     proj = read_stack(projections, layout, allow_2d=vec.shape[1] == 6)
     _same_views(proj.shape[0], vec.shape[0], projections, vectors)
+    check_view_count(proj.shape[0], proj.shape[0], projections)
     if row_pitch_mm is not None and vec.shape[1] == 12:
         raise ValueError("--row-pitch-mm is for fanflat_vec only; cone_vec's v holds the row pitch")
     geom = astra_geometry(vec, proj.shape[1], proj.shape[2], row_pitch_mm)

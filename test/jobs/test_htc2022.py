@@ -153,3 +153,17 @@ def test_real_htc2022_geometry_reprojects_the_datasets_own_reconstruction(tmp_pa
           f"(residual {residual_m:.3f})")
     assert full > 0.995 and residual > 0.6
     assert full_m < full and residual_m < residual - 0.25
+
+
+def test_fewer_than_four_views_are_refused_before_writing(tmp_path, capsys):
+    """A 2-view file was imported (exit 0) into a bag that every reader refuses (a scan needs 4 paired views)."""
+    out = tmp_path / "bag"
+    mat = write_htc_mat(tmp_path / "two.mat", angles=(0.0, 0.5))[0]
+    assert main(["import", "htc2022", str(mat), "--out", str(out)]) == 2
+    _one_line_error(capsys, "two.mat holds 2 views", "at least 4")
+    sino = _sinogram(5, 40)
+    sino[1:3] = np.nan  # 3 of 4 views left (the repeated last dropped), one of them with no finite value
+    mat = write_htc_mat(tmp_path / "nan.mat", angles=(0.0, 0.5, 1.0, 1.5, 360.0), sinogram=sino)[0]
+    assert main(["import", "htc2022", str(mat), "--out", str(out)]) == 2
+    _one_line_error(capsys, "2 of its 4 frames with a usable pixel", "at least 4")
+    assert not out.exists()

@@ -257,3 +257,19 @@ def test_metres_and_parallel_beam_vectors_on_a_small_detector_are_refused(tmp_pa
         _one_line_error(capsys, f"{name}.txt", sdd, "metres", "parallel")
         assert not (tmp_path / name).exists()
     assert run("htc", htc) == 0
+
+
+def test_fewer_than_four_views_are_refused_before_writing(tmp_path, capsys):
+    """3 views (or 8 frames of which 5 hold no finite value) were imported, exit 0, into a bag no reader accepts."""
+    g = _geometry()
+    proj = _proj((g.n_views,) + g.det_shape)
+    np.save(tmp_path / "p3.npy", proj[:3])
+    np.savetxt(tmp_path / "v3.txt", g.to_astra_vec()[:3])
+    proj[3:] = np.nan
+    np.save(tmp_path / "pnan.npy", proj)
+    np.savetxt(tmp_path / "v.txt", g.to_astra_vec())
+    for p, v, words in (("p3", "v3", ("p3.npy holds 3 views",)), ("pnan", "v", ("3 of its 8 frames", "usable"))):
+        assert main(["import", "astra", "--projections", str(tmp_path / f"{p}.npy"), "--vectors",
+                     str(tmp_path / f"{v}.txt"), "--out", str(tmp_path / p)]) == 2
+        _one_line_error(capsys, *words, "at least 4")
+        assert not (tmp_path / p).exists()
