@@ -313,7 +313,8 @@ def check_plausible(geom: ConeGeometry, source: str, say=_say) -> None:
     """Refuse a geometry no scanner has (the source on or behind the detector plane, a detector wider than
     ``MAX_HALF_FAN_DEG`` allows from the source, a source closer than ``MIN_SDD_MM`` to the detector), naming
     the likely mix-up; warn where the views span less
-    than 20 degrees (angles in radians where degrees were meant). ``source``: the geometry's file."""
+    than 20 degrees, however few the views (angles in radians where degrees were meant). ``source``: the
+    geometry's file."""
     from robot_ct_ros.ct.scan_weights import scan_arc
 
     sdd = np.asarray(geom.sdd_mm, np.float64)
@@ -333,11 +334,15 @@ def check_plausible(geom: ConeGeometry, source: str, say=_say) -> None:
         raise ValueError(f"{source}: view {view} has its source {sdd[view]:g} mm from the detector, closer than any "
                          f"scanner ({MIN_SDD_MM:g} mm): are the distances in metres, or the vectors a parallel beam's "
                          "(ASTRA parallel_vec / parallel3d_vec have the same columns as fanflat_vec / cone_vec)?")
-    if geom.n_views >= 10:
+    if geom.n_views > 2:
         arc = float(np.degrees(scan_arc(geom)[0]))
-        if arc < 20.0:
-            say(f"warning: the {geom.n_views} views span an arc of {arc:.1f} deg only (angles written in radians "
-                "where degrees were meant, as RTK's XML has them?)")
+    elif geom.n_views == 2:  # scan_arc counts 2 views a full circle: the angle between their viewing directions
+        arc = float(np.degrees(np.arccos(np.clip(geom.w[0] @ geom.w[1], -1.0, 1.0))))
+    else:  # one view spans no arc to judge
+        arc = 360.0
+    if arc < 20.0:
+        say(f"warning: the {geom.n_views} views span an arc of {arc:.1f} deg only (angles written in radians "
+            "where degrees were meant, as RTK's XML has them?)")
 
 
 def _same_views(n_proj: int, n_geom: int, proj_path, geom_path):

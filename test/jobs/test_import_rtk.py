@@ -182,3 +182,30 @@ def test_rtk_distances_in_metres_on_a_small_detector_are_refused(tmp_path, capsy
     _one_line_error(capsys, "m.xml", "0.9 mm from the detector", "metres")
     assert not (tmp_path / "m").exists()
     assert run(200.0, 342.0, "seed") == 0
+
+
+@pytest.mark.parametrize("n_views", [4, 9])
+def test_radians_are_warned_however_few_the_views(tmp_path, capsys, n_views):
+    """The warning for views spanning under 20 deg (gantry angles in radians) was skipped below 10 views."""
+    pytest.importorskip("itk")
+    np.save(tmp_path / "p.npy", np.ones((n_views, 6, 10), np.float32))
+    angles = np.linspace(0.0, 2 * np.pi, n_views, endpoint=False)  # radians where RTK's XML has degrees
+    xml = _write_xml([[500.0, 800.0, a, 0, 0, 0, 0, 0, 0] for a in angles], tmp_path / "r.xml")
+    assert main(["import", "rtk", "--projections", str(tmp_path / "p.npy"), "--geometry", str(xml),
+                 "--pitch-mm", "0.5,0.5", "--out", str(tmp_path / "r")]) == 0
+    out = capsys.readouterr().out
+    assert f"the {n_views} views span an arc of {angles[-1]:.1f} deg only" in out and "radians" in out, out
+    xml = _write_xml([[500.0, 800.0, a, 0, 0, 0, 0, 0, 0] for a in np.degrees(angles)], tmp_path / "d.xml")
+    assert main(["import", "rtk", "--projections", str(tmp_path / "p.npy"), "--geometry", str(xml),
+                 "--pitch-mm", "0.5,0.5", "--out", str(tmp_path / "d")]) == 0
+    assert "warning" not in capsys.readouterr().out
+
+
+def test_check_plausible_warns_two_views_a_few_degrees_apart():
+    """scan_arc counts two views a full circle: two views pi (deg) apart passed without the warning."""
+    from robot_ct_ros.jobs.importers import check_plausible
+
+    for arc_rad, warned in ((np.deg2rad(2 * np.pi), True), (2 * np.pi, False)):  # views 3.1 deg and 180 deg apart
+        said = []
+        check_plausible(circular_scan(2, 500.0, 800.0, 6, 10, 0.5, 0.5, arc_rad=arc_rad), "g", said.append)
+        assert bool(said) == warned and all("span an arc of 3.1 deg" in m for m in said), said
