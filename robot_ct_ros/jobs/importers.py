@@ -65,9 +65,20 @@ def _load(path, what: str) -> np.ndarray:
         if suffix == ".npy":
             arr = np.load(path, allow_pickle=False)
         elif suffix in (".tif", ".tiff"):
+            import logging
+
             import tifffile
 
-            arr = tifffile.imread(path)
+            log = logging.getLogger("tifffile")
+            level = log.level
+            log.setLevel(logging.ERROR)  # its warnings about a damaged file would precede our one-line error
+            try:
+                arr = tifffile.imread(path)
+            finally:
+                log.setLevel(level)
+            if arr.size == 0:  # tifffile reads a TIFF header with garbage behind it as no page at all
+                raise ValueError(f"{path}: cannot read {what} (the TIFF file holds no readable image: corrupt or "
+                                 "truncated?)")
         else:
             raise ValueError(f"{path}: {what} must be a .npy or .tif/.tiff file")
     except ValueError as exc:
@@ -142,6 +153,12 @@ def rtk_geometry(xml_path, n_rows: int, n_cols: int, row_pitch_mm: float, col_pi
     except ImportError:
         raise ValueError("import rtk needs itk-rtk to read RTK's XML (pip install itk-rtk, see "
                          "requirements-test.txt); import astra does not") from None
+    import xml.etree.ElementTree as ET
+
+    try:  # ITK's reader stops silently at a cut: a truncated file would read as its first few views
+        ET.parse(xml_path)
+    except ET.ParseError as exc:
+        raise ValueError(f"{xml_path}: not a well-formed XML file, truncated or corrupt? ({exc})") from None
     reader = rtk.ThreeDCircularProjectionGeometryXMLFileReader.New()
     reader.SetFilename(str(xml_path))
     try:

@@ -209,3 +209,26 @@ def test_check_plausible_warns_two_views_a_few_degrees_apart():
         said = []
         check_plausible(circular_scan(2, 500.0, 800.0, 6, 10, 0.5, 0.5, arc_rad=arc_rad), "g", said.append)
         assert bool(said) == warned and all("span an arc of 3.1 deg" in m for m in said), said
+
+
+def test_a_truncated_xml_and_a_corrupt_tiff_are_named_as_such(tmp_path, capsys, caplog):
+    """A cut RTK XML read as its first view ('holds 12 views but g.xml describes 1'); a TIFF header with garbage
+    behind it read as an empty array ('projections must be 3-D ..., got shape (0,)')."""
+    pytest.importorskip("itk")
+    xml = _write_xml([[600.0, 900.0, 30.0 * i, 0, 0, 0, 0, 0, 0] for i in range(12)], tmp_path / "g.xml")
+    (tmp_path / "cut.xml").write_text(xml.read_text()[:700])
+    (tmp_path / "empty.xml").write_text("")
+    np.save(tmp_path / "p.npy", np.ones((12, 4, 6), np.float32))
+    (tmp_path / "bad.tif").write_bytes(b"II*\x00garbage" * 10)
+
+    def run(proj, geometry):
+        return main(["import", "rtk", "--projections", str(tmp_path / proj), "--geometry", str(tmp_path / geometry),
+                     "--pitch-mm", "0.2,0.2", "--out", str(tmp_path / "bag")])
+
+    for name in ("cut.xml", "empty.xml"):
+        assert run("p.npy", name) == 2
+        _one_line_error(capsys, name, "not a well-formed XML file, truncated or corrupt?")
+    assert run("bad.tif", "g.xml") == 2
+    _one_line_error(capsys, "bad.tif", "cannot read projections", "no readable image")
+    assert not [r for r in caplog.records if r.name == "tifffile"]  # its warning went to stderr before our line
+    assert not (tmp_path / "bag").exists()
