@@ -77,6 +77,11 @@ def node_topic(topic: str) -> str:
 LATCHED_TOPICS = (TOPIC_SCAN_INFO, TOPIC_FLAT_FIELD, TOPIC_DEAD_PIXELS)
 """Published once per scan, transient-local (late subscribers such as the recorder get them)."""
 
+STATE_TOPICS = (TOPIC_BEAM_ON,)
+"""Published on every change, transient-local with depth 1 (the last state for a late subscriber), as live: their
+bag metadata says so, so that a replay (``replay``, ``ros2 bag play``) republishes them to the transient-local
+subscribers of the nodes (the recorder, the orchestrator), which a volatile publisher never matches."""
+
 FRAME_DETECTOR = "pcd_detector"
 FRAME_WORLD = "world"
 
@@ -118,10 +123,10 @@ def _qos(depth: int, latched: bool):
 def offered_qos(topic: str):
     """The QoS profile a contract topic is published with (rosbags ``Qos``), for the bag metadata.
 
-    Latched topics: reliable, transient-local, keep-last 1. Frame/geometry streams: reliable,
+    Latched and state topics: reliable, transient-local, keep-last 1. Frame/geometry streams: reliable,
     volatile, keep-last 100. Anything else: reliable, volatile, keep-last 10.
     """
-    if topic in LATCHED_TOPICS:
+    if topic in LATCHED_TOPICS or topic in STATE_TOPICS:
         return _qos(1, True)
     if topic in (TOPIC_PROJECTION, TOPIC_PROJECTION_REJECTED, TOPIC_GEOMETRY, TOPIC_GEOMETRY_CORRECTED,
                  TOPIC_GEOMETRY_TRUE):

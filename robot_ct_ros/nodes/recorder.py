@@ -61,7 +61,7 @@ def message_class(msgtype: str):
 
 
 def qos_for(topic: str) -> QoSProfile:
-    if topic in fmt.LATCHED_TOPICS or topic == fmt.TOPIC_BEAM_ON:
+    if topic in fmt.LATCHED_TOPICS or topic in fmt.STATE_TOPICS:
         return LATCHED
     if topic in SCAN_TOPICS:
         return STREAM

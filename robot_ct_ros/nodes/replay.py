@@ -2,6 +2,7 @@
 
 Publishes (the bag's own messages, byte for byte, original header stamps)
   /ct/scan_info, /ct/flat_field, /ct/dead_pixels: transient-local, at start
+  /source/beam_on: transient-local (depth 1), as live, in its place among the frames
   /ct/projection, /ct/geometry, ... every other topic of the bag: reliable, one frame per
   1 / rate_hz seconds (the messages recorded between two frames go with the later one)
   ~/report (std_msgs/String, transient-local): the JSON report when offline calibration is done
@@ -125,7 +126,7 @@ class ReplayNode(Node):
     def _publisher(self, topic: str, msgtype: str):
         pub = self._pubs.get(topic)
         if pub is None:
-            qos = LATCHED if topic in fmt.LATCHED_TOPICS else STREAM
+            qos = LATCHED if topic in fmt.LATCHED_TOPICS or topic in fmt.STATE_TOPICS else STREAM
             pub = self.create_publisher(message_class(msgtype), fmt.node_topic(topic), qos)  # in the namespace
             self._pubs[topic] = pub
         return pub

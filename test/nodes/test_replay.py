@@ -127,3 +127,38 @@ def test_an_exiting_replay_delivers_its_report_to_the_subscriber_waiting_for_it(
         ros.spin_for(0.3)
         assert proc.returncode == 0 and reports, f"run {k}: no report received"
         assert json.loads(reports[-1].data).get("method_used") == "none"
+
+
+def test_the_beam_state_reaches_transient_local_subscribers_from_a_replayed_bag(ros, tmp_path):
+    """/source/beam_on is transient-local live, and the nodes (recorder, orchestrator, grabber) subscribe to it so;
+    a bag recorded it as volatile and replay republished it so, which no transient-local reader matches (DDS): a
+    re-recorded replay lost the beam state. The bag's metadata and the replay now offer it transient-local."""
+    import yaml
+    from std_msgs.msg import Bool
+
+    from robot_ct_ros.bag.writer import ScanBagWriter
+
+    geom = robotic_roi_scan(n_views=N, n_rows=8, n_cols=12, fov_diameter_mm=0.5)
+    frames = np.random.default_rng(0).poisson(500.0, (N, 8, 12)).astype(np.float32)
+    stamps = default_stamps(N)
+    bool_cls = fmt.typestore().types[fmt.BOOL]
+    with ScanBagWriter(tmp_path / "scan", fmt.scan_info_for(geom), start_ns=int(stamps[0]) - 2) as w:
+        w.write_flat(np.full((8, 12), 900.0, np.float32), int(stamps[0]) - 2)
+        w.write_msg(fmt.TOPIC_BEAM_ON, bool_cls(data=True), int(stamps[0]) - 1)
+        for i in range(N):
+            w.write_frame(frames[i], geom, int(stamps[i]), i)
+        w.write_msg(fmt.TOPIC_BEAM_ON, bool_cls(data=False), int(stamps[-1]) + 1)
+    meta = yaml.safe_load((tmp_path / "scan" / "metadata.yaml").read_text())
+    topics = {t["topic_metadata"]["name"]: t["topic_metadata"] for t in meta["rosbag2_bagfile_information"]
+              ["topics_with_message_count"]}
+    qos = topics[fmt.TOPIC_BEAM_ON]["offered_qos_profiles"]
+    assert "transient_local" in str(qos), qos
+    probe = ros.node("probe")
+    beam = []
+    probe.create_subscription(Bool, fmt.TOPIC_BEAM_ON, lambda m: beam.append(m.data), LATCHED)
+    got_frames = []
+    probe.create_subscription(Image, fmt.TOPIC_PROJECTION, got_frames.append, STREAM)
+    node = ros.add(ReplayNode(context=ros.context, parameter_overrides=_params(
+        bag_path=str(tmp_path / "scan"), rate_hz=100.0, wait_for_subscribers=1)))
+    assert ros.spin_until(lambda: node.done and len(got_frames) == N and beam and beam[-1] is False, timeout_s=20.0)
+    assert beam[0] is True
