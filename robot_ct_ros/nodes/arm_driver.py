@@ -307,7 +307,7 @@ class ArmDriverNode(LifecycleNode):
             connecting_s=self.connection.elapsed_s if self.connecting else None,
             where=self.robot_ip or "simulated arm", goal_problem=self.last_goal_problem,
             goals_refused=self.goal_rejections, base_frame=self.base_frame, tool_frame=self.tool_frame)
-        publish_diagnostic(self, self.diag_pub, level, f"{self.role} arm", self.robot_ip or "simulated_arm", message,
+        publish_diagnostic(self, self.diag_pub, level, f"{self.role} arm", self.robot_ip or f"simulated_{self.role}_arm", message,
                            values)
 
 

@@ -88,6 +88,9 @@ def test_lifecycle_services_goal_and_in_position(ros):
     assert probe.in_position[0] is False  # false while moving
     assert ros.spin_until(lambda: probe.true_poses and _at(probe.true_poses[-1], goal))  # no errors configured
     assert ros.spin_until(lambda: probe.last_level() == DiagnosticStatus.OK)
+    # the two simulated arms are told apart by hardware_id too (both were "simulated_arm")
+    assert {s.hardware_id for a in probe.diag for s in a.status if s.name.endswith("source arm")} == {
+        "simulated_source_arm"}
 
     probe.send_goal(ros, goal, frame="some_other_frame")  # wrong frame: ignored, stays in position
     ros.spin_for(0.3)
