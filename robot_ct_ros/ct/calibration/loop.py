@@ -139,7 +139,7 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
     accuracy = settings.prior_sigma  # the robots' stated accuracy: the guard's reference, prior or not
     if not method.uses_prior and accuracy is not None and method.estimate is not None:
         # the settings keep the stated accuracy (the guard reads it), so that the result's settings repeat the run
-        say(f"{method.name} has no prior: the robots' error (prior_sigma) is not used")
+        say(f"{method.name} has no prior: the robots' error (prior_sigma) serves the guard only")
     with executor_for(settings) as executor:  # in-process, or Dask tasks (settings.scheduler)
         if settings.scheduler:
             say(f"estimation and FDK run on {executor.description}")
@@ -179,13 +179,22 @@ def _unused_settings(method, settings) -> str:
                  if value != off]
         return (f"no correction ({method.name}): {', '.join(given)} did not apply" if given else "")
     notes = []
-    if settings.ensemble > 1 and not method.samples:
-        notes.append(f"ensemble {settings.ensemble} did not apply: {method.name} draws no samples, so its runs would "
-                     "be identical (one run)")
     defaults = CalibrationSettings()
 
     def changed(names):
         return [f"{n} {getattr(settings, n)}" for n in names if getattr(settings, n) != getattr(defaults, n)]
+
+    if settings.ensemble > 1 and not method.samples:
+        notes.append(f"ensemble {settings.ensemble} did not apply: {method.name} draws no samples, so its runs would "
+                     "be identical (one run)")
+    if not method.samples and (given := changed(["seed"])):
+        notes.append(f"{given[0]} did not apply: {method.name} draws no samples (it is deterministic)")
+    if not method.uses_prior and settings.prior_sigma is not None and (
+            given := changed(["prior_translation_mm", "prior_rotation_deg", "prior_source_mm", "prior_detector_mm"])):
+        notes.append(f"{', '.join(given)} did not apply to the estimate: {method.name} has no prior (the robots' "
+                     "stated accuracy served the guard only)")
+    if settings.projections == "complete" and (given := changed(["sirt_iterations"])):
+        notes.append(f"{given[0]} did not apply: projections complete (the volumes are FDK's)")
 
     lle = ["lle_neighbours", "lle_ridge"] if not method.uses_prior else ["lle_ridge"] if method.name == "ncc-lle" else []
     if given := changed(lle):
@@ -443,9 +452,11 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
             + f"views moved {rec.update_px:.3f} px, {rec.wall_s:.1f} s")
         if last and it + 1 < n_iter:
             if rec.iteration == 1:  # nothing found is not convergence: say so, here and in the result
-                still_note = (f"the first iteration moved the views by {rec.update_px:.3f} px only (stop_update_px "
-                              f"{stop_update_px:g}): the data found next to nothing to correct, so the geometry "
-                              "stays close to where it started")
+                still_note = (f"the first iteration moved the views by {rec.update_px:.3f} px, less than "
+                              f"stop_update_px ({stop_update_px:g} px)" + (
+                                  ": the data found next to nothing to correct, so the geometry stays close to where "
+                                  "it started" if rec.update_px < CalibrationSettings().stop_update_px else
+                                  ", so no further iteration ran"))
                 say(f"stopping after the first of {n_iter} iterations: {still_note}")
             else:
                 say(f"converged: the views moved less than {stop_update_px:g} px; stopping after {rec.iteration} "

@@ -132,11 +132,11 @@ class CalibrationSettings:
                                         "estimate (0: no prior)", unit="deg", minimum=0.0,
                                         ros_name="prior_sigma_rotation_rad", ros_scale=math.pi / 180, ros_unit="rad")
     prior_source_mm: float | None = setting(None, "the source arm's own per-view translation error, where the arms "
-                                            "differ (off: the prior's translation error)", unit="mm", minimum=0.0,
+                                            "differ (off or 0: the prior's translation error)", unit="mm", minimum=0.0,
                                             ros_name="prior_sigma_source_m", ros_scale=1e-3, ros_unit="m",
                                             ros_none=0.0, kind=float)
     prior_detector_mm: float | None = setting(None, "the detector arm's own per-view translation error, where the "
-                                              "arms differ (off: the prior's translation error)", unit="mm", minimum=0.0,
+                                              "arms differ (off or 0: the prior's translation error)", unit="mm", minimum=0.0,
                                               ros_name="prior_sigma_detector_m", ros_scale=1e-3, ros_unit="m",
                                               ros_none=0.0, kind=float)
     drift_order: int | None = setting(None, "fit every parameter with a polynomial of this degree in time (a slowly "
@@ -231,7 +231,9 @@ class CalibrationSettings:
         validate(self)
         for name in ("prior_source_mm", "prior_detector_mm"):
             value = getattr(self, name)
-            if value is not None and not (value > 0 and math.isfinite(value)):
+            if value == 0:  # 0 is off, as on ROS (ros_none) and within the range the command line states (>= 0)
+                object.__setattr__(self, name, None)
+            elif value is not None and not (value > 0 and math.isfinite(value)):
                 raise ValueError(f"{name} must be positive (or off: the same as prior_translation_mm); got {value!r}")
         coarse, fine = self.coarse_binning, self.fine_binning  # set here, by a named schedule, or by resolved()
         if self.schedule != AUTO_SCHEDULE:  # a named schedule gives the level left off

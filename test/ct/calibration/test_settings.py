@@ -123,7 +123,7 @@ def test_each_arm_may_state_its_own_translation_error():
     ros = from_ros_values(CalibrationSettings, {"prior_sigma_source_m": 0.0004, "prior_sigma_detector_m": 0.0})
     assert ros.prior_source_mm == pytest.approx(0.4) and ros.prior_detector_mm is None
     assert ros_defaults(CalibrationSettings)["prior_sigma_detector_m"] == 0.0  # ROS has no None
-    for bad in (0.0, -1.0, float("inf")):
+    for bad in (-1.0, float("inf")):  # 0 is off (test_a_zero_per_arm_prior_is_off_as_on_ros)
         with pytest.raises(ValueError, match="prior_detector_mm"):
             CalibrationSettings(prior_detector_mm=bad)
 
@@ -173,10 +173,15 @@ def test_settings_a_method_ignores_are_named_in_its_notes():
             ("ncc-lle-exact", dict(exterior="off", exterior_half_width_mm=30.0, exterior_reach_guess=False),
              "exterior_half_width_mm 30.0, exterior_reach_guess False did not apply: exterior is off"),
             ("gdc", dict(lle_neighbours=8), "lle_neighbours 8 did not apply"),
-            ("ncc-lle", dict(lle_ridge=1e-3), "lle_ridge 0.001 did not apply")):
+            ("ncc-lle", dict(lle_ridge=1e-3), "lle_ridge 0.001 did not apply"),
+            # a deterministic method's seed, its prior (the guard's reference only), SIRT with FDK volumes
+            ("gdc", dict(seed=7), "seed 7 did not apply: gdc draws no samples"),
+            ("gdc-log", dict(prior_translation_mm=0.1), "prior_translation_mm 0.1 did not apply to the estimate"),
+            ("ncc-lle-exact", dict(projections="complete", sirt_iterations=5), "sirt_iterations 5 did not apply")):
         assert words in _unused_settings(get_method(method), CalibrationSettings(method=method, **settings))
-    for method, settings in (("ncc-lle-exact", dict(lle_ridge=1e-3, prior_source_mm=0.5, exterior_voxel_mm=0.25)),
-                             ("ncc-lle", dict(lle_neighbours=8))):  # each of these is used
+    for method, settings in (("ncc-lle-exact", dict(lle_ridge=1e-3, prior_source_mm=0.5, exterior_voxel_mm=0.25,
+                                                    seed=7, sirt_iterations=5)),
+                             ("ncc-lle", dict(lle_neighbours=8)), ("gdc", {})):  # each of these is used
         assert _unused_settings(get_method(method), CalibrationSettings(method=method, **settings)) == ""
 
 
@@ -197,3 +202,13 @@ def test_a_coarse_level_finer_than_the_fine_one_is_refused():
     for named in (dict(schedule="fast", coarse_binning=1), dict(schedule="accurate", fine_binning=4)):
         with pytest.raises(ValueError, match="coarse_binning"):
             CalibrationSettings(**named)
+
+
+def test_a_zero_per_arm_prior_is_off_as_on_ros():
+    """--prior-source-mm 0 passed the command line's range (>= 0) and was then refused by the settings ("must be
+    positive"), a second, contradicting message; ROS already read 0 as off. 0 is off everywhere now."""
+    s = CalibrationSettings(prior_source_mm=0.0, prior_detector_mm=0)
+    assert s.prior_source_mm is None and s.prior_detector_mm is None
+    assert s.prior_sigma == CalibrationSettings().prior_sigma
+    with pytest.raises(ValueError, match="prior_source_mm"):
+        CalibrationSettings(prior_source_mm=-1.0)
