@@ -20,7 +20,8 @@ from robot_ct_ros.bag.reader import ScanData, read_scan
 from robot_ct_ros.ct.calibration import CalibrationResult, CalibrationSettings, calibrate, get_method
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
 from robot_ct_ros.jobs.output import say as _say
-from robot_ct_ros.jobs.output import check_memory, fdk_warnings, start_output, write_json, write_volume
+from robot_ct_ros.jobs.output import (check_memory, fdk_warnings, refuse_other_job, refuse_out_in_bag, start_output,
+                                      write_json, write_volume)
 
 __all__ = ["Correction", "correct_scan", "write_correction", "calibrate_bag", "scan_grid", "drift_times",
            "geometry_error", "truth_metrics", "markdown_report"]
@@ -247,6 +248,8 @@ def calibrate_bag(bag, out, settings: CalibrationSettings | None = None, *, voxe
 
     Refused before the work: a folder holding another bag's calibration, and a grid that would not
     fit in memory (the refusal names the grid settings of ``options``, jobs.output.GRID_OPTIONS)."""
+    refuse_out_in_bag(out, bag)
+    refuse_other_job(out, "calibrate")
     scan = read_scan(bag, keep_raw=True)
     refuse_another_bags_folder(Path(out), scan)
     grid = scan_grid(scan, voxel_mm, shape_xyz)

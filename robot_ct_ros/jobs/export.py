@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from robot_ct_ros.ct.geometry import ConeGeometry
+from robot_ct_ros.jobs.output import refuse_out_in_bag
 from robot_ct_ros.jobs.output import say as _say
 
 __all__ = ["FORMATS", "corrected_geometry", "export_geometry", "write_astra_vectors",
@@ -70,13 +71,9 @@ def _corrected_paths(path) -> tuple[Path | None, Path]:
 
 
 def _check_out_spares(out: Path, bag: Path, what: str) -> None:
-    """Refuse an ``out`` that is the bag's file or lies in its folder (a bag folder, or the folder of an .mcap
-    file with its metadata.yaml): the export would overwrite the scan it reads."""
-    out_r, bag_r = out.resolve(), bag.resolve()  # through links, which may point into the bag
-    folder = bag_r if bag_r.is_dir() else bag_r.parent if (bag_r.parent / "metadata.yaml").is_file() else None
-    if out_r == bag_r or (folder is not None and folder in out_r.parents):
-        raise ValueError(f"--out {out} lies in {what} {bag}: writing it would overwrite the bag; give a file "
-                         "outside it")
+    """Refuse an ``out`` that is the bag's file or lies in its folder: the export would overwrite the scan it
+    reads (:func:`~robot_ct_ros.jobs.output.refuse_out_in_bag`)."""
+    refuse_out_in_bag(out, bag, what, "give a file outside it")
 
 
 def corrected_geometry(path, nominal_scan=None) -> ConeGeometry:

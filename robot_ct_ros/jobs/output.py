@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["say", "fdk_warnings", "json_default", "clean_json", "write_json", "write_volume", "write_ome_tiff", "prepare_out",
+__all__ = ["say", "fdk_warnings", "refuse_out_in_bag", "refuse_other_job", "json_default", "clean_json", "write_json", "write_volume", "write_ome_tiff", "prepare_out",
            "available_memory_bytes", "check_memory", "MEMORY_FACTORS", "GRID_OPTIONS"]
 
 MEMORY_FACTORS = {"reconstruct": (2.0, 3.0), "calibrate": (8.0, 8.0), "report": (10.0, 8.0)}
@@ -113,7 +113,8 @@ def check_memory(grid, n_views: int, det_shape, job: str, available: int | None 
 
 class fdk_warnings:
     """``with fdk_warnings(say) as seen:`` collects the :class:`~robot_ct_ros.ct.reconstruction.FDKWarning` raised
-    inside (what FDK only approximates on this geometry), each distinct message once, in ``seen`` and said as
+    inside (what FDK only approximates on this geometry), each kind once (the first; messages that differ in their
+    figures only, one per iteration's geometry, are one kind), in ``seen`` and said as
     ``warning: ...``: the reports keep them, where the command line ignores numpy's RuntimeWarnings."""
 
     def __init__(self, say_=None):
@@ -136,10 +137,15 @@ class fdk_warnings:
         import warnings
 
         self._catch.__exit__(*exc)
+        import re
+
+        kinds = set()  # the same warning on each iteration's geometry differs in its figures only: said once
         for w in self._log:
             if issubclass(w.category, self._cls):
                 text = str(w.message)
-                if text not in self.seen:
+                kind = re.sub(r"\d+(\.\d+)?", "#", text)
+                if kind not in kinds:
+                    kinds.add(kind)
                     self.seen.append(text)
                     if self.say is not None:
                         self.say(f"warning: {text}")
@@ -186,6 +192,38 @@ def write_json(path, obj) -> Path:
 
 REPORT_FILES = ("report.json", "report.md")
 """A job's report, written after every other output: a folder without report.json holds an unfinished run."""
+
+
+def refuse_out_in_bag(out, bag, what: str = "the input bag", suffix: str = "give a folder outside it") -> None:
+    """Refuse an ``out`` that is the bag's file or lies in its folder (a bag folder, or the folder of an .mcap file
+    with its metadata.yaml): the job would write into the scan it reads."""
+    out_r, bag_r = Path(out).resolve(), Path(bag).resolve()  # through links, which may point into the bag
+    folder = bag_r if bag_r.is_dir() else bag_r.parent if (bag_r.parent / "metadata.yaml").is_file() else None
+    if out_r == bag_r or (folder is not None and (out_r == folder or folder in out_r.parents)):
+        raise ValueError(f"--out {out} lies in {what} {bag}: writing it would overwrite the bag; {suffix}")
+
+
+def report_job(report: dict) -> str | None:
+    """Which job wrote a report.json: its ``job`` (calibrate, reconstruct), ``report`` for the comparison report
+    (its table ``rows``), None when it is none of ours."""
+    if not isinstance(report, dict):
+        return None
+    return report.get("job") or ("report" if "rows" in report else None)
+
+
+def refuse_other_job(out, job: str) -> None:
+    """A folder holds one job's results: refuse ``out`` where report.json is another job's (``calibrate``,
+    ``reconstruct``, ``report``). Their files would mix: a report replacing a calibration's report.json, the
+    corrected bag and volume left without the report that describes them, a report's figures beside a calibration."""
+    previous = Path(out) / "report.json"
+    if not previous.is_file():
+        return
+    try:
+        earlier = report_job(json.loads(previous.read_text()))
+    except ValueError:
+        return
+    if earlier is not None and earlier != job:
+        raise ValueError(f"{out} holds the results of robot-ct {earlier}; give {job} its own --out folder")
 
 
 def start_output(out) -> Path:

@@ -11,7 +11,8 @@ from robot_ct_ros.bag.reader import read_scan
 from robot_ct_ros.bag.format import ScanBagError
 from robot_ct_ros.jobs.calibrate import base_report, geometry_error, scan_grid
 from robot_ct_ros.jobs.output import say as _say
-from robot_ct_ros.jobs.output import check_memory, fdk_warnings, start_output, write_json, write_volume
+from robot_ct_ros.jobs.output import (check_memory, fdk_warnings, refuse_other_job, refuse_out_in_bag, start_output,
+                                      write_json, write_volume)
 
 __all__ = ["reconstruct_bag", "GEOMETRIES"]
 
@@ -38,6 +39,8 @@ def reconstruct_bag(bag, out, *, geometry: str = "auto", voxel_mm=None, shape_xy
         raise ValueError(f"geometry must be one of {', '.join(GEOMETRIES)}")
     t0 = time.perf_counter()
     out = Path(out)
+    refuse_out_in_bag(out, bag)
+    refuse_other_job(out, "reconstruct")
     scan = read_scan(bag)
     for w in scan.warnings:
         say(f"warning: {w}")

@@ -8,6 +8,7 @@ from pathlib import Path
 from robot_ct_ros.bag.reader import read_scan
 from robot_ct_ros.ct.calibration import CalibrationSettings, calibrate, get_method
 from robot_ct_ros.jobs.calibrate import drift_times, scan_grid
+from robot_ct_ros.jobs.output import refuse_other_job, refuse_out_in_bag
 from robot_ct_ros.jobs.output import say as _say
 
 __all__ = ["report_bag", "REPORT_METHODS"]
@@ -46,6 +47,8 @@ def report_bag(bag, out, methods=REPORT_METHODS, settings: CalibrationSettings |
         get_method(m)
     settings = CalibrationSettings() if settings is None else settings
     t0 = time.perf_counter()
+    refuse_out_in_bag(out, bag)
+    refuse_other_job(out, "report")
     scan = read_scan(bag)
     for w in scan.warnings:
         say(f"warning: {w}")

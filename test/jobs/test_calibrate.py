@@ -162,3 +162,33 @@ def test_a_folder_holds_one_bags_calibration_and_export_takes_only_its_own(tmp_p
                  str(tmp_path / "v.txt")]) == 2
     assert "correction of another scan" in capsys.readouterr().err
     assert main(["export", str(a), "--corrected", str(out), "--format", "astra", "--out", str(tmp_path / "v.txt")]) == 0
+
+
+def test_a_folder_holds_one_jobs_results_and_none_goes_into_the_bag(tmp_path, capsys):
+    """report into a calibration's folder replaced its report.json (the corrected bag and volume stayed, described by
+    nothing), and calibrate --out inside the input bag wrote into the scan's folder. Both are refused before any work,
+    in one line; the same job into its own folder still runs."""
+    from robot_ct_ros.cli import main
+
+    n = 8
+    geom = circular_scan(n, 60.0, 150.0, 8, 12, 1.0, 1.0)
+    bag = write_scan(tmp_path / "scan", np.random.default_rng(0).poisson(500.0, (n, 8, 12)).astype(np.float32), geom,
+                     flat=np.full((8, 12), 900.0, np.float32))
+    calib = tmp_path / "calib"
+    assert main(["calibrate", str(bag), "--method", "none", "--out", str(calib)]) == 0
+    assert main(["calibrate", str(bag), "--method", "none", "--out", str(calib)]) == 0  # its own job again
+    report = calib / "report.json"
+    before = report.read_text()
+    capsys.readouterr()
+    assert main(["report", str(bag), "--methods", "none", "--out", str(calib)]) == 2
+    assert "holds the results of robot-ct calibrate" in capsys.readouterr().err
+    assert report.read_text() == before
+    assert main(["reconstruct", str(bag), "--out", str(calib)]) == 2
+    assert main(["report", str(bag), "--methods", "none", "--out", str(tmp_path / "rep")]) == 0
+    assert main(["calibrate", str(bag), "--method", "none", "--out", str(tmp_path / "rep")]) == 2
+    files = sorted(p.name for p in bag.iterdir())
+    for out in (bag / "inside", bag):
+        capsys.readouterr()
+        assert main(["calibrate", str(bag), "--method", "none", "--out", str(out)]) == 2
+        assert "lies in the input bag" in capsys.readouterr().err
+    assert sorted(p.name for p in bag.iterdir()) == files  # nothing written into the bag, no folder left there
