@@ -34,10 +34,13 @@ def estimate_scan_axis(geom: ConeGeometry) -> np.ndarray:
     robot's orbit) the bend is hardly above the noise and that normal can be anywhere; there the
     axis is the one across both the sources' motion (their principal direction) and the mean
     viewing direction (the detector normal w), which a short arc fixes well, as long as the views
-    look along much the same way (a mean w of length 0.5 or more: an arc up to about 240 degrees).
+    look along much the same way (a mean w of length 0.5 or more: a circular arc up to about 215
+    degrees). That direction assumes the detector normal across the axis, as in a circular scan: a
+    detector tilted out of the orbit plane tilts it as much, on such arcs and with 3 views (whose
+    plane always fits, noise or not).
     The sign is chosen so the axis points along the mean detector v (row) direction, i.e. the
-    axial direction of a usual scan. With fewer than 3 views, or sources on a line, or none of the
-    above, the mean v direction itself is returned.
+    axial direction of a usual scan. With fewer than 3 views, or sources on a line, the mean v
+    direction itself is returned.
     """
     s = geom.source_mm
     vmean = geom.v.mean(axis=0)
@@ -45,18 +48,16 @@ def estimate_scan_axis(geom: ConeGeometry) -> np.ndarray:
     if geom.n_views < 3:
         return vmean
     _, sv, vt = np.linalg.svd(s - s.mean(axis=0), full_matrices=False)
-    if sv[0] <= 0:
+    if sv[1] <= 1e-9 * max(sv[0], 1e-12):  # no bend at all (sources on a line, or one point): no axis to tell
         return vmean
     n = None
-    plane_fixed = sv[1] > 1e-9 * sv[0] and (geom.n_views == 3 or sv[2] <= 0.05 * sv[1])
+    plane_fixed = geom.n_views == 3 or sv[2] <= 0.05 * sv[1]
     wmean = geom.w.mean(axis=0)
     if not (plane_fixed and geom.n_views > 3) and np.linalg.norm(wmean) >= 0.5:
         n = np.cross(vt[0], wmean)
         n = n / np.linalg.norm(n) if np.linalg.norm(n) > 1e-9 else None
-    if n is None and plane_fixed:
+    if n is None:  # the plane's normal: fixed, or the best there is (views looking many ways on a noisy arc)
         n = vt[2]
-    if n is None:  # degenerate (collinear, or looking along the motion) trajectory
-        return vmean
     return n if np.dot(n, vmean) >= 0 else -n
 
 

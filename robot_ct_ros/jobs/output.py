@@ -115,7 +115,9 @@ class fdk_warnings:
     """``with fdk_warnings(say) as seen:`` collects the :class:`~robot_ct_ros.ct.reconstruction.FDKWarning` raised
     inside (what FDK only approximates on this geometry), each kind once (the first; messages that differ in their
     figures only, one per iteration's geometry, are one kind), in ``seen`` and said as
-    ``warning: ...``: the reports keep them, where the command line ignores numpy's RuntimeWarnings."""
+    ``warning: ...``: the reports keep them, where the command line ignores numpy's RuntimeWarnings.
+    Python's warning filters are the process's: while the block runs, warnings other threads raise are held and
+    go on when it ends; those raised in Dask worker processes (``scheduler``) do not reach it."""
 
     def __init__(self, say_=None):
         self.say = say_

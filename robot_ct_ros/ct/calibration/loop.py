@@ -218,6 +218,29 @@ def _unused_settings(method, settings) -> str:
     return "; ".join(notes)
 
 
+def _skipped_view_notes(skipped: dict, estimated: dict, n_views: int) -> list:
+    """The notes on views that saw too little of the grid, from the views each level's estimates skipped and
+    estimated over the whole run (``{"coarse": set, "fine": set}`` each): those no estimate took kept their
+    geometry; those one level never took and the other did were estimated on that other level only (a binned
+    level may keep no pixel of a thin detector's rays). A view a level skipped once and took in another
+    iteration is no news."""
+    def listed(views):
+        return f"{views[:20]}{' ...' if len(views) > 20 else ''}"
+
+    notes = []
+    never = sorted(set(range(n_views)) - estimated["coarse"] - estimated["fine"])
+    if never:
+        notes.append(f"{len(never)} view(s) saw too little of the grid to be estimated and kept their geometry, "
+                     "moved only with the whole scan by the gauge fix (its common rigid motion and magnification): "
+                     + listed(never))
+    for level, other in (("coarse", "fine"), ("fine", "coarse")):
+        partly = sorted((skipped[level] - estimated[level]) & estimated[other])
+        if partly:
+            notes.append(f"{len(partly)} view(s) saw too little of the grid on the {level} level to be estimated "
+                         f"there and were estimated on the {other} level only: " + listed(partly))
+    return notes
+
+
 @blas_single_threaded
 def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, settings: CalibrationSettings, *,
                     valid_mask, drift_times, gauge_points_mm, configs, focus_modes, fdk_kwargs, progress,
@@ -361,9 +384,9 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
     history = []
     undone_note = None  # set when undo_inconsistent undoes an iteration: the result must say so
     still_note = None  # set when the first iteration already moves the views less than stop_update_px
-    # views that saw too little of the grid to be estimated, per level, and the views estimated at some level
+    # per level: the views an estimate of that level skipped (they saw too little of the grid) and those it estimated
     skipped = {"coarse": set(), "fine": set()}
-    estimated = set()
+    estimated = {"coarse": set(), "fine": set()}
     all_views = set(range(nominal.n_views))
     # the coarse level's reconstruction with the geometry entering each iteration: its volume
     # for the coarse estimate, its FDK's NCC for undo_inconsistent, its SIRT correction for a
@@ -385,7 +408,7 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
                 cfg = method.fresh_samples(cfg, rep)
             params, coarse_info = executor.estimate(estimate, li_c, nom_c, params, rec_c.volume, grid_c, cfg, mask_c)
             skipped["coarse"].update(coarse_info.get("skipped_views", ()))
-            estimated.update(all_views - set(coarse_info.get("skipped_views", ())))
+            estimated["coarse"].update(all_views - set(coarse_info.get("skipped_views", ())))
             moved = moved_px(nom_c, params, before, points)
             say(f"iteration {it + 1}/{n_iter}: coarse estimate {rep + 1} done, views moved {moved:.3f} coarse px "
                 f"({time.perf_counter() - t0:.1f} s)")
@@ -396,7 +419,7 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
                       inner_f, fov_f, correction=correction, measure_fdk=False).volume
         params, fine_info = executor.estimate(estimate, li_f, nom_f, params, vol, grid_f, narrowed(fine_cfg, it), mask_f)
         skipped["fine"].update(fine_info.get("skipped_views", ()))
-        estimated.update(all_views - set(fine_info.get("skipped_views", ())))
+        estimated["fine"].update(all_views - set(fine_info.get("skipped_views", ())))
         params = _in_nominal_gauge(params, nominal, points, held)
         if drift_order is not None:
             # the polynomial fit puts part of a gauge motion back (a linear drift: 0.09 mm) and the gauge fix takes
@@ -462,18 +485,7 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
                 say(f"converged: the views moved less than {stop_update_px:g} px; stopping after {rec.iteration} "
                     f"of {n_iter} iterations")
             break
-    notes = []
-    never = sorted(all_views - estimated)
-    if never:
-        notes.append(f"{len(never)} view(s) saw too little of the grid to be estimated and kept their geometry, "
-                     "moved only with the whole scan by the gauge fix (its common rigid motion and magnification): "
-                     f"{never[:20]}{' ...' if len(never) > 20 else ''}")
-    for level, other in (("coarse", "fine"), ("fine", "coarse")):
-        partly = sorted(skipped[level] & estimated)
-        if partly:  # estimated, on the other level only (a binned level may keep no pixel of a thin detector's rays)
-            notes.append(f"{len(partly)} view(s) saw too little of the grid on the {level} level to be estimated "
-                         f"there and were estimated on the {other} level only: "
-                         f"{partly[:20]}{' ...' if len(partly) > 20 else ''}")
+    notes = _skipped_view_notes(skipped, estimated, nominal.n_views)
     if exterior:
         notes.append("the object outside the ROI was modelled (exterior model)")
     notes += exterior_notes

@@ -189,3 +189,21 @@ def test_the_estimation_widens_a_grid_across_the_scan_axis_whichever_axis_of_the
     wide = estimation_grid(renamed, 1.5)
     assert wide.shape_zyx[0] == box.shape_xyz[1]  # along the axis: as it was
     assert axis_last(renamed, geom) is renamed and axis_last(box, nominal) is box  # z along the axis already
+
+
+def test_the_skipped_view_notes_name_only_what_happened_over_the_whole_run():
+    """The notes merged every pass: a view one level skipped in one iteration and estimated in the next was said to be
+    estimated on the other level only (on a one-level schedule, on a level that never ran), and a view the coarse
+    level took once got two contradicting notes."""
+    from robot_ct_ros.ct.calibration.loop import _skipped_view_notes
+
+    none = {"coarse": set(), "fine": set()}
+    # one level (no coarse passes): fine skipped view 3 in iteration 1 and estimated it in iteration 2
+    assert _skipped_view_notes({"coarse": set(), "fine": {3}}, {"coarse": set(), "fine": set(range(8))}, 8) == []
+    # the coarse level took view 3 in one pass and skipped it in another; the fine level never took it
+    notes = _skipped_view_notes({"coarse": {3}, "fine": {3}}, {"coarse": set(range(8)), "fine": set(range(8)) - {3}}, 8)
+    assert notes == ["1 view(s) saw too little of the grid on the fine level to be estimated there and were "
+                     "estimated on the coarse level only: [3]"]
+    # skipped everywhere: kept its geometry, and nothing else is said of it
+    notes = _skipped_view_notes({"coarse": {5}, "fine": {5}}, {k: set(range(8)) - {5} for k in none}, 8)
+    assert len(notes) == 1 and "kept their geometry" in notes[0] and "[5]" in notes[0]
