@@ -5,12 +5,16 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
+import warnings
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["say", "fdk_warnings", "refuse_out_in_bag", "refuse_other_job", "json_default", "clean_json", "write_json", "write_volume", "write_ome_tiff", "prepare_out",
-           "available_memory_bytes", "check_memory", "MEMORY_FACTORS", "GRID_OPTIONS"]
+__all__ = ["say", "fdk_warnings", "refuse_out_in_bag", "refuse_other_job", "json_default", "clean_json", "write_json",
+           "write_volume", "write_ome_tiff", "prepare_out", "available_memory_bytes", "check_memory", "MEMORY_FACTORS",
+           "GRID_OPTIONS"]
 
 MEMORY_FACTORS = {"reconstruct": (2.0, 3.0), "calibrate": (8.0, 8.0), "report": (10.0, 8.0)}
 """Rough peak memory of each job, as (volumes, projection stacks): FDK holds its volume and its copy for
@@ -111,49 +115,35 @@ def check_memory(grid, n_views: int, det_shape, job: str, available: int | None 
                      f"{voxel_hint.format(max(voxel) * per_mm)}")
 
 
-class fdk_warnings:
+@contextmanager
+def fdk_warnings(say_=None):
     """``with fdk_warnings(say) as seen:`` collects the :class:`~robot_ct_ros.ct.reconstruction.FDKWarning` raised
     inside (what FDK only approximates on this geometry), each kind once (the first; messages that differ in their
     figures only, one per iteration's geometry, are one kind), in ``seen`` and said as
     ``warning: ...``: the reports keep them, where the command line ignores numpy's RuntimeWarnings.
     Python's warning filters are the process's: while the block runs, warnings other threads raise are held and
     go on when it ends; those raised in Dask worker processes (``scheduler``) do not reach it."""
+    from robot_ct_ros.ct.scan_weights import FDKWarning
 
-    def __init__(self, say_=None):
-        self.say = say_
-        self.seen: list[str] = []
-        self._catch = None
-
-    def __enter__(self) -> list:
-        import warnings
-
-        from robot_ct_ros.ct.scan_weights import FDKWarning
-
-        self._catch = warnings.catch_warnings(record=True)
-        self._log = self._catch.__enter__()
-        warnings.simplefilter("always", FDKWarning)
-        self._cls = FDKWarning
-        return self.seen
-
-    def __exit__(self, *exc) -> bool:
-        import warnings
-
-        self._catch.__exit__(*exc)
-        import re
-
-        kinds = set()  # the same warning on each iteration's geometry differs in its figures only: said once
-        for w in self._log:
-            if issubclass(w.category, self._cls):
-                text = str(w.message)
-                kind = re.sub(r"\d+(\.\d+)?", "#", text)
-                if kind not in kinds:
-                    kinds.add(kind)
-                    self.seen.append(text)
-                    if self.say is not None:
-                        self.say(f"warning: {text}")
-            else:  # anything else goes on, through the filters that were in force, as if it had not been caught
+    seen: list[str] = []
+    log: list = []
+    try:
+        with warnings.catch_warnings(record=True) as log:
+            warnings.simplefilter("always", FDKWarning)
+            yield seen
+    finally:
+        kinds = set()
+        for w in log:
+            if not issubclass(w.category, FDKWarning):  # goes on, through the filters in force, as if not caught
                 warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
-        return False
+                continue
+            text = str(w.message)
+            kind = re.sub(r"\d+(\.\d+)?", "#", text)
+            if kind not in kinds:
+                kinds.add(kind)
+                seen.append(text)
+                if say_ is not None:
+                    say_(f"warning: {text}")
 
 
 def say(message: str) -> None:
