@@ -488,26 +488,8 @@ def _in_front_range(aw, bw, n):
 
 
 @njit(inline="always")
-def _affine_ratio_range(a, b, aw, bw, lo, hi, n):
-    """Real interval [t0, t1] of i in [0, n-1] with lo <= (a + i b) / (aw + i bw) <= hi, for the
-    i where the denominator (a voxel's depth) is positive (:func:`_in_front_range` bounds them):
-    each bound is then a linear inequality in i.
-    """
-    s = 1.0
-    t0 = 0.0
-    t1 = n - 1.0
-    # lower bound: s * ((a - lo aw) + i (b - lo bw)) >= 0
-    m = s * (a - lo * aw)
-    k = s * (b - lo * bw)
-    if k > 0:
-        t0 = max(t0, -m / k)
-    elif k < 0:
-        t1 = min(t1, -m / k)
-    elif m < 0:
-        t1 = -1.0
-    # upper bound: s * ((hi aw - a) + i (hi bw - b)) >= 0
-    m = s * (hi * aw - a)
-    k = s * (hi * bw - b)
+def _clip_linear(m, k, t0, t1):
+    """[t0, t1] narrowed to the i with m + i k >= 0 (empty: t1 = -1)."""
     if k > 0:
         t0 = max(t0, -m / k)
     elif k < 0:
@@ -515,6 +497,16 @@ def _affine_ratio_range(a, b, aw, bw, lo, hi, n):
     elif m < 0:
         t1 = -1.0
     return t0, t1
+
+
+@njit(inline="always")
+def _affine_ratio_range(a, b, aw, bw, lo, hi, n):
+    """Real interval [t0, t1] of i in [0, n-1] with lo <= (a + i b) / (aw + i bw) <= hi, for the
+    i where the denominator (a voxel's depth) is positive (:func:`_in_front_range` bounds them):
+    each bound is then a linear inequality in i.
+    """
+    t0, t1 = _clip_linear(a - lo * aw, b - lo * bw, 0.0, n - 1.0)  # (a - lo aw) + i (b - lo bw) >= 0
+    return _clip_linear(hi * aw - a, hi * bw - b, t0, t1)  # (hi aw - a) + i (hi bw - b) >= 0
 
 
 @njit(parallel=True, fastmath=True, cache=True)
