@@ -11,17 +11,24 @@ from robot_ct_ros.hardware.xray_source import SimulatedXraySource, SourceError
 from robot_ct_ros.nodes.source_control import LATCHED, SourceControlNode
 
 
-def _setup(ros):
-    node = ros.add(SourceControlNode(context=ros.context))
+INTERLOCK_INPUTS = ("scan/armed", "source_arm/in_position", "detector_arm/in_position")
+
+
+def _probe(ros, inputs=INTERLOCK_INPUTS):
+    """A probe node wired to the source: (probe, publishers of ``inputs``, beam states received, set_beam client)."""
     probe = ros.node("probe")
     beam = []
     sub = probe.create_subscription(Bool, "source/beam_on", lambda m: beam.append(m.data), LATCHED)
-    pubs = {name: probe.create_publisher(Bool, name, 10)
-            for name in ("scan/armed", "source_arm/in_position", "detector_arm/in_position", "estop")}
+    pubs = {name: probe.create_publisher(Bool, name, 10) for name in inputs}
     for pub in pubs.values():
         assert ros.wait_for_subscribers(pub)
     assert ros.wait_for_publishers(sub)
-    set_beam = probe.create_client(SetBool, "source/set_beam")
+    return probe, pubs, beam, probe.create_client(SetBool, "source/set_beam")
+
+
+def _setup(ros):
+    node = ros.add(SourceControlNode(context=ros.context))
+    probe, pubs, beam, set_beam = _probe(ros, INTERLOCK_INPUTS + ("estop",))
     return node, probe, pubs, beam, set_beam
 
 
@@ -97,15 +104,7 @@ def _transition(ros, client, transition_id):
 def test_lifecycle_beam_only_while_active(ros):
     """Configure builds the source, activate serves the beam, deactivate/shutdown switch it off at once."""
     node = ros.add(SourceControlNode(context=ros.context, parameter_overrides=[Parameter("autostart", value=False)]))
-    probe = ros.node("probe")
-    beam = []
-    sub = probe.create_subscription(Bool, "source/beam_on", lambda m: beam.append(m.data), LATCHED)
-    pubs = {name: probe.create_publisher(Bool, name, 10)
-            for name in ("scan/armed", "source_arm/in_position", "detector_arm/in_position")}
-    for pub in pubs.values():
-        assert ros.wait_for_subscribers(pub)
-    assert ros.wait_for_publishers(sub)
-    set_beam = probe.create_client(SetBool, "source/set_beam")
+    probe, pubs, beam, set_beam = _probe(ros)
     change = probe.create_client(ChangeState, "/source_control/change_state")
     get = probe.create_client(GetState, "/source_control/get_state")
 
@@ -357,17 +356,10 @@ def _faulty_setup(ros, node_class=SourceControlNode):
     from diagnostic_msgs.msg import DiagnosticArray
 
     node = ros.add(node_class(context=ros.context, source_factory=SimulatedXraySource))
-    probe = ros.node("probe")
-    diag, beam = [], []
+    probe, pubs, beam, set_beam = _probe(ros)
+    diag = []
     probe.create_subscription(DiagnosticArray, "/diagnostics",
                               lambda m: diag.extend(s for s in m.status if s.name.endswith("x-ray source")), 10)
-    sub = probe.create_subscription(Bool, "source/beam_on", lambda m: beam.append(m.data), LATCHED)
-    pubs = {name: probe.create_publisher(Bool, name, 10)
-            for name in ("scan/armed", "source_arm/in_position", "detector_arm/in_position")}
-    for pub in pubs.values():
-        assert ros.wait_for_subscribers(pub)
-    assert ros.wait_for_publishers(sub)
-    set_beam = probe.create_client(SetBool, "source/set_beam")
     _ready(ros, pubs, node)
     return node, pubs, diag, beam, set_beam
 
