@@ -35,7 +35,7 @@ def ray_chords_mm(geom: ConeGeometry, grid: VolumeGrid, z_stretch: float = 1.0,
     a = np.array([0.0, 0.0, 1.0]) if axis is None else grid.direction_matrix.T @ np.asarray(axis, np.float64)
     a = a / np.linalg.norm(a)
     if z_stretch != 1.0:  # the sweep: a segment along a, half as long as (z_stretch - 1) times the box's length there
-        gens.append(a * 0.5 * (z_stretch - 1.0) * 2.0 * float(np.abs(a * half).sum()))
+        gens.append(a * (z_stretch - 1.0) * float(np.abs(a * half).sum()))  # that length is 2 sum|a_k half_k|
     slabs = []  # (unit normal, half width): the zonotope's faces, one per non-parallel pair of generators
     for i in range(len(gens)):
         for j in range(i + 1, len(gens)):
