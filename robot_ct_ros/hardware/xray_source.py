@@ -121,7 +121,9 @@ class InterlockedSource:
     stale arm reports, and a beam on for longer than ``max_beam_on_s``, switch the beam off.
     While the e-stop is latched the scan stays disarmed whatever arrives. A switch-off the driver refuses
     (asked for or the interlock's) is retried by every ``tick`` until it succeeds, whether or not the interlock
-    still permits the beam; only a permitted switch-on that succeeds cancels it.
+    still permits the beam; only a permitted switch-on that succeeds cancels it. Between ticks, input changes
+    (arm reports at their own rate) do not retry it, so that a slow refusing driver is asked at the tick's
+    rate, not at the reports'; an e-stop retries it at once.
     """
 
     def __init__(self, source: XraySource, max_report_age_s: float = 1.0, max_beam_on_s: float = 10.0):
@@ -157,7 +159,8 @@ class InterlockedSource:
             self.fault = ""
         return ""
 
-    def _enforce(self, now_s: float) -> None:
+    def _enforce(self, now_s: float, retry: bool = True) -> None:
+        """Cut the beam where the inputs no longer permit it; ``retry``: also retry a refused switch-off."""
         ok, reason = beam_permitted(self.inputs, now_s, self.max_report_age_s)
         watchdog = False
         if ok and self.source.beam_on and self._on_since is not None and now_s - self._on_since > self.max_beam_on_s:
@@ -165,21 +168,22 @@ class InterlockedSource:
                                            f"{self.max_beam_on_s:g} s: no exposure takes that long (is the scan's "
                                            "controller alive?)"), True
         self.last_reason = reason
-        cut = not ok and self.source.beam_on
-        if cut or self.off_pending:  # a refused switch-off is retried even while the interlock permits the beam
+        cut = not ok and self.source.beam_on and not (self.off_pending and not retry)
+        if cut or (self.off_pending and retry):  # retried even while the interlock permits the beam
             if not self._switch(False, now_s) and cut:
                 self.last_cut_reason = reason
                 if watchdog:
                     self.watchdog_cut = f"beam cut: {reason}"
 
-    def update(self, now_s: float, **changes) -> None:
+    def update(self, now_s: float, *, retry: bool = False, **changes) -> None:
+        """Take changed inputs and re-evaluate; a refused switch-off is retried only with ``retry``."""
         inputs = replace(self.inputs, **changes)
         if inputs.estop_latched and inputs.scan_armed:
             inputs = replace(inputs, scan_armed=False)  # arming under a latched e-stop does not count, nor after
         if inputs.scan_armed and not self.inputs.scan_armed:
             self.watchdog_cut = ""  # a new scan
         self.inputs = inputs
-        self._enforce(now_s)
+        self._enforce(now_s, retry=retry)
 
     def report_arm(self, which: str, in_position: bool, now_s: float) -> None:
         if which == "source":
@@ -190,7 +194,7 @@ class InterlockedSource:
             raise ValueError(f"unknown arm {which!r}")
 
     def estop(self, now_s: float) -> None:
-        self.update(now_s, estop_latched=True, scan_armed=False)
+        self.update(now_s, estop_latched=True, scan_armed=False, retry=True)
 
     def reset_estop(self, now_s: float) -> None:
         self.update(now_s, estop_latched=False)

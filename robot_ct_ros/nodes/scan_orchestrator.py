@@ -183,7 +183,10 @@ class ScanOrchestratorNode(Node):
             response.success, response.message = True, "scan aborted"
         else:
             self.scan.safe_off()
-            response.success, response.message = True, f"no scan running ({self.scan.state}); beam off, disarmed"
+            # the switch-off is asked for, not awaited: say what the source last reported, not what it should do
+            beam = "; the source still reports the beam ON" if self.scan.beam_on else ""
+            response.success, response.message = True, (f"no scan running ({self.scan.state}); beam off requested, "
+                                                         f"disarmed{beam}")
         return response
 
     def _periodic(self) -> None:

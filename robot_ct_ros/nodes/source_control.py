@@ -240,7 +240,13 @@ class SourceControlNode(LifecycleNode):
 
     def _on_estop_srv(self, request, response):
         self._estop()
-        response.success, response.message = True, "e-stop latched, beam off"
+        if self.beam_on:  # the driver's state, not the request's: a refused switch-off is not reported off
+            fault = self._holder().fault if self._holder() is not None else ""
+            response.success = False
+            response.message = (f"e-stop latched, but the beam is still ON: {fault or 'the source did not switch off'}; "
+                                "the switch-off is retried on every tick")
+        else:
+            response.success, response.message = True, "e-stop latched, beam off"
         return response
 
     def _on_reset_estop(self, request, response):
@@ -262,7 +268,9 @@ class SourceControlNode(LifecycleNode):
         if self._active:
             self._publish_beam(force=True)
         elif self.beam_on:  # every way out of active cuts the beam, unless the source refused: retry
-            self._holder().request_beam(False, self._now_s())
+            holder = self._holder()
+            if holder is not self.interlock or not holder.off_pending:  # else its tick above retried it
+                holder.request_beam(False, self._now_s())
             if self._released_on is not None and not self._released_on.beam_on:
                 self.get_logger().info("the released source switched off at last")
                 self._released_on = None

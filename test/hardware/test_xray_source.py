@@ -201,3 +201,29 @@ def test_any_driver_exception_is_a_fault_and_a_refused_switch_off_is_retried(err
     src.source.fault_on = src.source.fault_off = None
     src.tick(10.6)
     assert not src.beam_on and src.fault == "" and not src.off_pending
+
+
+def test_a_refused_switch_off_is_retried_at_the_tick_rate_not_on_every_arm_report():
+    """Every input change retried a refused switch-off: two arms reporting at 50 Hz asked a refusing driver about
+    110 times a second, and a driver whose refusal takes 50 ms held the node's only executor thread most of the time.
+    Now arm reports and other input changes do not retry it (the first cut they cause still tries at once); each
+    tick does, and an e-stop does at once."""
+    src = InterlockedSource(SimulatedXraySource(), max_report_age_s=1.0)
+    src.update(10.0, **ALL_OK)
+    assert src.request_beam(True, 10.01)[0]
+    src.source.fault_off = SourceError("HV controller busy")
+    tries = src.source.off_tries
+    src.report_arm("detector", False, 10.02)  # the interlock's cut: tried at once, refused
+    assert src.source.off_tries == tries + 1 and src.beam_on and src.off_pending
+    for k in range(10):  # arm reports between two ticks
+        src.report_arm("source", True, 10.03 + 0.002 * k)
+        src.report_arm("detector", k % 2 == 0, 10.03 + 0.002 * k)
+    src.update(10.06, scan_armed=False)
+    assert src.source.off_tries == tries + 1
+    src.tick(10.1)
+    assert src.source.off_tries == tries + 2
+    src.estop(10.12)
+    assert src.source.off_tries == tries + 3 and src.beam_on
+    src.source.fault_off = None
+    src.tick(10.2)
+    assert not src.beam_on and not src.off_pending and src.source.off_tries == tries + 4

@@ -265,7 +265,9 @@ def test_abort_service(ros, tmp_path):
     assert g.orch.state == "aborted" and "on request" in g.orch.message
     assert ros.spin_until(g.safe)
     answer = ros.call(g.abort_client, Trigger.Request())  # nothing running: still answers, still safe
-    assert answer.success and "no scan running" in answer.message
+    # the switch-off is asked for, not awaited: the answer says so, and adds what the source last reported
+    assert answer.success and "no scan running" in answer.message and "beam off requested" in answer.message
+    assert "still reports the beam ON" not in answer.message
     g.detector.release(False, "never answered")
 
 

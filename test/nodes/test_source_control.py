@@ -463,3 +463,21 @@ def test_configure_is_refused_while_a_source_released_on_error_keeps_the_beam_on
     assert ros.spin_until(lambda: not node.beam_on and beam and beam[-1] is False, timeout_s=2.0)
     assert node.trigger_configure() == TransitionCallbackReturn.SUCCESS
     assert node.interlock is not None and node.interlock.source is not source and not node.beam_on
+
+
+def test_the_estop_answer_says_the_beam_is_still_on_when_the_source_refused(ros):
+    """source/estop answered "e-stop latched, beam off" whatever the driver did: with a switch-off refused, an operator
+    was told the beam was off while it was on. Now the answer is the driver's state: success false, the beam still ON
+    and the fault, until the source obeys; then "beam off"."""
+    node, pubs, diag, beam, set_beam = _faulty_setup(ros)
+    source = node.interlock.source
+    estop = ros.node("estop_probe").create_client(Trigger, "source/estop")
+    assert ros.call(set_beam, SetBool.Request(data=True)).success and node.beam_on
+    source.fault_off = SourceError("HV controller busy")
+    answer = ros.call(estop, Trigger.Request())
+    assert not answer.success and "still ON" in answer.message and "HV controller busy" in answer.message
+    assert node.beam_on and node.estop_latched
+    source.fault_off = None
+    assert ros.spin_until(lambda: not node.beam_on, timeout_s=2.0)
+    answer = ros.call(estop, Trigger.Request())
+    assert answer.success and answer.message == "e-stop latched, beam off"
