@@ -572,10 +572,15 @@ def _zero_counts_warning(counts, flat, valid) -> str | None:
     if not zero.any():
         return None
     frames = np.flatnonzero(zero.any(axis=(1, 2)))
-    columns = int((zero.all(axis=1)).sum())  # whole detector columns of a frame at 0
-    rows = int((zero.all(axis=2)).sum())
-    whole = [f"{columns} whole detector columns" if columns else "", f"{rows} whole rows" if rows else ""]
-    whole = " and ".join(w for w in whole if w)
+
+    def whole(kind: str, at_zero) -> str:  # at_zero (frames, lines): a line of a frame entirely at 0
+        lines = np.flatnonzero(at_zero.any(axis=0))
+        if not lines.size:
+            return ""
+        listed = f"{lines[:10].tolist()}{' ...' if lines.size > 10 else ''}"
+        return f"{lines.size} whole detector {kind} {listed} (at 0 in {int(at_zero.any(axis=1).sum())} frames)"
+
+    whole = " and ".join(w for w in (whole("columns", zero.all(axis=1)), whole("rows", zero.all(axis=2))) if w)
     return (f"{int(zero.sum())} usable pixels in {len(frames)} frames (first {frames[:5].tolist()}) read 0 counts "
             f"under a flat field of at least {STARVED_FLAT_COUNTS:g} counts" + (f", among them {whole}" if whole else "")
             + ": photon starvation behind dense matter, or pixels that dropped out; they are used as the attenuation "

@@ -259,9 +259,9 @@ class ArmDriverNode(LifecycleNode):
     # -- executor side ---------------------------------------------------------------------
     def _on_goal(self, msg: PoseStamped) -> None:
         if not self.runner.active:
-            self.get_logger().warn(f"goal ignored: node is {self.lifecycle_state}"
-                                   f"{' (connecting)' if self.connecting else ''}, not active",
-                                   throttle_duration_sec=1.0)
+            why = ("the controller is not connected yet (goals are taken once it is)" if self.connecting
+                   else f"node is {self.lifecycle_state}, not active")
+            self.get_logger().warn(f"goal ignored: {why}", throttle_duration_sec=1.0)
             return
         try:
             self.runner.command(pose_msg_to_ur(msg, self.base_frame))

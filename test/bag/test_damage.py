@@ -353,7 +353,12 @@ def test_zero_counts_under_a_bright_flat_are_reported_and_kept(tmp_path, tiny_sc
     frames[5, :, 7] = 0.0
     scan = read_scan(write_scan(tmp_path / "zero", frames, geom, flat=flat, dead_pixels=dead))
     text = " | ".join(scan.warnings)
-    assert "8 usable pixels in 1 frames (first [5]) read 0 counts" in text and "1 whole detector columns" in text
+    assert "8 usable pixels in 1 frames (first [5]) read 0 counts" in text
+    assert "1 whole detector columns [7] (at 0 in 1 frames)" in text and "rows" not in text
+    # one dead column in several frames is one column, named (it was counted once per frame: "3 whole columns")
+    frames[6:8, :, 7] = 0.0
+    text = " | ".join(read_scan(write_scan(tmp_path / "zero3", frames, geom, flat=flat, dead_pixels=dead)).warnings)
+    assert "1 whole detector columns [7] (at 0 in 3 frames)" in text
     np.testing.assert_array_equal(scan.counts[5], frames[5])
     assert scan.valid_mask[5, :, 7].all()
     clean = read_scan(write_scan(tmp_path / "clean", tiny_scan[1], geom, flat=flat, dead_pixels=dead))
