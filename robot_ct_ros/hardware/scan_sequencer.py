@@ -51,6 +51,15 @@ DEVICE_DIAGNOSTICS = ("detector", "x-ray source")
 DEVICE_REPORT_MAX_AGE_S = 3.0  # they report at 1 Hz; an older report is not evidence either way
 
 
+def _answered_stamp(future) -> int | None:
+    """The frame stamp in a finished pcd/expose call's successful answer, else None (never raises)."""
+    try:
+        answer = future.result()
+        return int(json.loads(answer.message)["stamp_ns"]) if answer.success else None
+    except Exception:  # noqa: BLE001 - a failed call or an answer without a stamp: no frame to count
+        return None
+
+
 @dataclass(frozen=True)
 class ScanSequencerSettings:
     """The scan orchestrator's parameters (SI units)."""
@@ -146,6 +155,7 @@ class ScanSequencer:
         self._beam_expect: bool | None = None
         self._beam_confirmed = False
         self._expected_stamp: int | None = None
+        self._late_expose = None  # the pcd/expose call in flight when a scan aborted
         self.last_abort_reason = ""
         if settings.protocol_file:
             try:
@@ -296,7 +306,7 @@ class ScanSequencer:
         self.geom = geom
         self._goal_list = {"source": src, "detector": det}
         self.scan_id = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime()) + f"-{int(now * 1e3) % 1000:03d}"
-        self.view, self.frames, self._expected_stamp = 0, 0, None
+        self.view, self.frames, self._expected_stamp, self._late_expose = 0, 0, None, None
         self.frame_stamps, self._seen_frames, self._seen_geometries = [], {}, set()
         self.last_abort_reason = ""
         ports.publish_scan_info(self.protocol.scan_info(geom, self.scan_id))
@@ -318,16 +328,32 @@ class ScanSequencer:
         if not self.running:
             return
         self.safe_off()
-        if self.state in ("beam_off", "waiting_frame") and self._expected_stamp is not None \
-                and self._expected_stamp not in self.frame_stamps:
+        stamp = self._expected_stamp if self.state in ("beam_off", "waiting_frame") else None
+        if self.state == "exposing" and self._future is not None:
+            if self._future.done():
+                stamp = _answered_stamp(self._future)  # answered, not yet taken in by a tick
+            else:
+                self._late_expose = self._future  # an answer after the abort still names a frame the bag keeps
+        if stamp is not None and stamp not in self.frame_stamps:
             # the detector took this view's frame and published it (the bag keeps it): count it
             self.frames += 1
-            self.frame_stamps.append(self._expected_stamp)
+            self.frame_stamps.append(stamp)
         self._future = None
         self._beam_expect = None
         self.last_abort_reason = reason
         self.ports.log("error", f"scan aborted at view {self.view} ({self.frames} frames kept): {reason}")
         self._set_state("aborted", reason)
+
+    def _count_late_frame(self) -> None:
+        """The detector answered the exposure in flight after the abort: a frame it took was published (the bag
+        keeps it), so it counts among the frames kept."""
+        stamp, self._late_expose = _answered_stamp(self._late_expose), None
+        if stamp is not None and stamp not in self.frame_stamps and self.state == "aborted":
+            self.frames += 1
+            self.frame_stamps.append(stamp)
+            self.ports.log("info", f"the detector answered view {self.view}'s exposure after the abort: its frame is "
+                                   f"kept ({self.frames} frames kept)")
+            self.publish_status()
 
     # -- sequence ----------------------------------------------------------------------------------
     def _send_goals(self) -> None:
@@ -377,6 +403,8 @@ class ScanSequencer:
             elif msg != self._autostart_reason:
                 self._autostart_reason = msg
                 self.ports.log("info", f"autostart waiting: {msg}")
+        if self._late_expose is not None and self._late_expose.done():
+            self._count_late_frame()
         if not self.running:
             return
         now, s = self._now(), self.settings

@@ -370,3 +370,44 @@ def test_an_abort_after_the_exposure_counts_the_frame_taken(tmp_path):
         rig.advance(0.5)
     _aborted(rig, "frame of view 0 not received")
     assert rig.seq.frames == 0
+
+
+def _exposing(tmp_path):
+    rig = _started(tmp_path, protocol={"n_views": 3})
+    rig.run_view(11)
+    rig.arrive()
+    rig.advance(0.03, 3)
+    rig.ports.beam_calls[-1][1].set(True)
+    rig.seq.on_beam(True)
+    rig.advance()
+    assert rig.seq.state == "exposing"
+    return rig
+
+
+def test_an_abort_while_the_exposure_is_answered_counts_the_frame_the_detector_published(tmp_path):
+    """An e-stop during a short exposure said "(1 frames kept)" while the bag held 2: the detector had answered (and
+    published the frame) but no tick had taken the answer in, or it answered just after the abort. Now an answer
+    waiting at the abort counts, and so does one that comes after it; a refusal (a beam-interrupted frame, which
+    went to /ct/projection_rejected) does not."""
+    rig = _exposing(tmp_path)
+    rig.ports.expose_calls[-1].set(True, json.dumps({"stamp_ns": 12}))  # answered, no tick yet
+    rig.seq.abort("e-stop")
+    assert rig.seq.frames == 2 and rig.seq.frame_stamps == [11, 12]
+    assert ("error", "scan aborted at view 1 (2 frames kept): e-stop") in rig.ports.logs
+
+    rig = _exposing(tmp_path)
+    rig.seq.abort("e-stop")  # the detector still exposing
+    assert rig.seq.frames == 1
+    rig.advance()
+    assert rig.seq.frames == 1
+    rig.ports.expose_calls[-1].set(True, json.dumps({"stamp_ns": 12}))
+    rig.advance()
+    assert rig.seq.frames == 2 and rig.seq.frame_stamps == [11, 12] and rig.seq.state == "aborted"
+    assert rig.ports.status[-1]["frames"] == 2
+    assert any("after the abort: its frame is kept (2 frames kept)" in m for _, m in rig.ports.logs)
+
+    rig = _exposing(tmp_path)
+    rig.seq.abort("e-stop")
+    rig.ports.expose_calls[-1].set(False, "beam interrupted: on for 40% of the exposure")
+    rig.advance()
+    assert rig.seq.frames == 1 and rig.seq.frame_stamps == [11]
