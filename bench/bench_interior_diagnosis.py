@@ -41,7 +41,7 @@ can do from what the reconstruction feeds it:
 18. a smooth background (polynomial across the detector) that each view's NCC ignores: the metric high-passed;
 19. where in the image each view's placement lies: the detector shift at which the NCC peaks (searched
     exhaustively, no estimator), of the images as they are, normalised locally (windowed NCC, the issue's
-    candidate) or low-passed, against volumes from the true and the nominal geometry, with each view's own
+    candidate), low-passed or with the residuals weighted robustly, against volumes from the true and the nominal geometry, with each view's own
     data in and held out;
 20. table 19's held-out row (the true geometry, the images as they are) over the exterior grid's voxel and
     SIRT passes: whether a finer or a more converged exterior lets the other views place a view better.
@@ -327,8 +327,13 @@ def table_background(st: Study, say, orders=((0, 0), (1, 1), (2, 2), (4, 4))) ->
 
 
 FILTERS = (("as they are", None, 0.0), ("normalised locally (windowed NCC)", "local", 1.5),
-           ("normalised locally (windowed NCC)", "local", 6.0), ("low-passed", "low", 1.0), ("low-passed", "low", 4.0))
-"""Table 19's image filters: (name, kind, Gaussian sigma in pixels of the level's data)."""
+           ("normalised locally (windowed NCC)", "local", 6.0), ("low-passed", "low", 1.0), ("low-passed", "low", 4.0),
+           ("as they are, residuals weighted robustly (Tukey)", "robust", 4.685))
+"""Table 19's image filters: (name, kind, parameter): the Gaussian sigma in pixels of the level's data, or for
+"robust" the Tukey biweight's cut in robust standard deviations of the residual (:func:`shift_optimum`)."""
+
+ROBUST_ROUNDS = 3
+"""Reweighting rounds of table 19's robust metric."""
 
 
 def filtered(image, mask, kind, sigma_px: float) -> np.ndarray:
@@ -357,10 +362,24 @@ def shift_optimum(measured, model, mask, kind=None, sigma_px: float = 0.0, reach
     """Per view, the shift (cols, rows) in pixels that carries ``model`` (n, rows, cols) onto ``measured`` best:
     the maximum of their NCC after :func:`filtered`, over the valid pixels of ``mask`` at least ``border_px``
     from the edge, searched exhaustively on a 0.5 px grid within ``reach_px``, then on a 0.1 px grid around
-    its best (linear interpolation). No estimator, no prior: where the metric itself places each view."""
-    def ncc(a, b, m):
-        a, b = a[m] - a[m].mean(), b[m] - b[m].mean()
-        return float(a @ b) / max(float(np.sqrt((a @ a) * (b @ b))), 1e-300)
+    its best (linear interpolation). No estimator, no prior: where the metric itself places each view.
+
+    ``kind`` "robust": the images as they are, then :data:`ROBUST_ROUNDS` rounds that weight each pixel by
+    Tukey's biweight of its residual at the best shift so far (the data less the shifted model's least-squares
+    gain and offset; cut at ``sigma_px`` robust standard deviations, 1.4826 x the median absolute residual) and
+    search again, within 1 px of that best, on 0.25 and 0.1 px grids: a metric that ignores the pixels the model
+    fails to predict (structure in the data that the volume does not hold), whatever their cause."""
+    def ncc(a, b, m, w=None):
+        if w is None:
+            a, b = a[m] - a[m].mean(), b[m] - b[m].mean()
+            return float(a @ b) / max(float(np.sqrt((a @ a) * (b @ b))), 1e-300)
+        a, b, w = a[m], b[m], w[m]
+        a, b = a - (w @ a) / w.sum(), b - (w @ b) / w.sum()
+        return float((w * a) @ b) / max(float(np.sqrt(((w * a) @ a) * ((w * b) @ b))), 1e-300)
+
+    robust = kind == "robust"
+    if robust:
+        kind, cut = None, sigma_px
 
     out = np.zeros((len(measured), 2))
     for i, (data, ref, valid) in enumerate(zip(measured, model, mask)):
@@ -371,15 +390,25 @@ def shift_optimum(measured, model, mask, kind=None, sigma_px: float = 0.0, reach
             inner[:b], inner[-b:], inner[:, :b], inner[:, -b:] = False, False, False, False
         target = filtered(data, valid, kind, sigma_px)
 
-        def score(d):
-            return ncc(target, filtered(ndimage.shift(ref, (d[1], d[0]), order=1, mode="nearest"), valid, kind,
-                                        sigma_px), inner)
+        def moved(d):
+            return filtered(ndimage.shift(ref, (d[1], d[0]), order=1, mode="nearest"), valid, kind, sigma_px)
 
-        best = np.zeros(2)
-        for step, reach in ((0.5, reach_px), (0.1, 0.5)):
-            grid = np.arange(-reach, reach + step / 2, step)
-            cands = [best + (du, dv) for du in grid for dv in grid]
-            best = cands[int(np.argmax([score(d) for d in cands]))]
+        def search(best, steps, weight=None):
+            for step, reach in steps:
+                grid = np.arange(-reach, reach + step / 2, step)
+                cands = [best + (du, dv) for du in grid for dv in grid]
+                best = cands[int(np.argmax([ncc(target, moved(d), inner, weight) for d in cands]))]
+            return best
+
+        best = search(np.zeros(2), ((0.5, reach_px), (0.1, 0.5)))
+        for _ in range(ROBUST_ROUNDS if robust else 0):
+            model_px = moved(best)[inner]
+            fit = np.stack([model_px, np.ones_like(model_px)], 1)
+            residual = target[inner] - fit @ np.linalg.lstsq(fit, target[inner], rcond=None)[0]
+            scaled = residual / (cut * 1.4826 * np.median(np.abs(residual)) + 1e-300)
+            weight = np.zeros_like(target)
+            weight[inner] = np.where(np.abs(scaled) < 1.0, (1.0 - scaled ** 2) ** 2, 0.0)
+            best = search(best, ((0.25, 1.0), (0.1, 0.3)), weight)
         out[i] = best
     return out
 
@@ -387,7 +416,7 @@ def shift_optimum(measured, model, mask, kind=None, sigma_px: float = 0.0, reach
 def table_metric_optimum(st: Study, say, folds: int = 12, filters=FILTERS) -> list:
     """19: where in the image each view's placement lies. Per view, the detector shift at which the NCC of the data
     and the volume's reprojection (through the nominal geometry) peaks (:func:`shift_optimum`, exhaustive), of the
-    images as they are, normalised locally or low-passed (:data:`FILTERS`), against the volumes from the true and
+    images as they are, normalised locally, low-passed or robustly weighted (:data:`FILTERS`), against the volumes from the true and
     from the nominal geometry, with every view's data in and with each view's fold held out (``folds``
     interleaved): slope on the truth's projection shift (table 12's combinations), scatter about slope x truth,
     and the RMS distance from the truth, px of the full-size detector (coarse level)."""
@@ -403,7 +432,8 @@ def table_metric_optimum(st: Study, say, folds: int = 12, filters=FILTERS) -> li
                 t0 = time.perf_counter()
                 row = {"volume from": f"the {name} geometry",
                        "each view's data": f"held out ({folds} folds)" if held_out else "in",
-                       "images": label if kind is None else f"{label}, sigma {sigma:g} px",
+                       "images": (label if kind is None else f"{label}, cut {sigma:g}" if kind == "robust"
+                                  else f"{label}, sigma {sigma:g} px"),
                        **shift_rows(st, measured_shifts(st, model, kind, sigma)),
                        "search (s)": round(time.perf_counter() - t0, 1)}
                 rows.append(row)
