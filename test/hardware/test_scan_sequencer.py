@@ -173,6 +173,24 @@ def _aborted(rig, *words):
     assert rig.ports.armed[-1] is False and rig.ports.beam_calls[-1][0] is False  # beam off requested
 
 
+def _to_exposing(rig):
+    """From moving to exposing the view in progress: the arms arrive, the beam is switched on and confirmed."""
+    rig.arrive()
+    rig.advance(0.03, 3)
+    rig.ports.beam_calls[-1][1].set(True)
+    rig.seq.on_beam(True)
+    rig.advance()
+    assert rig.seq.state == "exposing", rig.seq.state
+    return rig
+
+
+def _exposing(tmp_path):
+    """A three-view scan exposing its second view, its first frame (stamp 11) kept."""
+    rig = _started(tmp_path, protocol={"n_views": 3})
+    rig.run_view(11)
+    return _to_exposing(rig)
+
+
 def test_start_refused_until_the_graph_is_there(tmp_path):
     rig = Rig(tmp_path)
     rig.ports.ready = False
@@ -236,13 +254,7 @@ def test_beam_refused_lost_or_unexpected_aborts(tmp_path):
     rig.advance()
     assert rig.seq.message == "beam refused: interlock open"
 
-    rig = _started(tmp_path)
-    rig.arrive()
-    rig.advance(0.03, 3)
-    rig.ports.beam_calls[-1][1].set(True)
-    rig.seq.on_beam(True)
-    rig.advance()
-    assert rig.seq.state == "exposing"
+    rig = _to_exposing(_started(tmp_path))
     rig.seq.on_beam(False)
     _aborted(rig, "beam lost during view 0")
 
@@ -254,24 +266,14 @@ def test_beam_refused_lost_or_unexpected_aborts(tmp_path):
 def test_detector_failures_abort(tmp_path):
     for answer, words in (((False, "detector timeout"), ("detector: detector timeout",)),
                           ((True, "no json"), ("without a frame stamp",))):
-        rig = _started(tmp_path)
-        rig.arrive()
-        rig.advance(0.03, 3)
-        rig.ports.beam_calls[-1][1].set(True)
-        rig.seq.on_beam(True)
-        rig.advance()
+        rig = _to_exposing(_started(tmp_path))
         rig.ports.expose_calls[-1].set(*answer)
         rig.advance()
         _aborted(rig, *words)
 
 
 def _waiting_frame(tmp_path, stamp):
-    rig = _started(tmp_path)
-    rig.arrive()
-    rig.advance(0.03, 3)
-    rig.ports.beam_calls[-1][1].set(True)
-    rig.seq.on_beam(True)
-    rig.advance()
+    rig = _to_exposing(_started(tmp_path))
     rig.ports.expose_calls[-1].set(True, json.dumps({"stamp_ns": stamp}))
     rig.advance()
     rig.seq.on_beam(False)
@@ -342,14 +344,8 @@ def test_no_scan_starts_under_a_latched_estop_and_a_latch_aborts_a_running_one(t
 def test_an_abort_after_the_exposure_counts_the_frame_taken(tmp_path):
     """An abort between the detector's answer and the frame's arrival said "(1 frames kept)" at view 1 while the
     bag held 2 frames: the frame exposed for the view in progress is taken (pcd_grabber publishes it)."""
-    rig = _started(tmp_path, protocol={"n_views": 3})
-    rig.run_view(11)
+    rig = _exposing(tmp_path)
     assert rig.seq.frames == 1 and rig.seq.view == 1
-    rig.arrive()
-    rig.advance(0.03, 3)
-    rig.ports.beam_calls[-1][1].set(True)
-    rig.seq.on_beam(True)
-    rig.advance()
     rig.ports.expose_calls[-1].set(True, json.dumps({"stamp_ns": 12}))
     rig.advance()
     assert rig.seq.state == "beam_off"
@@ -371,17 +367,6 @@ def test_an_abort_after_the_exposure_counts_the_frame_taken(tmp_path):
     _aborted(rig, "frame of view 0 not received")
     assert rig.seq.frames == 0
 
-
-def _exposing(tmp_path):
-    rig = _started(tmp_path, protocol={"n_views": 3})
-    rig.run_view(11)
-    rig.arrive()
-    rig.advance(0.03, 3)
-    rig.ports.beam_calls[-1][1].set(True)
-    rig.seq.on_beam(True)
-    rig.advance()
-    assert rig.seq.state == "exposing"
-    return rig
 
 
 def test_an_abort_while_the_exposure_is_answered_counts_the_frame_the_detector_published(tmp_path):
