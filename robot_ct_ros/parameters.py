@@ -145,7 +145,8 @@ class SettingSpec:
         if self.maximum is not None and not value <= self.maximum:
             raise ValueError(f"{self.name} must be <= {self.maximum}{unit}, got {value!r}")
         if self.choices is not None and value not in self.choices:
-            raise ValueError(f"{self.name} must be one of {', '.join(map(str, self.choices))}; got {value!r}")
+            shown = ", ".join('""' if c == "" else str(c) for c in self.choices)  # an empty choice shown, not blank
+            raise ValueError(f"{self.name} must be one of {shown}; got {value!r}")
 
     def _check_items(self, value) -> None:
         unit = f" {self.unit}" if self.unit else ""

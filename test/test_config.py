@@ -53,3 +53,13 @@ def test_the_shipped_file_gives_the_library_s_defaults_exactly(node, exclude):
     values |= {k: ros_defaults(CalibrationSettings)[k] for k in exclude}  # replay's method is its own parameter
     assert from_ros_values(CalibrationSettings, values) == CalibrationSettings()
     assert from_ros_values(CalibrationSettings, ros_defaults(CalibrationSettings)) == CalibrationSettings()
+
+
+def test_a_refused_choice_shows_an_empty_choice_as_such():
+    """replay's method:=bogus said "method must be one of , none, ...": the empty choice (no offline job) showed
+    as a blank."""
+    from robot_ct_ros.nodes.replay import ReplaySettings
+
+    with pytest.raises(ValueError, match=r'method must be one of "", none, ') as err:
+        ReplaySettings(method="bogus")
+    assert "got 'bogus'" in str(err.value)

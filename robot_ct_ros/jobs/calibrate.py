@@ -221,10 +221,11 @@ def _bag_name(scan: ScanData) -> str:
     return scan.path.name.removesuffix(".mcap")
 
 
-def refuse_another_bags_folder(out: Path, scan: ScanData) -> None:
+def refuse_another_bags_folder(out: Path, scan: ScanData | str, option: str = "--out") -> None:
     """A folder holds one bag's calibration: refuse ``out`` where report.json or a ``*_corrected`` bag is of a bag
-    other than ``scan``'s (two runs would mix there, and export could take the other bag's correction)."""
-    name = _bag_name(scan)
+    other than ``scan``'s (a ScanData, or the bag's name; two runs would mix there, and export could take the other
+    bag's correction). ``option``: what the user sets the folder with, named in the refusal."""
+    name = scan if isinstance(scan, str) else _bag_name(scan)
     others = ([p.name.removesuffix("_corrected") for p in out.glob("*_corrected") if p.name != f"{name}_corrected"]
               if out.is_dir() else [])
     previous = out / "report.json"
@@ -237,7 +238,7 @@ def refuse_another_bags_folder(out: Path, scan: ScanData) -> None:
             others.append(earlier)
     if others:
         raise ValueError(f"{out} holds the calibration of another bag ({', '.join(sorted(set(others)))}); give each "
-                         "bag its own --out folder")
+                         f"bag its own {option} folder")
 
 
 def calibrate_bag(bag, out, settings: CalibrationSettings | None = None, *, voxel_mm=None, shape_xyz=None,
@@ -251,7 +252,7 @@ def calibrate_bag(bag, out, settings: CalibrationSettings | None = None, *, voxe
     refuse_out_in_bag(out, bag)
     refuse_other_job(out, "calibrate")
     scan = read_scan(bag, keep_raw=True)
-    refuse_another_bags_folder(Path(out), scan)
+    refuse_another_bags_folder(Path(out), scan, "--out" if options == "command line" else "output_dir")
     grid = scan_grid(scan, voxel_mm, shape_xyz)
     method = (settings or CalibrationSettings()).method
     check_memory(grid, scan.n_views, scan.geom.det_shape, "reconstruct" if method == "none" else "calibrate",

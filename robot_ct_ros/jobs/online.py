@@ -27,6 +27,7 @@ class RunPlanner:
         self.over_ids: set[str] = set()  # scans reported done or aborted: no partial run after them
         self.full_started = False
         self.next_partial = self.every
+        self.shortfall: tuple[int, int] | None = None  # (announced, paired) of the last whole-scan run started short
 
     def new_scan(self) -> None:
         """A new collection started (a new /ct/scan_info)."""
@@ -50,6 +51,7 @@ class RunPlanner:
             if n_paired >= frames or self.clock() > deadline:
                 self.pending = None
                 self.done_ids.add(sid)
+                self.shortfall = (frames, n_paired) if n_paired < frames else None
                 return "full"
             return None
         if self.every > 0 and n_paired >= self.next_partial and not self.full_started and scan_id not in self.over_ids:

@@ -79,6 +79,7 @@ class ReconServiceNode(Node):
 
         self.state, self.message, self.error = "idle", "waiting for a scan", ""  # state: idle|running|done|failed
         self.runs = self.full_runs = self.partial_runs = self.corrected_published = 0
+        self._short_note = ""  # the next whole-scan run's note that fewer frames arrived than the scan announced
         self.run_partial = False
         self.partial_reports: list[dict] = []
         self.report: dict | None = None   # last finished run's report
@@ -145,9 +146,16 @@ class ReconServiceNode(Node):
             return
         run = self.planner.next_run(self.n_paired, self.scan.scan_id)
         if run == "full":
-            if self.n_paired == 0 and not self.service.bag_path:
-                self.get_logger().info("scan done but no frame was collected here; nothing to correct")
+            if self.n_paired == 0 and not self.service.bag_path:  # the scan's run is used up: said as a failure
+                self._fail(self.runs + 1, "automatic correction not started: the scan is done but no frame was "
+                           "collected here (frames are not latched: a recon_service started after the scan has none; "
+                           "set bag_path to the recorded bag, or replay it)", 0)
                 return
+            self._short_note = ""
+            if self.planner.shortfall is not None:
+                announced, paired = self.planner.shortfall
+                self._short_note = (f"the scan announced {announced} frames; {paired} arrived here with their geometry "
+                                    f"within {self.planner.wait_s:g} s of its end: corrected with those")
             ok, why = self.start_run()
             if not ok:  # the scan's run is used up: say so where a run's failure is said, not only in the log
                 self._fail(self.runs + 1, f"automatic correction not started: {why}", self.n_paired)
@@ -194,6 +202,9 @@ class ReconServiceNode(Node):
 
     def start_run(self, partial: bool = False) -> tuple[bool, str]:
         """Start a correction run on a worker thread; (started, message)."""
+        from robot_ct_ros.jobs.calibrate import refuse_another_bags_folder
+        from robot_ct_ros.jobs.output import refuse_other_job
+
         if self.running:
             return False, f"a run is in progress ({self.message})"
         try:
@@ -201,6 +212,8 @@ class ReconServiceNode(Node):
                 out, bag, n = self.output_dir, Path(self.service.bag_path), None
             else:
                 out = self.output_dir / f"partial_{self.n_paired:04d}" if partial else self.output_dir
+                refuse_other_job(out, "calibrate")  # before the scan is written there, as the job would after
+                refuse_another_bags_folder(out, "scan", "output_dir")
                 bag, n = self.scan.write_bag(out / "scan")
         except (ValueError, OSError) as exc:
             return False, f"cannot run: {exc}"
@@ -233,6 +246,7 @@ class ReconServiceNode(Node):
 
     def _job(self, run: int, bag: Path, out: Path, n, partial: bool) -> None:
         from robot_ct_ros.jobs.calibrate import calibrate_bag
+        from robot_ct_ros.jobs.output import write_json
 
         def say(line: str) -> None:
             self.get_logger().info(line)
@@ -244,11 +258,13 @@ class ReconServiceNode(Node):
                                        options="ROS parameters")
             report = correction.report | {"partial": partial, "scan_id": self.scan.scan_id}
             if not self.service.bag_path or partial:  # the scan as received: what the collection dropped
-                report["bag_warnings"] = list(self.scan.warnings) + list(report.get("bag_warnings", []))
-                for warning in self.scan.warnings:
+                short = [self._short_note] if self._short_note and not partial else []
+                report["bag_warnings"] = short + list(self.scan.warnings) + list(report.get("bag_warnings", []))
+                for warning in short + list(self.scan.warnings):
                     self.get_logger().warning(warning)
             if self.stream is not None:
                 report["live"] = self.stream.summary()
+            write_json(report["paths"]["report_json"], report)  # report.json holds what recon/report says
             result = (run, report, correction, None)
         except Exception as exc:  # noqa: BLE001 - reported; the node keeps serving
             result = (run, None, None, f"{type(exc).__name__}: {exc}")

@@ -44,6 +44,9 @@ from robot_ct_ros.parameters import setting, validate
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 STREAM = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
 ANY = QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT)
+STATE = QoSProfile(depth=100, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
+"""A state topic's subscription: transient-local like its publisher, but every change kept (a depth of 1 dropped the
+first of a beam off and on that arrive in one callback round, as a replay sends them)."""
 
 SCAN_TOPICS = (fmt.TOPIC_SCAN_INFO, fmt.TOPIC_PROJECTION, fmt.TOPIC_GEOMETRY, fmt.TOPIC_FLAT_FIELD,
                fmt.TOPIC_DEAD_PIXELS, fmt.TOPIC_GEOMETRY_CORRECTED, fmt.TOPIC_GEOMETRY_TRUE,
@@ -61,7 +64,9 @@ def message_class(msgtype: str):
 
 
 def qos_for(topic: str) -> QoSProfile:
-    if topic in fmt.LATCHED_TOPICS or topic in fmt.STATE_TOPICS:
+    if topic in fmt.STATE_TOPICS:
+        return STATE
+    if topic in fmt.LATCHED_TOPICS:
         return LATCHED
     if topic in SCAN_TOPICS:
         return STREAM

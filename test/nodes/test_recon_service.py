@@ -298,3 +298,41 @@ def test_a_failure_of_the_live_path_is_reported_and_never_leaves_the_timer(ros, 
     assert ros.spin_until(live_error, timeout_s=10.0)  # the timers still run
     assert [s for s in diags if s.name.endswith("reconstruction")][-1].level == DiagnosticStatus.WARN
     assert recon.state == "idle"
+
+
+def test_automatic_runs_say_what_they_lacked_and_report_json_holds_what_recon_report_says(ros, tmp_path):
+    """Outside checks found: (1) a scan reported done to a node that had collected no frame (a recon_service started
+    after the scan) logged one INFO line and stayed idle and OK; it is now a failure saying why. (2) A run started
+    after the 5 s wait with fewer frames than the scan announced did not say so; its report's bag_warnings now do.
+    (3) report.json lacked what the node adds to recon/report (bag_warnings of the collection, live, scan_id). (4) A
+    run into an output_dir holding another bag's correction was refused only after writing <output_dir>/scan there,
+    naming the command line's --out; it is now refused before, naming output_dir."""
+    probe = Probe(ros)
+    status = probe.node.create_publisher(String, "scan/status", STATUS)
+    empty = ros.add(ReconServiceNode("recon_empty", context=ros.context, namespace="empty", parameter_overrides=_params(
+        output_dir=str(tmp_path / "empty"), method="none", auto_run=True)))
+    failed = []
+    probe.node.create_subscription(String, "/empty/recon/report", lambda m: failed.append(json.loads(m.data)), LATCHED)
+    empty_status = probe.node.create_publisher(String, "/empty/scan/status", STATUS)
+    empty_status.publish(String(data=json.dumps({"state": "done", "scan_id": "s0", "frames": 5, "view": 4})))
+    assert ros.spin_until(lambda: empty.state == "failed" and failed, timeout_s=10.0), empty.state
+    assert "no frame was collected here" in empty.error and "bag_path" in failed[-1]["error"] and empty.runs == 0
+
+    bag = _bag(tmp_path)
+    out = tmp_path / "recon"
+    recon = ros.add(ReconServiceNode(context=ros.context, parameter_overrides=_params(
+        output_dir=str(out), method="none", auto_run=True)))
+    replay = ros.add(ReplayNode(context=ros.context, parameter_overrides=_params(
+        bag_path=str(bag), rate_hz=200.0, wait_for_subscribers=1)))
+    assert ros.spin_until(lambda: replay.done and recon.n_paired == N, timeout_s=30.0), recon.n_paired
+    status.publish(String(data=json.dumps({"state": "done", "scan_id": "s1", "frames": N + 5, "view": N + 4})))
+    assert ros.spin_until(lambda: recon.done and probe.reports, timeout_s=60.0), (recon.state, recon.error)
+    note = f"the scan announced {N + 5} frames; {N} arrived here"
+    assert any(note in w for w in probe.reports[-1]["bag_warnings"]), probe.reports[-1]["bag_warnings"]
+    on_disk = json.loads((out / "report.json").read_text())
+    assert any(note in w for w in on_disk["bag_warnings"]) and on_disk["scan_id"] == probe.reports[-1]["scan_id"]
+
+    (out / "scan").rename(out / "another_scan_corrected")  # the folder now holds another bag's correction
+    answer = ros.call(probe.node.create_client(Trigger, "recon/run"), Trigger.Request())
+    assert not answer.success and "another bag" in answer.message and "output_dir" in answer.message, answer.message
+    assert not (out / "scan").exists()  # refused before the collected scan was written there

@@ -266,3 +266,30 @@ def test_a_write_error_gives_the_bag_up_and_keeps_the_node_up(ros, tmp_path):
     node._on_message(fmt.TOPIC_SCAN_INFO, fmt.STRING, fmt.serialize(fmt.scan_info_to_msg(scan_info_for(geom)),
                                                                      fmt.STRING))
     assert node.writer is not None
+
+
+def test_every_beam_state_change_is_recorded_even_when_several_arrive_between_two_callbacks(ros, tmp_path):
+    """The recorder subscribed to /source/beam_on with a depth of 1 (as the latched topics): a replay sends a frame's
+    beam off and the next frame's on in one tick, and the first of each pair was overwritten before the recorder took
+    it (a replayed scan's 24 changes were recorded as 12, the beam almost always on). Every change is kept now."""
+    import time
+
+    from std_msgs.msg import Bool
+
+    geom, frames, stamps = _scan()
+    node = ros.add(RecorderNode(context=ros.context,
+                                parameter_overrides=[Parameter("output_dir", value=str(tmp_path))]))
+    probe = ros.node("probe")
+    pubs = _publishers(probe)
+    beam = probe.create_publisher(Bool, fmt.TOPIC_BEAM_ON, LATCHED)  # as source_control publishes it
+    for pub in (pubs["info"], beam):
+        assert ros.wait_for_subscribers(pub)
+    pubs["info"].publish(String(data=fmt.scan_info_to_msg(scan_info_for(geom)).data))
+    assert ros.spin_until(lambda: node.writer is not None)
+    sent = [k % 2 == 0 for k in range(10)]
+    for on in sent:  # no callback runs in between: the messages wait in the subscription's queue
+        beam.publish(Bool(data=on))
+        time.sleep(0.005)
+    assert ros.spin_until(lambda: node.writer.counts.get(fmt.TOPIC_BEAM_ON, 0) >= len(sent), timeout_s=3.0), \
+        node.writer.counts.get(fmt.TOPIC_BEAM_ON, 0)
+    node.close_bag()
