@@ -31,6 +31,15 @@ def _bag(tmp_path):
                         seed=2, progress=False, say=lambda s: None)
 
 
+def _collected(ros, tmp_path, **params) -> ReconServiceNode:
+    """A recon_service with ``params`` that has collected the whole of :func:`_bag`'s scan, replayed to it."""
+    recon = ros.add(ReconServiceNode(context=ros.context, parameter_overrides=_params(**params)))
+    replay = ros.add(ReplayNode(context=ros.context, parameter_overrides=_params(
+        bag_path=str(_bag(tmp_path)), rate_hz=200.0, wait_for_subscribers=1)))
+    assert ros.spin_until(lambda: replay.done and recon.n_paired == N, timeout_s=30.0), recon.n_paired
+    return recon
+
+
 class Probe:
     def __init__(self, ros):
         node = self.node = ros.node("probe")
@@ -252,14 +261,9 @@ def test_an_automatic_run_that_cannot_start_is_a_failure_not_idle(ros, tmp_path)
     recon/progress, recon/report and the node's state."""
     import shutil
 
-    bag = _bag(tmp_path)
     probe = Probe(ros)
     out = tmp_path / "recon"
-    recon = ros.add(ReconServiceNode(context=ros.context, parameter_overrides=_params(
-        output_dir=str(out), method="none", auto_run=True)))
-    replay = ros.add(ReplayNode(context=ros.context, parameter_overrides=_params(
-        bag_path=str(bag), rate_hz=200.0, wait_for_subscribers=1)))
-    assert ros.spin_until(lambda: replay.done and recon.n_paired == N, timeout_s=30.0), recon.n_paired
+    recon = _collected(ros, tmp_path, output_dir=str(out), method="none", auto_run=True)
     shutil.rmtree(out)
     out.write_text("not a folder any more")
     status = probe.node.create_publisher(String, "scan/status", STATUS)
@@ -318,13 +322,8 @@ def test_automatic_runs_say_what_they_lacked_and_report_json_holds_what_recon_re
     assert ros.spin_until(lambda: empty.state == "failed" and failed, timeout_s=10.0), empty.state
     assert "no frame was collected here" in empty.error and "bag_path" in failed[-1]["error"] and empty.runs == 0
 
-    bag = _bag(tmp_path)
     out = tmp_path / "recon"
-    recon = ros.add(ReconServiceNode(context=ros.context, parameter_overrides=_params(
-        output_dir=str(out), method="none", auto_run=True)))
-    replay = ros.add(ReplayNode(context=ros.context, parameter_overrides=_params(
-        bag_path=str(bag), rate_hz=200.0, wait_for_subscribers=1)))
-    assert ros.spin_until(lambda: replay.done and recon.n_paired == N, timeout_s=30.0), recon.n_paired
+    recon = _collected(ros, tmp_path, output_dir=str(out), method="none", auto_run=True)
     status.publish(String(data=json.dumps({"state": "done", "scan_id": "s1", "frames": N + 5, "view": N + 4})))
     assert ros.spin_until(lambda: recon.done and probe.reports, timeout_s=60.0), (recon.state, recon.error)
     note = f"the scan announced {N + 5} frames; {N} arrived here"
