@@ -40,6 +40,7 @@ the slice thickness). ``.npy`` or text (``numpy.loadtxt``; ``#`` comments).
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -195,11 +196,17 @@ def read_astra_vectors(path) -> np.ndarray:
     path = Path(path)
     with open(path, "rb"):
         pass
+    if path.stat().st_size == 0:
+        raise ValueError(f"{path}: cannot read ASTRA vectors (the file is empty)")
     try:
-        vec = np.load(path, allow_pickle=False) if path.suffix.lower() == ".npy" else np.loadtxt(path, ndmin=2)
-    except ValueError as exc:
+        with warnings.catch_warnings():  # loadtxt warns of a file without numbers: the error below says so
+            warnings.simplefilter("ignore", UserWarning)
+            vec = np.load(path, allow_pickle=False) if path.suffix.lower() == ".npy" else np.loadtxt(path, ndmin=2)
+    except (ValueError, EOFError) as exc:  # EOFError: a .npy cut inside its header
         raise ValueError(f"{path}: cannot read ASTRA vectors ({' '.join(str(exc).split())})") from None
     vec = np.asarray(vec, dtype=np.float64)
+    if vec.size == 0:
+        raise ValueError(f"{path}: cannot read ASTRA vectors (the file holds no numbers)")
     if vec.ndim == 1 and vec.size in (6, 12):
         vec = vec[None]
     if vec.ndim != 2 or vec.shape[1] not in (6, 12):

@@ -273,3 +273,25 @@ def test_fewer_than_four_views_are_refused_before_writing(tmp_path, capsys):
                      str(tmp_path / f"{v}.txt"), "--out", str(tmp_path / p)]) == 2
         _one_line_error(capsys, *words, "at least 4")
         assert not (tmp_path / p).exists()
+
+
+def test_empty_or_cut_vector_files_are_one_line_errors(tmp_path, capsys):
+    """A 0-byte vectors .npy gave a traceback (EOFError), exit 1; an empty .txt printed numpy's UserWarning
+    before the error. Each is now one line naming the file, and no warning."""
+    import warnings
+
+    g = _geometry()
+    np.save(tmp_path / "p.npy", _proj((g.n_views,) + g.det_shape))
+    np.save(tmp_path / "v.npy", g.to_astra_vec())
+    (tmp_path / "empty.npy").write_bytes(b"")
+    (tmp_path / "empty.txt").write_text("")
+    (tmp_path / "comments.txt").write_text("# cone_vec\n\n")
+    (tmp_path / "cut.npy").write_bytes((tmp_path / "v.npy").read_bytes()[:8])  # cut inside the header
+    for name, words in (("empty.npy", ("empty",)), ("empty.txt", ("empty",)), ("comments.txt", ("no numbers",)),
+                        ("cut.npy", ("cannot read ASTRA vectors",))):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # a warning would escape as an exception: no one-line error
+            assert main(["import", "astra", "--projections", str(tmp_path / "p.npy"), "--vectors",
+                         str(tmp_path / name), "--out", str(tmp_path / "bag")]) == 2
+        _one_line_error(capsys, name, *words)
+        assert not (tmp_path / "bag").exists()
