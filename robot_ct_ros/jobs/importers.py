@@ -35,7 +35,9 @@ ASTRA (:func:`astra_geometry`): ``cone_vec`` rows of 12 numbers ``(src, d, u, v)
 detector centre, u and v one column and one row step, :meth:`ConeGeometry.from_astra_vec`) or
 ``fanflat_vec`` rows of 6 ``(srcX, srcY, dX, dY, uX, uY)``: a fan in the plane z = 0 on a one-row
 detector with v = +z and a row pitch ``row_pitch_mm`` (default the column pitch; it only sets
-the slice thickness). ``.npy`` or text (``numpy.loadtxt``; ``#`` comments).
+the slice thickness). ``.npy`` or text (``numpy.loadtxt``; ``#`` comments). ASTRA's parallel-beam
+``parallel3d_vec`` / ``parallel_vec`` rows have the same columns, a unit ray direction first: they are
+refused (:func:`check_not_parallel`).
 """
 
 from __future__ import annotations
@@ -49,7 +51,7 @@ from robot_ct_ros.ct.geometry import ConeGeometry
 from robot_ct_ros.jobs.output import say as _say
 
 __all__ = ["read_stack", "read_frame", "dark_corrected", "rtk_geometry", "read_astra_vectors", "astra_geometry",
-           "import_rtk", "import_astra", "check_view_count", "LAYOUTS"]
+           "check_not_parallel", "import_rtk", "import_astra", "check_view_count", "LAYOUTS"]
 
 LAYOUTS = ("views-first", "astra")
 """Projection array layouts: (views, rows, cols), or ASTRA's 3-D (rows, views, cols)."""
@@ -217,6 +219,27 @@ def read_astra_vectors(path) -> np.ndarray:
     return vec
 
 
+UNIT_SOURCE_TOL = 1e-4
+"""check_not_parallel: how far from 1 (mm) the first vector's length may be in every view to be a unit ray
+direction; a float32 file rounds a unit vector's length by some 1e-7."""
+
+
+def check_not_parallel(vectors, source) -> None:
+    """Refuse ASTRA ``parallel3d_vec`` (``parallel_vec``) rows, which have ``cone_vec``'s (``fanflat_vec``'s)
+    columns: their first three (two) numbers are a unit ray direction where ``cone_vec`` has the source
+    position. A "source" exactly 1 mm from the origin in every view (within :data:`UNIT_SOURCE_TOL`) is that
+    direction, wherever the detector stands: no scanner has its focal spot on a 1 mm sphere. ``source``: the
+    vectors' file."""
+    vec = np.asarray(vectors, np.float64)
+    k = 3 if vec.shape[1] == 12 else 2
+    length = np.linalg.norm(vec[:, :k], axis=1)
+    if np.all(np.abs(length - 1.0) <= UNIT_SOURCE_TOL):
+        par, cone = ("parallel3d_vec", "cone_vec") if k == 3 else ("parallel_vec", "fanflat_vec")
+        raise ValueError(f"{source}: these look like ASTRA {par} (parallel-beam) vectors: the source column is a unit "
+                         f"vector (length 1 in every view), a ray direction rather than a {cone} source position; a "
+                         "scan bag describes cone and fan beams only")
+
+
 def astra_geometry(vectors, n_rows: int, n_cols: int, row_pitch_mm: float | None = None) -> ConeGeometry:
     """The :class:`ConeGeometry` of ASTRA ``cone_vec`` (n, 12) or ``fanflat_vec`` (n, 6) rows (module docstring)."""
     vec = np.asarray(vectors, dtype=np.float64)
@@ -329,8 +352,8 @@ millimetres, or the vectors not a cone or fan beam's (a parallel-beam vector fil
 MIN_SDD_MM = 10.0
 """The shortest source-to-detector distance accepted: no X-ray scanner has its focal spot within 10 mm of the
 detector (the tube's housing and the object lie between), while a real scanner's distances written in metres
-(0.1 to 2 m) and an ASTRA parallel-beam file (a unit ray direction where the source stands, the detector through
-the origin: 1 mm) fall below it, on a detector too small for :data:`MAX_HALF_FAN_DEG` to catch them."""
+(0.1 to 2 m) fall below it, on a detector too small for :data:`MAX_HALF_FAN_DEG` to catch them (an ASTRA
+parallel-beam file, a unit ray direction where the source stands, is refused before: :func:`check_not_parallel`)."""
 
 
 def check_plausible(geom: ConeGeometry, source: str, say=_say) -> None:
@@ -402,6 +425,7 @@ def import_astra(projections, vectors, out, *, layout: str = "views-first", row_
     if out.exists():
         raise ValueError(f"{out} exists already; a bag is never overwritten")
     vec = read_astra_vectors(vectors)
+    check_not_parallel(vec, vectors)
     proj = read_stack(projections, layout, allow_2d=vec.shape[1] == 6)
     _same_views(proj.shape[0], vec.shape[0], projections, vectors)
     check_view_count(proj.shape[0], proj.shape[0], projections)

@@ -252,9 +252,10 @@ def test_metres_and_parallel_beam_vectors_on_a_small_detector_are_refused(tmp_pa
         return main(["import", "astra", "--projections", str(tmp_path / "p.npy"), "--vectors",
                      str(tmp_path / f"{name}.txt"), "--out", str(tmp_path / name)])
 
-    for name, vec, sdd in (("par", parallel, "1 mm"), ("m", metres, "0.55374 mm")):
+    for name, vec, words in (("par", parallel, ("parallel3d_vec", "unit vector")),
+                             ("m", metres, ("0.55374 mm", "metres", "parallel"))):
         assert run(name, vec) == 2
-        _one_line_error(capsys, f"{name}.txt", sdd, "metres", "parallel")
+        _one_line_error(capsys, f"{name}.txt", *words)
         assert not (tmp_path / name).exists()
     assert run("htc", htc) == 0
 
@@ -295,3 +296,27 @@ def test_empty_or_cut_vector_files_are_one_line_errors(tmp_path, capsys):
                          str(tmp_path / name), "--out", str(tmp_path / "bag")]) == 2
         _one_line_error(capsys, name, *words)
         assert not (tmp_path / "bag").exists()
+
+
+@pytest.mark.parametrize("detector_mm", [50.0, 214.16])
+def test_parallel_beam_vectors_off_the_origin_are_refused(tmp_path, capsys, detector_mm):
+    """parallel3d_vec (parallel_vec) rows whose detector centre is 50 or 214 mm from the origin were imported as a
+    cone beam with its source 1 mm from the origin, exit 0: only a detector through the origin was caught. A unit
+    first vector in every view (a ray direction) is now refused as parallel-beam vectors, wherever the detector."""
+    g = _geometry()
+    np.save(tmp_path / "p.npy", _proj((g.n_views,) + g.det_shape))
+    par = g.to_astra_vec()
+    par[:, 0:3] = g.w.astype(np.float32)  # a unit ray direction, rounded as a float32 file holds it
+    par[:, 3:6] = -detector_mm * g.w
+    angles = np.arange(0.0, 360.0, 45.0)
+    fan = fan_beam_geometry(angles, 410.66, 553.74, 20, 0.2).to_astra_vec()[:, [0, 1, 3, 4, 6, 7]]
+    fan[:, 0:2] /= np.linalg.norm(fan[:, 0:2], axis=1)[:, None]  # parallel_vec: the ray direction in the plane
+    fan[:, 2:4] *= detector_mm / np.linalg.norm(fan[:, 2:4], axis=1)[:, None]
+    np.save(tmp_path / "s.npy", _proj((angles.size, 20)))
+    for name, vec, proj, words in (("par3d", par, "p", ("parallel3d_vec", "cone_vec")),
+                                   ("par2d", fan, "s", ("parallel_vec", "fanflat_vec"))):
+        np.save(tmp_path / f"{name}.npy", vec)
+        assert main(["import", "astra", "--projections", str(tmp_path / f"{proj}.npy"), "--vectors",
+                     str(tmp_path / f"{name}.npy"), "--out", str(tmp_path / name)]) == 2
+        _one_line_error(capsys, f"{name}.npy", "parallel-beam", *words)
+        assert not (tmp_path / name).exists()
