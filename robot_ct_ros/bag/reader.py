@@ -587,6 +587,42 @@ def _zero_counts_warning(counts, flat, valid) -> str | None:
             "of 0.5 counts. If they are dead, list them in /ct/dead_pixels or write them as NaN")
 
 
+COUNTS_MEDIAN_LINE_INTEGRAL = 20.0
+"""A median usable line integral above this is no measurement but raw counts stored as line integrals: a
+transmission of e^-20 (2e-9) needs some 5e8 photons per pixel for one to arrive, where a detector holds at most
+about 1e6 (line integrals up to some 14) (:func:`line_integral_warning`)."""
+NEGATIVE_LINE_INTEGRAL = -0.5
+"""A line integral below this is clearly negative: 1.65 times the flat field's light, 5 standard deviations above
+a flat of 100 counts (noise 0.1), where air reads 0 within the noise."""
+NEGATIVE_SHARE = 0.05
+"""More than this share of usable line integrals below :data:`NEGATIVE_LINE_INTEGRAL` is warned: an object's edges,
+a moved flat or a few hot pixels stay far below it."""
+NEGATIVE_MEDIAN_LINE_INTEGRAL = -0.1
+"""A median usable line integral below this is warned: half the pixels see more light than the flat field
+(a flat within 10 % of the exposure leaves air above -0.1); it catches a sign-flipped scan of a faint object."""
+
+
+def line_integral_warning(li, valid) -> str | None:
+    """A warning when stored line integrals ``li`` (usable where ``valid``) look like no line integrals: a median
+    above :data:`COUNTS_MEDIAN_LINE_INTEGRAL` (raw counts without their flat field), or clearly negative values
+    (the median below :data:`NEGATIVE_MEDIAN_LINE_INTEGRAL`, or more than :data:`NEGATIVE_SHARE` below
+    :data:`NEGATIVE_LINE_INTEGRAL`: the sign flipped, log(I/I0) for -log(I/I0)). The data are kept: only the
+    user knows what was written."""
+    values = np.asarray(li)[valid]
+    if not values.size:
+        return None
+    median = float(np.median(values))
+    if median > COUNTS_MEDIAN_LINE_INTEGRAL:
+        return (f"the usable line integrals have a median of {median:.4g}, an attenuation of e^-{median:.0f} that no "
+                "detector measures: these look like raw counts (robot-ct import: give --counts with --flat)")
+    negative = float(np.mean(values < NEGATIVE_LINE_INTEGRAL))
+    if median < NEGATIVE_MEDIAN_LINE_INTEGRAL or negative > NEGATIVE_SHARE:
+        return (f"the usable line integrals are negative (median {median:.3g}, {100 * negative:.0f} % below "
+                f"{NEGATIVE_LINE_INTEGRAL:g}): more light than the flat field; sign-flipped (log(I/I0) written for "
+                "-log(I/I0))?")
+    return None
+
+
 def read_scan(path, *, keep_raw: bool = False) -> ScanData:
     """Read the scan bag at ``path`` (see the module docstring and docs/bag-format.md).
 
@@ -734,6 +770,10 @@ def scan_from_raw(raw: RawBag, path, *, keep_raw: bool = False, min_views: int |
         zero_warning = _zero_counts_warning(counts, flat, valid)
         if zero_warning:
             warnings.append(zero_warning)
+    else:
+        li_warning = line_integral_warning(counts, valid)
+        if li_warning:
+            warnings.append(li_warning)
 
     def extra(topic):
         gs = _geometries(raw, topic, warnings)

@@ -315,6 +315,12 @@ def _write(out, proj, geom: ConeGeometry, *, counts: bool, flat, dark, notes: di
     if counts:
         for warning in counts_warnings(frames, flat_frame):
             say(f"warning: {warning}")
+    else:  # the reader warns the same on every read (robot-ct info, reconstruct)
+        from robot_ct_ros.bag.reader import line_integral_warning
+
+        warning = line_integral_warning(frames, usable)
+        if warning:
+            say(f"warning: {warning}")
     return Path(out)
 
 

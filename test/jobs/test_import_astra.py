@@ -320,3 +320,26 @@ def test_parallel_beam_vectors_off_the_origin_are_refused(tmp_path, capsys, dete
                      str(tmp_path / f"{name}.npy"), "--out", str(tmp_path / name)]) == 2
         _one_line_error(capsys, f"{name}.npy", "parallel-beam", *words)
         assert not (tmp_path / name).exists()
+
+
+def test_counts_or_sign_flipped_line_integrals_are_warned(tmp_path, capsys):
+    """Raw counts given without --counts (thousands) and sign-flipped line integrals were imported as line
+    integrals without a word, and info said 100 % valid. The import and every read now warn; the data are kept."""
+    from robot_ct_ros.bag.reader import summarize
+
+    g = _geometry()
+    li = np.random.default_rng(5).uniform(0.2, 0.5, (g.n_views,) + g.det_shape).astype(np.float32)  # a faint object
+    np.savetxt(tmp_path / "v.txt", g.to_astra_vec())
+    for name, proj, words in (("good", li, None), ("counts", 4900 * np.exp(-li) + 100, "look like raw counts"),
+                              ("flipped", -li, "sign-flipped"), ("noisy", _proj(li.shape), None)):
+        np.save(tmp_path / f"{name}.npy", proj.astype(np.float32))
+        assert main(["import", "astra", "--projections", str(tmp_path / f"{name}.npy"), "--vectors",
+                     str(tmp_path / "v.txt"), "--out", str(tmp_path / name)]) == 0
+        out = capsys.readouterr().out
+        warnings = summarize(tmp_path / name)["warnings"]
+        if words is None:
+            assert "warning" not in out and warnings == [], (out, warnings)
+        else:
+            assert "warning: " in out and words in out, out
+            assert len(warnings) == 1 and words in warnings[0], warnings
+            np.testing.assert_array_equal(read_scan(tmp_path / name).counts, proj.astype(np.float32))
