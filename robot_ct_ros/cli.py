@@ -102,6 +102,18 @@ def _positive(what: str, kind=float):
     return parse
 
 
+def _non_negative(what: str):
+    def parse(text: str):
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{what} must be a number, got {text!r}") from None
+        if not (value >= 0 and np.isfinite(value)):
+            raise argparse.ArgumentTypeError(f"{what} must be >= 0, got {text!r}")
+        return value
+    return parse
+
+
 def _arc_deg(text: str) -> float:
     value = _positive("arc-deg")(text)
     if value > 360.0:
@@ -341,8 +353,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rows", type=whole, default=272, help="detector rows after binning (default 272)")
     p.add_argument("--cols", type=whole, default=636, help="detector columns after binning (default 636)")
     p.add_argument("--binning", type=whole, default=2, help="readout binning of the 55 um pixels (default 2)")
-    p.add_argument("--sigma-mm", type=float, default=0.1, help="robot error per view, translations (mm)")
-    p.add_argument("--sigma-deg", type=float, default=0.1, help="robot error per view, detector rotations (deg)")
+    p.add_argument("--sigma-mm", type=_non_negative("sigma-mm"), default=0.1,
+                   help="robot error per view, translations (mm)")
+    p.add_argument("--sigma-deg", type=_non_negative("sigma-deg"), default=0.1,
+                   help="robot error per view, detector rotations (deg)")
     p.add_argument("--drift-mm", type=float, default=0.0,
                    help="detector drift over the whole scan, linear, each of its translations (mm; default 0)")
     p.add_argument("--drift-deg", type=float, default=0.0,

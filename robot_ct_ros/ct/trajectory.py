@@ -117,7 +117,7 @@ def fov_radius_mm(edge_u_mm: float, sod_mm: float, sdd_mm: float) -> float:
 def detector_edge_for_fov_mm(fov_radius: float, sod_mm: float, sdd_mm: float) -> float:
     """Inverse of :func:`fov_radius_mm`: detector coordinate ``t = sdd * r / sqrt(sod^2 - r^2)``."""
     if not 0 <= fov_radius < sod_mm:
-        raise ValueError("FOV radius must lie in [0, sod)")
+        raise ValueError(f"the FOV radius {fov_radius:g} mm must lie in [0, sod = {sod_mm:g} mm)")
     return sdd_mm * fov_radius / math.sqrt(sod_mm ** 2 - fov_radius ** 2)
 
 

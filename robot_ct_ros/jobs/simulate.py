@@ -56,6 +56,10 @@ def simulate_bag(out, *, phantom: str = "carotid", views: int = 360, rows: int =
     pitch = system.raw_pixel_mm * binning
     if fov_mm is None:
         fov_mm = 0.999 * 2 * fov_radius_mm(0.5 * cols * pitch, system.sod_mm, system.sdd_mm)
+    largest_mm = 2 * fov_radius_mm(cols * pitch, system.sod_mm, system.sdd_mm)  # offset by half its width
+    if not 0 < fov_mm <= largest_mm:
+        raise ValueError(f"--fov-mm is the field of view's diameter: {fov_mm:g} mm is more than the {largest_mm:.2f} mm "
+                         f"that {cols} columns of {pitch:g} mm reach (the detector offset by half its width)")
     nominal = robotic_roi_scan(system, n_views=views, binning=binning, n_rows=rows, n_cols=cols,
                                fov_diameter_mm=fov_mm, arc_rad=np.radians(float(arc_deg)))
     model = sim.robot_coordination(sigma_mm, sigma_deg, seed=seed)

@@ -72,3 +72,22 @@ def test_a_one_row_detector_of_common_width_simulates(tmp_path):
     assert main(["simulate", "--rows", "1", "--cols", "560", "--views", "4", "--out", str(tmp_path / "fan")]) == 0
     scan = read_scan(tmp_path / "fan")
     assert scan.geom.det_shape == (1, 560) and scan.n_views == 4
+
+
+def test_bad_sigmas_and_a_fov_beyond_the_detector_name_their_option(tmp_path, capsys):
+    """--sigma-mm -1 said 'per_view_sigma must be non-negative' (an internal name, not a usage error);
+    --fov-mm 1000 said 'FOV radius must lie in [0, sod)' (a radius, no value, no limit)."""
+    from robot_ct_ros.cli import main
+
+    base = ["simulate", "--views", "8", "--rows", "8", "--cols", "16", "--quiet", "--out", str(tmp_path / "bag")]
+    for option in ("--sigma-mm", "--sigma-deg"):
+        with pytest.raises(SystemExit) as exit_:
+            main(base + [option, "-1"])
+        assert exit_.value.code == 2
+        assert f"argument {option}: {option[2:]} must be >= 0, got '-1'" in capsys.readouterr().err
+    for fov in ("1000", "11"):
+        assert main(base + ["--fov-mm", fov]) == 2
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+        assert all(w in err for w in ("--fov-mm", "diameter", f"{fov} mm", "1.32 mm")), err
+    assert not (tmp_path / "bag").exists()
