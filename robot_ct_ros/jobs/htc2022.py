@@ -100,6 +100,36 @@ def _number(params, name: str, path: Path) -> float:
     return x
 
 
+def _mat_damage(path) -> str | None:
+    """Why a file with a MATLAB 5 header cannot be read, where its layout tells: cut inside a data element
+    (each top-level element is an 8-byte tag of type and byte count, padded to 8 bytes unless compressed),
+    or else damaged; None for a file without a MATLAB 5 header (no .mat file, or v7.3's HDF5)."""
+    import struct
+
+    data = Path(path).read_bytes()
+    order = {b"IM": "<", b"MI": ">"}.get(data[126:128])
+    if not data.startswith(b"MATLAB 5.0 MAT-file") or order is None:
+        return None
+    pos, size = 128, len(data)
+    while pos < size:
+        if pos + 8 > size:
+            return f"truncated: it ends inside the tag of a data element at byte {pos}"
+        dtype, nbytes = struct.unpack(order + "II", data[pos:pos + 8])
+        if dtype >> 16:  # a small data element: type, size and data in 8 bytes
+            pos += 8
+            continue
+        end = pos + 8 + nbytes + (0 if dtype == MI_COMPRESSED else -nbytes % 8)
+        if end > size:
+            return (f"truncated: its data element at byte {pos} needs {end} bytes, the file has {size} "
+                    "(an incomplete copy or download?)")
+        pos = end
+    return "damaged: its layout is whole but its data do not read"
+
+
+MI_COMPRESSED = 15
+"""The MAT 5 data type of a zlib-compressed element, not padded to 8 bytes."""
+
+
 def read_htc2022(path) -> HtcData:
     """Read and check a HTC2022 ``*_full.mat`` (or ``*_limited.mat``); see the module docstring.
 
@@ -114,8 +144,12 @@ def read_htc2022(path) -> HtcData:
     try:
         mat = scipy.io.loadmat(path, squeeze_me=True, struct_as_record=False)
     except Exception as exc:  # scipy raises ValueError, TypeError, ... for what is not a .mat file
-        raise ValueError(f"{path}: not a MATLAB .mat file ({' '.join(str(exc).split()) or type(exc).__name__})") \
-            from None
+        why = ' '.join(str(exc).split()) or type(exc).__name__
+        damage = _mat_damage(path)
+        if damage is not None:
+            raise ValueError(f"{path}: a MATLAB .mat file, {damage}"
+                             + (f" ({why})" if damage.startswith("damaged") else "")) from None
+        raise ValueError(f"{path}: not a MATLAB .mat file ({why})") from None
     structs = [k for k, v in mat.items() if not k.startswith("__") and hasattr(v, "_fieldnames")
                and "sinogram" in v._fieldnames and "parameters" in v._fieldnames]
     if not structs:

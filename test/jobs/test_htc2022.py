@@ -167,3 +167,20 @@ def test_fewer_than_four_views_are_refused_before_writing(tmp_path, capsys):
     assert main(["import", "htc2022", str(mat), "--out", str(out)]) == 2
     _one_line_error(capsys, "2 of its 4 frames with a usable pixel", "at least 4")
     assert not out.exists()
+
+
+@pytest.mark.parametrize("compressed", [False, True])
+def test_a_truncated_mat_file_is_called_truncated(tmp_path, capsys, compressed):
+    """A .mat file cut short (an incomplete copy) was reported as 'not a MATLAB .mat file'; its MAT 5 header
+    tells it is one, and its first data element's byte count that it is cut."""
+    path = write_htc_mat(tmp_path / "whole.mat")[0]
+    if compressed:
+        mat = {k: v for k, v in scipy.io.loadmat(path).items() if not k.startswith("__")}
+        scipy.io.savemat(path, mat, do_compression=True)
+    whole = path.read_bytes()
+    for n_bytes, words in ((len(whole) // 2, ("truncated", f"the file has {len(whole) // 2}")), (130, ("truncated",))):
+        cut = tmp_path / f"cut{n_bytes}.mat"
+        cut.write_bytes(whole[:n_bytes])
+        assert main(["import", "htc2022", str(cut), "--out", str(tmp_path / "bag")]) == 2
+        err = _one_line_error(capsys, cut.name, "a MATLAB .mat file", *words)
+        assert "not a MATLAB" not in err
