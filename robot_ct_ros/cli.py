@@ -368,7 +368,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sim-voxel-mm", type=_positive("sim-voxel-mm"), default=None,
                    help="voxel of the phantom in the ROI (default: half the reconstruction voxel, at most 200^3 voxels)")
     p.add_argument("--arc-deg", type=_arc_deg, default=360.0,
-                   help="the arc the views spread over (default 360; a short scan from half a turn plus the fan)")
+                   help="the arc the views spread over (deg, default 360); below 360 a short scan, the first view at "
+                        "0 and the last at the arc (Parker's weights from half a turn plus the fan)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--out", required=True, help="output bag directory (must not exist)")

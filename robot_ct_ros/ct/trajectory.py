@@ -6,8 +6,10 @@ the same orbit rule, stated once:
 * The orbit turns about the unit ``axis`` through ``center_mm``. ``e1`` is the direction of
   the source at angle 0: world +x projected off the axis (world +y if the axis is along x);
   ``e2 = axis x e1``, so angles increase counter-clockwise seen from the tip of ``axis``.
-* View k has angle ``theta_k = start_rad + k * arc_rad / n_views`` (a full 2 pi arc does
-  not repeat its first view; a partial arc ends at ``start_rad + arc_rad * (n-1)/n``).
+* A full circle (``arc_rad`` of 2 pi or more) puts view k at ``theta_k = start_rad + k * arc_rad /
+  n_views``: the last view does not repeat the first. A partial arc (a short scan) spans the whole
+  arc asked for: ``theta_k = start_rad + k * arc_rad / (n_views - 1)``, the first view at
+  ``start_rad``, the last at ``start_rad + arc_rad``.
   The source sits at ``center + sod * w``, ``w = cos(theta) e1 + sin(theta) e2``, on the
   central ray pointing from the detector to the source; the detector is perpendicular to
   the central ray at ``center - (sdd - sod) * w``, shifted by ``det_offset_u_mm`` along u.
@@ -62,7 +64,8 @@ def circular_scan(n_views: int, sod_mm: float, sdd_mm: float, n_rows: int, n_col
         raise ValueError(f"need 0 < sod_mm < sdd_mm, got sod={sod_mm}, sdd={sdd_mm}")
     a, e1, e2 = _orbit_frame(axis)
     c = np.asarray(center_mm, dtype=np.float64).reshape(3)
-    theta = start_rad + arc_rad * np.arange(n_views) / n_views
+    full = arc_rad >= 2 * math.pi - 1e-12
+    theta = start_rad + arc_rad * np.arange(n_views) / (n_views if full else max(n_views - 1, 1))
     w = np.cos(theta)[:, None] * e1 + np.sin(theta)[:, None] * e2
     v = np.broadcast_to(a, w.shape)
     u = np.cross(v, w)

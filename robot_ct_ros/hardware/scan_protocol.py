@@ -40,8 +40,9 @@ class ScanProtocol:
         Recorded in the scan info and the scan status.
     n_views, roi_center_m, axis, fov_diameter_m, start_deg, arc_deg, sdd_m, magnification
         Trajectory (robotic_roi_scan of the seed system): ``n_views`` views over ``arc_deg`` (deg)
-        from ``start_deg`` (deg) about ``axis`` (unit vector, world frame) through ``roi_center_m``
-        (m, world frame); source at ``sdd_m / magnification`` (m) from the ROI centre; offset
+        from ``start_deg`` (deg; below 360 the last view at ``start_deg + arc_deg``, a full circle in
+        equal steps of ``arc_deg / n_views``) about ``axis`` (unit vector, world frame) through
+        ``roi_center_m`` (m, world frame); source at ``sdd_m / magnification`` (m) from the ROI centre; offset
         detector for a field of view of ``fov_diameter_m`` (m).
     n_rows, n_cols, binning, raw_pixel_m
         Detector read-out (the YAML's ``detector`` mapping): ``n_rows`` x ``n_cols`` pixels (0 =

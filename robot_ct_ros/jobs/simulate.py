@@ -40,7 +40,7 @@ def simulate_bag(out, *, phantom: str = "carotid", views: int = 360, rows: int =
     scan; the bag keeps the true geometry on /ct/geometry_true. Frames are photon counts
     (``photons`` per binned pixel per frame unattenuated; default: 4,000 behind 13 cm of
     water) with flat field and dead pixels. ``arc_deg`` below 360 takes a short scan: the views
-    spread over that arc (reconstructed with Parker's weights where it exceeds half a turn plus
+    span that arc, the first at 0 and the last at ``arc_deg`` (reconstructed with Parker's weights where it exceeds half a turn plus
     the fan, :func:`robot_ct_ros.ct.reconstruction.short_scan_weights`).
     """
     if not 0.0 < float(arc_deg) <= 360.0:

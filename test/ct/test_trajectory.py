@@ -145,3 +145,19 @@ def test_circular_scan_about_y_is_a_plain_rtk_circular_orbit():
     np.testing.assert_allclose(p[:, [4, 7, 8]], 0.0, atol=1e-9)
     tilt = (p[:, [5, 6]] + 180.0) % 360.0 - 180.0
     np.testing.assert_allclose(tilt, 0.0, atol=1e-9)
+
+
+def test_a_partial_arc_spans_the_whole_arc_and_a_full_circle_does_not_repeat_its_first_view():
+    """A partial arc of A over n views ended at A (n-1)/n, as a full circle does: --arc-deg 190 with 12 views covered
+    174.2 deg, at most half a turn, so no Parker weights. It now runs from the start to start + A; a full circle
+    keeps its n equal steps of 360/n."""
+    from robot_ct_ros.ct.scan_weights import scan_arc
+
+    for arc_deg, start_deg in ((190.0, 0.0), (200.0, 30.0), (90.0, -10.0)):
+        g = circular_scan(12, 100.0, 200.0, 4, 8, 1.0, 1.0, arc_rad=np.radians(arc_deg), start_rad=np.radians(start_deg))
+        ang = np.degrees(np.unwrap(np.arctan2(g.source_mm[:, 1], g.source_mm[:, 0])))
+        np.testing.assert_allclose(ang, start_deg + arc_deg * np.arange(12) / 11, atol=1e-9)
+        assert np.degrees(scan_arc(g)[0]) == pytest.approx(arc_deg, abs=1e-6)
+    full = circular_scan(12, 100.0, 200.0, 4, 8, 1.0, 1.0)
+    ang = np.degrees(np.unwrap(np.arctan2(full.source_mm[:, 1], full.source_mm[:, 0])))
+    np.testing.assert_allclose(ang, 30.0 * np.arange(12), atol=1e-9)

@@ -205,7 +205,7 @@ def test_check_plausible_warns_two_views_a_few_degrees_apart():
     """scan_arc counts two views a full circle: two views pi (deg) apart passed without the warning."""
     from robot_ct_ros.jobs.importers import check_plausible
 
-    for arc_rad, warned in ((np.deg2rad(2 * np.pi), True), (2 * np.pi, False)):  # views 3.1 deg and 180 deg apart
+    for arc_rad, warned in ((np.deg2rad(np.pi), True), (2 * np.pi, False)):  # views 3.1 deg and 180 deg apart
         said = []
         check_plausible(circular_scan(2, 500.0, 800.0, 6, 10, 0.5, 0.5, arc_rad=arc_rad), "g", said.append)
         assert bool(said) == warned and all("span an arc of 3.1 deg" in m for m in said), said
