@@ -558,10 +558,10 @@ def _single_image(raw: RawBag, topic: str, shape, encodings, warnings: list):
 
 
 STARVED_FLAT_COUNTS = 100.0
-"""A usable pixel reading 0 counts where its flat field holds at least this many is reported (:func:`_zero_counts_warning`)."""
+"""A usable pixel reading 0 counts where its flat field holds at least this many is reported (:func:`zero_counts_warning`)."""
 
 
-def _zero_counts_warning(counts, flat, valid) -> str | None:
+def zero_counts_warning(counts, flat, valid) -> str | None:
     """A warning when usable pixels read exactly 0 counts under a bright flat field: either photon starvation
     behind dense matter, or pixels that dropped out in those frames (a dead column reads as an attenuation of
     ln(flat / 0.5), some 60 times a tissue scan's, and streaks the whole volume). The data are kept as they are:
@@ -767,7 +767,7 @@ def scan_from_raw(raw: RawBag, path, *, keep_raw: bool = False, min_views: int |
         if neg.any():
             warnings.append(f"{int(neg.sum())} negative counts are marked invalid")
             valid &= ~neg
-        zero_warning = _zero_counts_warning(counts, flat, valid)
+        zero_warning = zero_counts_warning(counts, flat, valid)
         if zero_warning:
             warnings.append(zero_warning)
     else:

@@ -10,10 +10,11 @@ Values are line integrals -log(I/I0), stored unchanged (float32, ``projection_un
 frame ``dark`` (2-D frames, or stacks averaged over their first axis). The bag stores counts and
 a flat field itself (docs/bag-format.md), so raw data are kept as counts rather than converted:
 frames ``I - D`` and flat field ``F - D`` (float32); the reader then forms
-``log((F - D) / max(I - D, 0.5)) = -log((I - D) / (F - D))``. A pixel with ``I - D <= 0`` is
-stored as NaN (unusable in that frame) and one with ``F - D <= 0`` is unusable in every frame
-(the reader masks a non-positive flat). Dark-corrected counts in (0, 0.5) meet the bag's
-photon-starvation floor of 0.5. Fewer than 4 frames with a usable pixel are refused before anything is
+``log((F - D) / max(I - D, 0.5)) = -log((I - D) / (F - D))``. As the bag's contract has it, a
+count of 0 (``I - D = 0``: photon starvation) is a measurement and is stored as 0 (the reader
+warns of 0 counts under a bright flat); a pixel with ``I - D < 0`` is stored as NaN (unusable in
+that frame) and one with ``F - D <= 0`` is unusable in every frame (the reader masks a
+non-positive flat). Dark-corrected counts in [0, 0.5) meet the bag's photon-starvation floor of 0.5. Fewer than 4 frames with a usable pixel are refused before anything is
 written: no reader accepts such a bag (docs/bag-format.md, Pairing).
 
 RTK (:func:`rtk_geometry`): the ``rtk.ThreeDCircularProjectionGeometry`` XML, read with
@@ -123,12 +124,13 @@ def read_frame(path, shape, what: str) -> np.ndarray:
 
 
 def dark_corrected(counts, flat, dark=None) -> tuple[np.ndarray, np.ndarray]:
-    """Frames ``I - D`` (NaN where <= 0: unusable) and flat field ``F - D`` as float32 (module docstring)."""
+    """Frames ``I - D`` (NaN where < 0: unusable; 0 kept, a measurement) and flat field ``F - D`` as float32
+    (module docstring)."""
     counts = np.asarray(counts, np.float64)
     flat = np.asarray(flat, np.float64)
     d = 0.0 if dark is None else np.asarray(dark, np.float64)
     frames = counts - d
-    frames = np.where(frames > 0, frames, np.nan).astype(np.float32)
+    frames = np.where(frames >= 0, frames, np.nan).astype(np.float32)
     return frames, (flat - d).astype(np.float32)
 
 
@@ -289,7 +291,8 @@ def _write(out, proj, geom: ConeGeometry, *, counts: bool, flat, dark, notes: di
         dark_frame = None if dark is None else read_frame(dark, shape, "dark frame")
         frames, flat_frame = dark_corrected(proj, flat_frame, dark_frame)
         units = "counts"
-        usable = np.isfinite(frames) & (flat_frame > 0)[None]
+        with np.errstate(invalid="ignore"):  # a frame needs a positive count to be a view (bag.reader)
+            usable = (frames > 0) & (flat_frame > 0)[None]
         if not usable.any():  # refused before anything is written: such a bag would be no scan at all
             dark_text = " minus the dark frame" if dark_frame is not None else ""
             raise ValueError("no usable pixel: " + (
@@ -310,10 +313,14 @@ def _write(out, proj, geom: ConeGeometry, *, counts: bool, flat, dark, notes: di
     bad = int(np.isnan(frames).sum()) if counts else 0
     say(f"wrote {out}: {geom.n_views} views, {geom.n_rows} x {geom.n_cols} detector of {geom.row_pitch_mm:g} x "
         f"{geom.col_pitch_mm:g} mm, {units}"
-        f"{f' ({bad} pixel values at or below the dark, or not finite, marked unusable)' if bad else ''}"
+        f"{f' ({bad} pixel values below the dark, or not finite, marked unusable)' if bad else ''}"
         + (f"; warning: {empty} frames have no usable pixel and will not be views" if empty else ""))
     if counts:
-        for warning in counts_warnings(frames, flat_frame):
+        from robot_ct_ros.bag.reader import zero_counts_warning
+
+        warnings_ = counts_warnings(frames, flat_frame)
+        zero = zero_counts_warning(frames, flat_frame, np.isfinite(frames) & (flat_frame > 0)[None])
+        for warning in warnings_ + ([zero] if zero else []):  # the reader repeats the last on every read
             say(f"warning: {warning}")
     else:  # the reader warns the same on every read (robot-ct info, reconstruct)
         from robot_ct_ros.bag.reader import line_integral_warning

@@ -73,7 +73,10 @@ def test_fanflat_vec_is_a_one_row_fan_in_the_plane_z0(tmp_path):
 
 
 @pytest.mark.parametrize("with_dark", [True, False])
-def test_raw_counts_keep_flat_and_dark_and_mark_dead_pixels(tmp_path, with_dark):
+def test_raw_counts_keep_flat_and_dark_and_mark_dead_pixels(tmp_path, capsys, with_dark):
+    """Counts are stored dark-corrected with their flat field; a pixel below the dark is unusable (NaN). A count of
+    exactly 0 (I - D = 0: photon starvation) was stored as NaN, against the bag's contract that 0 is a measurement;
+    it is now stored as 0, usable at the 0.5-count floor, and the import and the reader warn of it."""
     g = _geometry()
     rng = np.random.default_rng(3)
     shape = g.det_shape
@@ -82,7 +85,7 @@ def test_raw_counts_keep_flat_and_dark_and_mark_dead_pixels(tmp_path, with_dark)
     flat = rng.uniform(3000, 4000, (3,) + shape)
     f = flat.mean(axis=0)
     counts = d + (f - d) * np.exp(-rng.uniform(0, 3, (g.n_views,) + shape))
-    counts[2, 3, 4] = d[3, 4] if with_dark else 0.0  # I - D = 0: unusable in that frame
+    counts[2, 3, 4] = d[3, 4] if with_dark else 0.0  # I - D = 0: photon starvation, a measurement
     counts[5, 1, 1] = (d[1, 1] if with_dark else 0.0) - 5.0  # below the dark
     flat[:, 7, 9] = d[7, 9] if with_dark else 0.0  # F - D = 0: a dead pixel in every frame
     np.save(tmp_path / "p.npy", counts)
@@ -95,14 +98,17 @@ def test_raw_counts_keep_flat_and_dark_and_mark_dead_pixels(tmp_path, with_dark)
         np.save(tmp_path / "dark.npy", dark)
         args += ["--dark", str(tmp_path / "dark.npy")]
     assert main(args) == 0
+    assert "warning: 1 usable pixels in 1 frames (first [2]) read 0 counts" in capsys.readouterr().out
     scan = read_scan(tmp_path / "bag")
     assert scan.units == "counts"
-    expected_valid = ((counts - d) > 0) & ((f - d) > 0)[None]
-    assert not expected_valid[2, 3, 4] and not expected_valid[5, 1, 1] and not expected_valid[:, 7, 9].any()
+    assert scan.counts[2, 3, 4] == 0.0 and scan.valid_mask[2, 3, 4]  # stored 0, not NaN
+    assert any("read 0 counts" in w for w in scan.warnings), scan.warnings
+    expected_valid = ((counts - d) >= 0) & ((f - d) > 0)[None]
+    assert expected_valid[2, 3, 4] and not expected_valid[5, 1, 1] and not expected_valid[:, 7, 9].any()
     np.testing.assert_array_equal(scan.valid_mask, expected_valid)
     li, mask = scan.to_line_integrals()
     with np.errstate(divide="ignore", invalid="ignore"):
-        ref = -np.log((counts - d) / (f - d))
+        ref = -np.log(np.maximum(counts - d, 0.5) / (f - d))
     np.testing.assert_array_equal(mask, expected_valid)
     np.testing.assert_allclose(li[mask], ref[mask], rtol=0, atol=2e-6)
     np.testing.assert_array_equal(scan.flat, (f - d).astype(np.float32))
