@@ -376,7 +376,7 @@ def test_simulate_takes_a_short_arc_and_info_says_so(tmp_path, capsys):
                  "--quiet", "--out", str(bag)]) == 0
     capsys.readouterr()
     assert main(["info", str(bag)]) == 0
-    assert "30 paired frames, an arc of 200.0 deg (a short scan" in capsys.readouterr().out  # first view at 0, last at 200
+    assert "30 paired frames, an arc of 200.0 deg (a short scan" in capsys.readouterr().out  # views 0 .. 200
     with pytest.raises(SystemExit):
         main(["simulate", "--arc-deg", "361", "--out", str(tmp_path / "x")])
     assert "arc-deg must be at most 360" in capsys.readouterr().err

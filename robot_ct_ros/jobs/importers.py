@@ -14,8 +14,9 @@ frames ``I - D`` and flat field ``F - D`` (float32); the reader then forms
 count of 0 (``I - D = 0``: photon starvation) is a measurement and is stored as 0 (the reader
 warns of 0 counts under a bright flat); a pixel with ``I - D < 0`` is stored as NaN (unusable in
 that frame) and one with ``F - D <= 0`` is unusable in every frame (the reader masks a
-non-positive flat). Dark-corrected counts in [0, 0.5) meet the bag's photon-starvation floor of 0.5. Fewer than 4 frames with a usable pixel are refused before anything is
-written: no reader accepts such a bag (docs/bag-format.md, Pairing).
+non-positive flat). Dark-corrected counts in [0, 0.5) meet the bag's photon-starvation floor of
+0.5. Fewer than 4 frames with a usable pixel are refused before anything is written: no reader
+accepts such a bag (docs/bag-format.md, Pairing).
 
 RTK (:func:`rtk_geometry`): the ``rtk.ThreeDCircularProjectionGeometry`` XML, read with
 itk-rtk's ``ThreeDCircularProjectionGeometryXMLFileReader`` (itk-rtk is a test dependency:

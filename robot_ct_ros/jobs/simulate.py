@@ -40,8 +40,8 @@ def simulate_bag(out, *, phantom: str = "carotid", views: int = 360, rows: int =
     scan; the bag keeps the true geometry on /ct/geometry_true. Frames are photon counts
     (``photons`` per binned pixel per frame unattenuated; default: 4,000 behind 13 cm of
     water) with flat field and dead pixels. ``arc_deg`` below 360 takes a short scan: the views
-    span that arc, the first at 0 and the last at ``arc_deg`` (reconstructed with Parker's weights where it exceeds half a turn plus
-    the fan, :func:`robot_ct_ros.ct.reconstruction.short_scan_weights`).
+    span that arc, the first at 0 and the last at ``arc_deg`` (reconstructed with Parker's weights
+    where it exceeds half a turn plus the fan, :func:`robot_ct_ros.ct.reconstruction.short_scan_weights`).
     """
     if not 0.0 < float(arc_deg) <= 360.0:
         raise ValueError(f"the scan's arc must lie in (0, 360] degrees, got {arc_deg}")
@@ -58,8 +58,9 @@ def simulate_bag(out, *, phantom: str = "carotid", views: int = 360, rows: int =
         fov_mm = 0.999 * 2 * fov_radius_mm(0.5 * cols * pitch, system.sod_mm, system.sdd_mm)
     largest_mm = 2 * fov_radius_mm(cols * pitch, system.sod_mm, system.sdd_mm)  # offset by half its width
     if not 0 < fov_mm <= largest_mm:
-        raise ValueError(f"--fov-mm is the field of view's diameter: {fov_mm:g} mm is more than the {largest_mm:.2f} mm "
-                         f"that {cols} columns of {pitch:g} mm reach (the detector offset by half its width)")
+        raise ValueError(f"--fov-mm is the field of view's diameter: {fov_mm:g} mm is more than the "
+                         f"{largest_mm:.2f} mm that {cols} columns of {pitch:g} mm reach (the detector offset by half "
+                         "its width)")
     nominal = robotic_roi_scan(system, n_views=views, binning=binning, n_rows=rows, n_cols=cols,
                                fov_diameter_mm=fov_mm, arc_rad=np.radians(float(arc_deg)))
     model = sim.robot_coordination(sigma_mm, sigma_deg, seed=seed)

@@ -154,7 +154,8 @@ def test_a_partial_arc_spans_the_whole_arc_and_a_full_circle_does_not_repeat_its
     from robot_ct_ros.ct.scan_weights import scan_arc
 
     for arc_deg, start_deg in ((190.0, 0.0), (200.0, 30.0), (90.0, -10.0)):
-        g = circular_scan(12, 100.0, 200.0, 4, 8, 1.0, 1.0, arc_rad=np.radians(arc_deg), start_rad=np.radians(start_deg))
+        g = circular_scan(12, 100.0, 200.0, 4, 8, 1.0, 1.0, arc_rad=np.radians(arc_deg),
+                          start_rad=np.radians(start_deg))
         ang = np.degrees(np.unwrap(np.arctan2(g.source_mm[:, 1], g.source_mm[:, 0])))
         np.testing.assert_allclose(ang, start_deg + arc_deg * np.arange(12) / 11, atol=1e-9)
         assert np.degrees(scan_arc(g)[0]) == pytest.approx(arc_deg, abs=1e-6)
