@@ -23,8 +23,8 @@ from robot_ct_ros.jobs.output import say as _say
 from robot_ct_ros.jobs.output import (check_memory, fdk_warnings, refuse_other_job, refuse_out_in_bag, start_output,
                                       write_json, write_volume)
 
-__all__ = ["Correction", "correct_scan", "write_correction", "calibrate_bag", "scan_grid", "drift_times",
-           "geometry_error", "truth_metrics", "markdown_report"]
+__all__ = ["Correction", "correct_scan", "write_correction", "calibrate_bag", "scan_grid", "voxel_size_note",
+           "drift_times", "geometry_error", "truth_metrics", "markdown_report"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -50,6 +50,34 @@ def scan_grid(scan: ScanData, voxel_mm=None, shape_xyz=None) -> VolumeGrid:
     """The ROI grid of a scan: its default (scan_info's ROI, else the field of view), with the
     voxel size (mm) and the shape (nx, ny, nz) overridden where given."""
     return scan.default_grid(voxel_size_mm=voxel_mm, shape_zyx=None if shape_xyz is None else tuple(shape_xyz)[::-1])
+
+
+MIN_VOXELS_PER_AXIS = 8
+"""A grid sized by the scan with fewer voxels than this along an axis its detector resolves (at least as many
+pixels) has voxels in the wrong unit, most likely (:func:`voxel_size_note`)."""
+MAX_VOXEL_PER_PIXEL = 20.0
+"""Voxels more than this many times the detector pixel at the isocentre: the wrong unit, most likely."""
+
+
+def voxel_size_note(scan: ScanData, grid: VolumeGrid, voxel_mm=None, shape_xyz=None) -> str | None:
+    """A note when ``grid``'s voxels look like the wrong unit (e.g. ``--voxel-mm 41.2`` meant as um), else None:
+    voxels more than :data:`MAX_VOXEL_PER_PIXEL` times the detector pixel at the isocentre (pitch /
+    magnification at the scan centre), or, for a voxel size given (``voxel_mm``) on a grid sized by the scan
+    (no ``shape_xyz``), fewer than
+    :data:`MIN_VOXELS_PER_AXIS` voxels along an axis the detector resolves (x, y across the scan axis: its
+    columns; z along it: its rows). A note, not a refusal: the grid is what was asked for."""
+    g = scan.geom
+    pixel_mm = min(g.row_pitch_mm, g.col_pitch_mm) / float(np.median(g.magnification(scan.scan_center_mm())))
+    voxel_mm = float(max(grid.voxel_size_mm))
+    nx, ny, nz = grid.shape_zyx[::-1]
+    resolved = [n for n, pixels in ((nx, g.n_cols), (ny, g.n_cols), (nz, g.n_rows)) if pixels >= MIN_VOXELS_PER_AXIS]
+    coarse = voxel_mm > MAX_VOXEL_PER_PIXEL * pixel_mm
+    few = voxel_mm is not None and shape_xyz is None and any(n < MIN_VOXELS_PER_AXIS for n in resolved)
+    if not (coarse or few):
+        return None
+    return (f"voxels of {voxel_mm:g} mm are {voxel_mm / pixel_mm:.0f} times the detector pixel at the isocentre "
+            f"({pixel_mm * 1000:.1f} um) and make a grid of {nx} x {ny} x {nz}: the voxel size looks like the wrong "
+            f"unit (--voxel-mm is in mm: for {voxel_mm:g} um, give --voxel-mm {voxel_mm / 1000:g})")
 
 
 def drift_times(scan: ScanData) -> np.ndarray | None:
@@ -254,10 +282,15 @@ def calibrate_bag(bag, out, settings: CalibrationSettings | None = None, *, voxe
     scan = read_scan(bag, keep_raw=True)
     refuse_another_bags_folder(Path(out), scan, "--out" if options == "command line" else "output_dir")
     grid = scan_grid(scan, voxel_mm, shape_xyz)
+    unit_note = voxel_size_note(scan, grid, voxel_mm, shape_xyz)
+    if unit_note:
+        say(f"note: {unit_note}")
     method = (settings or CalibrationSettings()).method
     check_memory(grid, scan.n_views, scan.geom.det_shape, "reconstruct" if method == "none" else "calibrate",
                  options=options)
     correction = correct_scan(scan, settings, grid, evaluate_truth=evaluate_truth, say=say)
+    if unit_note:  # kept in the report with the calibration's own notes
+        correction.report["notes"] = [unit_note] + correction.report["notes"]
     report = write_correction(correction, out, markdown=markdown, say=say)
     return Correction(correction.scan, correction.grid, correction.result, report)
 

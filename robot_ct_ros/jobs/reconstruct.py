@@ -9,7 +9,7 @@ import numpy as np
 
 from robot_ct_ros.bag.reader import read_scan
 from robot_ct_ros.bag.format import ScanBagError
-from robot_ct_ros.jobs.calibrate import base_report, geometry_error, scan_grid
+from robot_ct_ros.jobs.calibrate import base_report, geometry_error, scan_grid, voxel_size_note
 from robot_ct_ros.jobs.output import say as _say
 from robot_ct_ros.jobs.output import (check_memory, fdk_warnings, refuse_other_job, refuse_out_in_bag, start_output,
                                       write_json, write_volume)
@@ -22,7 +22,9 @@ GEOMETRIES = ("auto", "nominal", "corrected")
 
 def reconstruct_bag(bag, out, *, geometry: str = "auto", voxel_mm=None, shape_xyz=None, say=_say) -> dict:
     """FDK of a scan bag; writes ``volume.npy``, ``volume.tif``, ``volume_grid.json`` and
-    ``report.json`` into ``out`` and returns the report.
+    ``report.json`` into ``out`` and returns the report. What it warns about (FDK's approximations,
+    a grid mostly outside the field of view, voxels in the wrong unit) is said and kept in the
+    report's ``notes``.
 
     Raises
     ------
@@ -49,6 +51,11 @@ def reconstruct_bag(bag, out, *, geometry: str = "auto", voxel_mm=None, shape_xy
     use_corrected = geometry == "corrected" or (geometry == "auto" and scan.geom_corrected is not None)
     geom = scan.geom_corrected if use_corrected else scan.geom
     grid = scan_grid(scan, voxel_mm, shape_xyz)
+    notes = []
+    unit_note = voxel_size_note(scan, grid, voxel_mm, shape_xyz)
+    if unit_note:
+        say(f"note: {unit_note}")
+        notes.append(unit_note)
     check_memory(grid, scan.n_views, geom.det_shape, "reconstruct")
     li, mask = scan.to_line_integrals()
     say(f"{scan.n_views} views, detector {geom.n_rows}x{geom.n_cols}; FDK on {grid.shape_zyx[::-1]} voxels of "
@@ -58,13 +65,14 @@ def reconstruct_bag(bag, out, *, geometry: str = "auto", voxel_mm=None, shape_xy
     out = start_output(out)  # report.json is written last: without it, the folder holds an unfinished run
     outside = 1.0 - float(np.mean(field_of_view_mask(geom, grid)))  # across the axis: rows are not checked
     if outside > 0.3:  # beyond a square grid's corners (21 %): FDK puts streaks there, not the object
-        say(f"note: {100 * outside:.0f} % of the grid lies outside the field of view (voxels that the measured rays "
-            "do not reach from every direction); FDK's values there are streaks, not the object")
+        notes.append(f"{100 * outside:.0f} % of the grid lies outside the field of view (voxels that the measured "
+                     "rays do not reach from every direction); FDK's values there are streaks, not the object")
+        say(f"note: {notes[-1]}")
     files = write_volume(vol, grid, out)
     report = base_report(scan, grid)
     report.update({"job": "reconstruct", "geometry": "corrected" if use_corrected else "nominal",
                    "geometry_error": geometry_error(scan, geom, grid), "outside_field_of_view_fraction": outside,
-                   "notes": list(approximate), "files": files, "wall_s": time.perf_counter() - t0})
+                   "notes": notes + list(approximate), "files": files, "wall_s": time.perf_counter() - t0})
     write_json(out / "report.json", report)
-    say(f"wrote {out}/volume.npy, volume.tif, report.json ({report['wall_s']:.1f} s)")
+    say(f"wrote {out}/{', '.join(Path(f).name for f in files)}, report.json ({report['wall_s']:.1f} s)")
     return report

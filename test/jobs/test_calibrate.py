@@ -192,3 +192,12 @@ def test_a_folder_holds_one_jobs_results_and_none_goes_into_the_bag(tmp_path, ca
         assert main(["calibrate", str(bag), "--method", "none", "--out", str(out)]) == 2
         assert "lies in the input bag" in capsys.readouterr().err
     assert sorted(p.name for p in bag.iterdir()) == files  # nothing written into the bag, no folder left there
+
+
+def test_voxels_in_the_wrong_unit_are_noted_in_the_calibration_report(tmp_path):
+    """--voxel-mm 41.2 meant as um: a 1x1x1 grid, silently; now said and kept in the report's notes."""
+    said = []
+    report = calibrate_bag(_bag(tmp_path / "scan", np.eye(3)), tmp_path / "cal", CalibrationSettings(method="none"),
+                           voxel_mm=41.2, say=said.append).report
+    assert "wrong unit" in report["notes"][0] and any(report["notes"][0] in line for line in said)
+    assert json.loads((tmp_path / "cal" / "report.json").read_text())["notes"] == report["notes"]

@@ -1,0 +1,60 @@
+"""The reconstruction job (jobs/reconstruct.py): what it says is kept in report.json's notes."""
+
+import json
+from pathlib import Path
+
+import pytest
+
+from robot_ct_ros.bag import write_scan
+from robot_ct_ros.ct.geometry import VolumeGrid
+from robot_ct_ros.ct.projector import forward_project
+from robot_ct_ros.ct.simulation import mouse_phantom, voxelize
+from robot_ct_ros.ct.trajectory import circular_scan
+from robot_ct_ros.jobs.reconstruct import reconstruct_bag
+
+
+@pytest.fixture(scope="module")
+def bag(tmp_path_factory):
+    geom = circular_scan(24, 60.0, 150.0, 16, 40, 0.8, 0.8)
+    fine = VolumeGrid.centered((32, 48, 48), 0.3)
+    li = forward_project(voxelize(mouse_phantom(body_width_mm=9.0, length_mm=10.0), fine), fine, geom)
+    return write_scan(tmp_path_factory.mktemp("bags") / "scan", li, geom, projection_units="line_integral")
+
+
+def _run(bag, out, **kwargs):
+    said = []
+    report = reconstruct_bag(bag, out, say=said.append, **kwargs)
+    assert json.loads((Path(out) / "report.json").read_text())["notes"] == report["notes"]
+    return report, said
+
+
+def test_the_default_grid_gets_no_notes_and_the_line_names_every_file_written(bag, tmp_path):
+    report, said = _run(bag, tmp_path / "r")
+    assert report["notes"] == [] and 0.15 < report["outside_field_of_view_fraction"] < 0.3
+    written = sorted(p.name for p in (tmp_path / "r").iterdir())
+    assert written == ["report.json", "volume.npy", "volume.tif", "volume_grid.json"]
+    assert all(name in said[-1] for name in written), said[-1]  # volume_grid.json was left out
+
+
+def test_a_grid_mostly_outside_the_field_of_view_is_noted_in_the_report(bag, tmp_path):
+    """The note was printed but report.json's notes were empty."""
+    report, said = _run(bag, tmp_path / "r", shape_xyz=(120, 120, 4))
+    assert report["outside_field_of_view_fraction"] > 0.3
+    assert any("outside the field of view" in n for n in report["notes"]), report["notes"]
+    assert any("outside the field of view" in line for line in said)
+
+
+@pytest.mark.parametrize("voxel_mm, shape_xyz", [(41.2, None), (2.0, None), (8.0, (4, 4, 4))])
+def test_voxels_in_the_wrong_unit_are_noted_not_refused(bag, tmp_path, voxel_mm, shape_xyz):
+    """--voxel-mm 41.2 meant as um made a 1x1x1 grid of 41 mm voxels, silently. Voxels far larger than the
+    detector pixel at the isocentre (here 0.32 mm), or a few voxels across the field of view, are noted."""
+    report, said = _run(bag, tmp_path / "r", voxel_mm=voxel_mm, shape_xyz=shape_xyz)
+    notes = [n for n in report["notes"] if "wrong unit" in n]
+    assert len(notes) == 1 and f"--voxel-mm {voxel_mm / 1000:g}" in notes[0], report["notes"]
+    assert any(notes[0] in line for line in said)
+
+
+@pytest.mark.parametrize("voxel_mm, shape_xyz", [(0.5, None), (None, (4, 4, 4)), (0.4, (4, 4, 4))])
+def test_a_coarser_voxel_or_a_small_grid_asked_for_is_no_wrong_unit(bag, tmp_path, voxel_mm, shape_xyz):
+    report, _ = _run(bag, tmp_path / "r", voxel_mm=voxel_mm, shape_xyz=shape_xyz)
+    assert not any("wrong unit" in n for n in report["notes"]), report["notes"]
