@@ -24,6 +24,8 @@ paired frame in stamp order (the order of the bag's frames as :func:`read_scan` 
   ``sDetector`` and ``center_mm``, our world position of TIGRE's origin (the bag's ROI centre):
   :mod:`robot_ct_ros.jobs.tigre` states the exact mapping and the views it refuses.
 
+A suffix other than the format's (rtk ``.xml``, astra ``.npy`` or ``.txt``, tigre ``.npz``) gets a warning;
+the reader's warnings on a damaged bag are said as ``warning: ...`` (the views it recovered are exported).
 The output file must lie outside the bag (and the corrected bag, and be no calibration's report.json):
 writing into a bag's folder or over its ``.mcap`` would destroy the scan being exported.
 """
@@ -43,6 +45,11 @@ __all__ = ["FORMATS", "corrected_geometry", "export_geometry", "write_astra_vect
            "write_rtk_xml"]
 
 FORMATS = ("rtk", "astra", "tigre")
+SUFFIXES = {"rtk": (".xml",), "astra": (".npy", ".txt"), "tigre": (".npz",)}
+"""The suffixes of each format's files (case aside); :func:`export_geometry` warns on another (the file
+is written as the format says, whatever its name: an XML named .npy would mislead whoever opens it)."""
+WRITES = {"rtk": "RTK's geometry XML", "astra": "text", "tigre": "an .npz archive"}
+"""What each format writes to a file of an unexpected suffix (astra: text, as for .txt)."""
 
 
 def _read(bag):
@@ -56,6 +63,11 @@ def _corrected_paths(path) -> tuple[Path | None, Path]:
     path = Path(path)
     report = path / "report.json" if path.is_dir() and (path / "report.json").exists() else path
     if report.suffix != ".json":
+        inner = sorted(p.name for p in path.glob("*_corrected") if p.is_dir()) if path.is_dir() else []
+        if inner and not any(path.glob("*.mcap")):  # calibrate writes the bag, the volume, then report.json
+            raise ValueError(f"{path} looks like a robot-ct calibrate folder whose run did not finish (no "
+                             f"report.json): run calibrate again, or pass its corrected bag ({path / inner[0]}) "
+                             "if robot-ct info reads it whole")
         return None, path
     try:
         rep = json.loads(report.read_text())
@@ -76,16 +88,19 @@ def _check_out_spares(out: Path, bag: Path, what: str) -> None:
     refuse_out_in_bag(out, bag, what, "give a file outside it")
 
 
-def corrected_geometry(path, nominal_scan=None) -> ConeGeometry:
+def corrected_geometry(path, nominal_scan=None, *, say=None) -> ConeGeometry:
     """The corrected geometry of a calibration output.
 
     ``path`` is the folder ``robot-ct calibrate --out`` wrote, its ``report.json`` (whose
     ``corrected_bag`` names the bag with /ct/geometry_corrected), or such a corrected bag itself.
     With ``nominal_scan`` (a :class:`~robot_ct_ros.bag.reader.ScanData`), the corrected bag must
-    hold the same views (same stamps) and the same projections.
+    hold the same views (same stamps) and the same projections. ``say``: where the reader's warnings on the
+    corrected bag go (``warning: ...``).
     """
     _, bag = _corrected_paths(path)
     scan = _read(bag)
+    for w in scan.warnings if say is not None else ():
+        say(f"warning: {bag.name}: {w}")
     if scan.geom_corrected is None:
         raise ValueError(f"{bag}: no /ct/geometry_corrected covering every frame")
     if nominal_scan is not None and not np.array_equal(scan.stamps_ns, nominal_scan.stamps_ns):
@@ -154,13 +169,18 @@ def export_geometry(bag, out, fmt: str = "rtk", *, corrected=None, say=_say) -> 
     if not out.parent.is_dir():
         raise ValueError(f"cannot write {out}: {out.parent} is not a folder")
     _check_out_spares(out, Path(bag), "the bag")
+    if out.suffix.lower() not in SUFFIXES[fmt]:
+        say(f"warning: --out {out.name}: --format {fmt} writes {WRITES[fmt]}, whose files end in "
+            f"{' or '.join(SUFFIXES[fmt])}; the name says otherwise")
     if corrected is not None:
         report, corrected_bag = _corrected_paths(corrected)
         _check_out_spares(out, corrected_bag, "the corrected bag")
         if report is not None and out.resolve() == report.resolve():
             raise ValueError(f"--out {out} is the calibration's report; give another file")
     scan = _read(bag)
-    geom = scan.geom if corrected is None else corrected_geometry(corrected, scan)
+    for w in scan.warnings:  # a damaged bag gives fewer views: the reader never drops data silently
+        say(f"warning: {w}")
+    geom = scan.geom if corrected is None else corrected_geometry(corrected, scan, say=say)
     which = "nominal" if corrected is None else "corrected"
     if fmt == "rtk":
         write_rtk_xml(geom, out)

@@ -307,3 +307,41 @@ def test_an_out_inside_the_bag_is_refused(tmp_path, bag, capsys):
     assert {p: p.read_bytes() for p in bag.iterdir()} == files
     assert read_scan(bag).n_views == 8
     assert main(["export", str(bag), "--format", "astra", "--out", str(tmp_path / "v.txt")]) == 0
+
+
+def test_export_of_a_damaged_bag_says_what_the_reader_recovered(tmp_path, capsys):
+    """A truncated bag: export wrote the views it could read and said nothing (info and reconstruct warn)."""
+    g = _geometry(n=24)
+    bag = write_scan(tmp_path / "scan", np.ones((24,) + g.det_shape, np.float32), g, projection_units="line_integral")
+    mcap = next(bag.glob("*.mcap"))
+    with open(mcap, "r+b") as f:
+        f.truncate(mcap.stat().st_size * 2 // 3)
+    warned = read_scan(bag).warnings
+    assert warned
+    assert main(["export", str(bag), "--format", "astra", "--out", str(tmp_path / "v.npy")]) == 0
+    out = capsys.readouterr().out
+    assert all(f"warning: {w}" in out for w in warned), out
+
+
+@pytest.mark.parametrize("fmt, name, warned", [("astra", "v.npy", False), ("astra", "v.TXT", False),
+                                               ("astra", "v.xml", True), ("tigre", "t.npz", False),
+                                               ("tigre", "t.txt", True), ("rtk", "g.Xml", False),
+                                               ("rtk", "x.npy", True)])
+def test_export_warns_when_the_out_suffix_is_another_formats(tmp_path, bag, capsys, fmt, name, warned):
+    """--format tigre --out t.txt wrote a zip, --format rtk --out x.npy an XML, silently."""
+    assert main(["export", str(bag), "--format", fmt, "--out", str(tmp_path / name)]) == 0
+    out = capsys.readouterr().out
+    assert ("warning: --out" in out) == warned, out
+    if warned:
+        assert {"astra": ".npy or .txt", "tigre": ".npz", "rtk": ".xml"}[fmt] in out
+
+
+def test_export_of_an_unfinished_calibration_folder_says_so(tmp_path, bag, capsys):
+    """A calibrate --out whose run stopped before report.json: 'no .mcap file found (the bag directory holds
+    [...])' took it for a bag."""
+    half = tmp_path / "calib"
+    (half / "scan_corrected").mkdir(parents=True)
+    assert main(["export", str(bag), "--format", "astra", "--corrected", str(half), "--out",
+                 str(tmp_path / "x.npy")]) == 2
+    _one_line_error(capsys, "calibrate folder whose run did not finish", "no report.json",
+                    str(half / "scan_corrected"))
