@@ -33,10 +33,13 @@ PRIOR_FIELDS = ("prior_translation_mm", "prior_rotation_deg")  # one option: --p
 # ------------------------------------------------------------------------------ argument types
 def _checked(spec):
     """An argparse type for one settings field: parsed as the field's type and checked against its
-    bounds and choices (robot_ct_ros.parameters.SettingSpec.check), the field named in the error."""
+    bounds and choices (robot_ct_ros.parameters.SettingSpec.check), the field named in the error. A field
+    whose default is None (shown as ``[off]``) also takes ``off``: None, as if the option were left out."""
     label = spec.name.replace("_", " ")
 
     def parse(text: str):
+        if spec.default is None and text.strip().lower() == "off":
+            return None
         try:
             value = spec.kind(text) if spec.kind is not int else int(text)
         except ValueError:

@@ -320,6 +320,31 @@ def test_every_setting_is_an_option_and_switches_turn_both_ways():
     assert settings_from_args(p.parse_args(["--prior-sigma", "none"])).prior_sigma is None
 
 
+def test_off_is_taken_where_the_help_says_off(capsys):
+    """calibrate --help shows [off] and "off: the schedule's" (or "off or 0") for the options left unset by
+    default, but --iterations off was refused ("must be a whole number"): off is now what leaving them out is."""
+    import argparse
+
+    from robot_ct_ros.cli import add_settings_arguments, main, settings_from_args
+    from robot_ct_ros.ct.calibration import CalibrationSettings
+    from robot_ct_ros.parameters import specs
+
+    p = argparse.ArgumentParser()
+    add_settings_arguments(p, skip=())
+    unset = [s for s in specs(CalibrationSettings) if s.default is None and s.kind is not bool]
+    assert {"iterations", "prior_source_mm", "drift_order", "lle_neighbours", "stop_ncc_gain",
+            "exterior_iterations", "fine_volume"} <= {s.name for s in unset}
+    for s in unset:
+        option = "--" + s.name.replace("_", "-")
+        assert "off" in next(a.help for a in p._actions if a.dest == s.name), s.name
+        assert settings_from_args(p.parse_args([option, "OFF"])) == CalibrationSettings(), option
+    assert settings_from_args(p.parse_args(["--prior-source-mm", "0"])).prior_source_mm is None
+    with pytest.raises(SystemExit) as exited:  # no off in its help: refused as before
+        main(["calibrate", "bag", "--padding", "off", "--out", "o"])
+    assert exited.value.code == 2
+    assert "padding must be a number, got 'off'" in capsys.readouterr().err
+
+
 def test_info_checks_a_fan_beam_scans_centre_of_rotation_by_opposed_rays(tmp_path, capsys):
     """`info` on a one-row full-circle scan says how far its stated centre of rotation is from the one
     its opposed rays agree on (the real HTC2022 sample: within 0.2 px); a shifted copy says so; a
