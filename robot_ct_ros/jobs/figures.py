@@ -4,8 +4,10 @@
 writes into ``out_dir`` (``<name>`` prefixes every file):
 
 * ``<name>_slices.png``: zoomed ROI axial and sagittal slices, one column per method
-  (e.g. "none" = nominal geometry first, "true geometry" last), one grey window for all;
-* ``<name>_rmse.png``: projection RMSE per outer iteration, one curve per method;
+  (e.g. "none" = nominal geometry first, "true geometry" last), one grey window for all; the
+  axial row alone when the ROI is one slice thick (a fan-beam scan: no sagittal extent);
+* ``<name>_rmse.png``: projection RMSE per outer iteration, one curve per method (when none ran
+  an iteration, e.g. ``none`` alone, the panel says so);
 * ``<name>_param_error.png`` (truth known): per-view error of the source shift, detector
   shift and detector rotation after removing the gauge (:func:`metrics.remove_gauge`);
 * ``<name>.md`` and ``<name>.json``: the table from :func:`summarize`.
@@ -190,27 +192,31 @@ def _slices(volume, grid: VolumeGrid, center_mm, half_mm):
 
 def plot_slices(path, results: dict, grid: VolumeGrid, *, center_mm=None, zoom: float = 0.6, reference=None,
                 title: str = "") -> Path:
-    """Axial (top) and sagittal (bottom) zoomed ROI slices, one column per method."""
+    """Axial (top) and sagittal (bottom) zoomed ROI slices, one column per method; the axial row alone
+    when the sagittal slice would be one voxel tall (a one-slice grid: it showed a blank panel)."""
     plt = _plt()
     center = grid.center_mm if center_mm is None else np.asarray(center_mm, float)
     half = 0.5 * zoom * grid.extent_mm
     vols = {m: np.asarray(_unpack(r)[1]) for m, r in results.items()}
     ref = vols[next(iter(vols))] if reference is None else np.asarray(reference)
     a0, s0, _, _ = _slices(ref, grid, center, half)
-    both = np.concatenate([a0.ravel(), s0.ravel()])
+    sagittal = s0.shape[0] > 1
+    both = np.concatenate([a0.ravel(), s0.ravel()]) if sagittal else a0.ravel()
     lo, hi = np.percentile(both, [0.5, 99.5])
-    n = len(vols)
-    fig, axes = plt.subplots(2, n, figsize=(2.3 * n + 0.4, 4.9), squeeze=False)
+    n, rows = len(vols), 2 if sagittal else 1
+    fig, axes = plt.subplots(rows, n, figsize=(2.3 * n + 0.4, 4.9 if sagittal else 2.7), squeeze=False)
     for k, (m, v) in enumerate(vols.items()):
         a, s, ea, es = _slices(v, grid, center, half)
         axes[0, k].imshow(a, cmap="gray", vmin=lo, vmax=hi, extent=ea, interpolation="nearest")
-        axes[1, k].imshow(s, cmap="gray", vmin=lo, vmax=hi, extent=es, interpolation="nearest", aspect="auto")
+        if sagittal:
+            axes[1, k].imshow(s, cmap="gray", vmin=lo, vmax=hi, extent=es, interpolation="nearest", aspect="auto")
         axes[0, k].set_title(m, fontsize=9)
-        for r in range(2):
+        for r in range(rows):
             axes[r, k].set_xticks([])
             axes[r, k].set_yticks([])
-    axes[0, 0].set_ylabel("axial (x-y)", fontsize=9)
-    axes[1, 0].set_ylabel("sagittal (y-z)", fontsize=9)
+    axes[0, 0].set_ylabel("axial (x-y)" if sagittal else "axial (x-y), one slice", fontsize=9)
+    if sagittal:
+        axes[1, 0].set_ylabel("sagittal (y-z)", fontsize=9)
     if title:
         fig.suptitle(title, fontsize=10)
     return _save(fig, path)
@@ -260,7 +266,8 @@ def _wrap(title: str, width: int) -> str:
 
 
 def plot_rmse(path, results: dict, *, initial_rmse: float | None = None, title: str = "") -> Path:
-    """Projection RMSE after each outer iteration, per method (iteration 0 = nominal, if given)."""
+    """Projection RMSE after each outer iteration, per method (iteration 0 = nominal, if given); when no
+    method ran an iteration (``none`` alone, or only fixed geometries), the panel says so (it was empty)."""
     plt = _plt()
     fig, ax = plt.subplots(figsize=(5.4, 3.9))
     for k, (m, r) in enumerate(results.items()):
@@ -275,6 +282,12 @@ def plot_rmse(path, results: dict, *, initial_rmse: float | None = None, title: 
     ax.set_xlabel("outer iteration (0 = nominal geometry)" if initial_rmse is not None else "outer iteration")
     ax.set_ylabel("projection RMSE (masked)")
     ax.grid(alpha=0.3)
+    if not ax.lines:
+        ax.text(0.5, 0.5, "no outer iterations to plot:\nno calibration method ran one"
+                + ("" if initial_rmse is None else f"\n(nominal geometry: projection RMSE {initial_rmse:.4g})"),
+                ha="center", va="center", transform=ax.transAxes, fontsize=9)
+        ax.set_xticks([])
+        ax.set_yticks([])
     if ax.get_legend_handles_labels()[0]:
         ax.legend(fontsize=8)
     if title:

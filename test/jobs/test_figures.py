@@ -210,3 +210,27 @@ def test_the_table_gives_the_error_before_the_guard_where_the_guard_changed_anyt
     assert "before the guard, mean (px)" in paths["markdown"].read_text()
     paths = write_report(tmp_path / "n", results, grid, truth, nominal, figures=False)
     assert "before the guard" not in paths["markdown"].read_text()
+
+
+def test_a_one_slice_grid_and_no_iterations_leave_no_blank_panels_and_no_warnings(tmp_path, inputs, monkeypatch):
+    """A fan-beam (one-row) scan's report: the sagittal panels were blank and matplotlib warned (identical
+    ylims); with --methods none the RMSE plot was empty. Now the slices are the axial row alone, the RMSE panel
+    says that no method ran an iteration, and nothing is warned."""
+    import warnings
+
+    from robot_ct_ros.jobs import figures
+
+    _, grid, _, nominal, _, _ = inputs
+    thin = VolumeGrid.centered((1, 48, 24), (0.03, 0.03, 0.5), grid.center_mm)
+    vol = np.random.default_rng(0).random(thin.shape_zyx).astype(np.float32)
+    drawn = []
+    save = figures._save
+    monkeypatch.setattr(figures, "_save", lambda fig, path: drawn.append(fig) or save(fig, path))
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        paths = write_report(tmp_path, {"none": (nominal, vol, ())}, thin, initial_rmse=0.08)
+    assert not [w for w in seen if issubclass(w.category, UserWarning)], [str(w.message) for w in seen]
+    slices, rmse = drawn
+    assert len(slices.axes) == 1 and not any("sagittal" in ax.get_ylabel() for ax in slices.axes)
+    assert any("no outer iterations" in t.get_text() for t in rmse.axes[0].texts)
+    assert paths["slices"].read_bytes().startswith(PNG) and paths["rmse"].read_bytes().startswith(PNG)
