@@ -240,7 +240,8 @@ def write_correction(correction: Correction, out, *, markdown: bool = False, say
         report["paths"]["report_md"] = str(out / "report.md")
         (out / "report.md").write_text(markdown_report(report))
     write_json(out / "report.json", report)
-    say(f"wrote {corrected_bag}, {out}/volume.npy, volume.tif, report.json")
+    say(f"wrote {corrected_bag}, {out}/{', '.join(Path(f).name for f in files)}, report.json"
+        + (", report.md" if markdown else ""))
     return report
 
 

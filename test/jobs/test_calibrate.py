@@ -201,3 +201,4 @@ def test_voxels_in_the_wrong_unit_are_noted_in_the_calibration_report(tmp_path):
                            voxel_mm=41.2, say=said.append).report
     assert "wrong unit" in report["notes"][0] and any(report["notes"][0] in line for line in said)
     assert json.loads((tmp_path / "cal" / "report.json").read_text())["notes"] == report["notes"]
+    assert "volume_grid.json" in said[-1]  # the 'wrote' line names every file written (it left this one out)
