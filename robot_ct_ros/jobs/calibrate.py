@@ -202,6 +202,11 @@ def correct_scan(scan: ScanData, settings: CalibrationSettings | None = None, gr
                    "correction_rms_rotation_deg": float(np.rad2deg(np.sqrt((d[:, 6:] ** 2).mean()))),
                    "geometry_error_nominal": geometry_error(scan, scan.geom, grid),
                    "geometry_error_corrected": geometry_error(scan, result.geom, grid)})
+    nominal_px, corrected_px = (report[k] and report[k].get("reprojection_error_px")
+                                for k in ("geometry_error_nominal", "geometry_error_corrected"))
+    if nominal_px and corrected_px:  # a simulated bag: the figure to judge the correction by, said, not only kept
+        say(f"against the bag's true geometry (gauge removed): nominal {nominal_px['mean']:.3f} px mean "
+            f"({nominal_px['p95']:.3f} p95) -> corrected {corrected_px['mean']:.3f} px ({corrected_px['p95']:.3f} p95)")
     if evaluate_truth and scan.geom_true is not None:
         say("comparing with the true geometry")
         # of the geometry as the corrected bag and /ct/geometry_corrected carry it, to the last bit
@@ -296,6 +301,11 @@ def calibrate_bag(bag, out, settings: CalibrationSettings | None = None, *, voxe
     return Correction(correction.scan, correction.grid, correction.result, report)
 
 
+LEANS_ON_PRIOR_BELOW = 0.5
+"""report.md explains a last iteration's independent-pixel fraction below this as the correction leaning on the
+prior (the data explaining little of the projections)."""
+
+
 def markdown_report(report: dict) -> str:
     """report.md: the correction's report as a short Markdown page."""
     settings = report.get("settings") or {}
@@ -315,8 +325,10 @@ def markdown_report(report: dict) -> str:
     last, prior = (report.get("history") or [{}])[-1], report.get("prior_sigma")
     if last.get("independent_fraction") is not None and prior:
         lines.append(f"- last iteration: projection NCC {last['projection_ncc']:.4f}; independent pixels "
-                     f"{last['independent_fraction']:.3f} (near 0: the data explain little of the projections and "
-                     f"the correction leans on the prior of {prior[0]:.3g} mm / {np.rad2deg(prior[6]):.3g} deg)")
+                     f"{last['independent_fraction']:.3f}"
+                     + (f" (near 0: the data explain little of the projections and the correction leans on the prior "
+                        f"of {prior[0]:.3g} mm / {np.rad2deg(prior[6]):.3g} deg)"
+                        if last["independent_fraction"] < LEANS_ON_PRIOR_BELOW else ""))
     for note in report.get("notes") or ():
         lines.append(f"- {note}")
     if settings:

@@ -34,7 +34,8 @@ def test_a_scan_about_y_calibrates_as_the_same_scan_about_z(tmp_path):
     assert about_z.default_grid().axis_aligned and grid_y.shape_zyx == about_z.default_grid().shape_zyx
     settings = CalibrationSettings(iterations=1)
     z = correct_scan(about_z, settings, say=lambda s: None)
-    y = correct_scan(about_y, settings, say=lambda s: None)
+    said = []
+    y = correct_scan(about_y, settings, say=said.append)
     pts = roi_points(grid_y)
     before = reprojection_error(about_y.geom, about_y.geom_true, pts)["mean_px"]
     after = reprojection_error(y.geom, about_y.geom_true, pts)["mean_px"]
@@ -43,6 +44,8 @@ def test_a_scan_about_y_calibrates_as_the_same_scan_about_z(tmp_path):
     report = y.report
     assert report["geometry_error_nominal"]["reprojection_error_px"]["mean"] == pytest.approx(before, rel=1e-9)
     assert report["geometry_error_corrected"]["reprojection_error_px"]["mean"] == pytest.approx(after, rel=1e-9)
+    # and said: a user of a simulated bag saw no figure to judge the correction by unless they opened report.json
+    assert f"nominal {before:.3f} px mean" in " ".join(said) and f"corrected {after:.3f} px" in " ".join(said)
     np.testing.assert_allclose(y.result.params, z.result.params, atol=1e-3)
     np.testing.assert_allclose(y.volume, z.volume, atol=1e-3 * np.abs(z.volume).max())
 
@@ -202,3 +205,16 @@ def test_voxels_in_the_wrong_unit_are_noted_in_the_calibration_report(tmp_path):
     assert "wrong unit" in report["notes"][0] and any(report["notes"][0] in line for line in said)
     assert json.loads((tmp_path / "cal" / "report.json").read_text())["notes"] == report["notes"]
     assert "volume_grid.json" in said[-1]  # the 'wrote' line names every file written (it left this one out)
+
+
+def test_report_md_explains_a_low_independent_pixel_fraction_only():
+    """report.md said '0.981 (near 0: the data explain little ... leans on the prior ...)': the remark came with
+    every value. It now comes with a low one only."""
+    from robot_ct_ros.jobs.calibrate import markdown_report
+
+    prior = [0.1] * 6 + [np.deg2rad(0.1)] * 3
+    for fraction, remark in ((0.981, False), (0.12, True)):
+        text = markdown_report({"history": [{"projection_ncc": 0.9, "independent_fraction": fraction}],
+                                "prior_sigma": prior})
+        assert f"independent pixels {fraction:.3f}" in text
+        assert ("leans on the prior" in text) == remark, text

@@ -47,6 +47,7 @@ def _guess_reach(li, mask, nominal, grid, settings, notes: list, say, memo: dict
         plan = settings.resolved(True).plan()
         binning = int(plan["coarse_binning"])
         li_c, mask_c, nom_c, grid_c = _level(li, mask, nominal, estimation_grid(grid, settings.padding), binning)
+        say("the object's reach is not stated: guessing it (held-out prediction of candidate reaches, coarse level)")
         try:
             choice = choose_reach(li_c, nom_c, grid_c, mask_c, voxel_mm=settings.exterior_voxel_mm,
                                   iterations=int(plan["exterior_iterations"]), subsets=settings.exterior_subsets)
