@@ -267,7 +267,9 @@ def _wrap(title: str, width: int) -> str:
 
 def plot_rmse(path, results: dict, *, initial_rmse: float | None = None, title: str = "") -> Path:
     """Projection RMSE after each outer iteration, per method (iteration 0 = nominal, if given); when no
-    method ran an iteration (``none`` alone, or only fixed geometries), the panel says so (it was empty)."""
+    method ran an iteration (``none`` alone, or only fixed geometries), the panel says so (it was empty). A method
+    whose guard changed its estimate (kept the nominal geometry for some views or all) is labelled so: the
+    iterations plotted are the estimate's, not the result's."""
     plt = _plt()
     fig, ax = plt.subplots(figsize=(5.4, 3.9))
     for k, (m, r) in enumerate(results.items()):
@@ -277,7 +279,8 @@ def plot_rmse(path, results: dict, *, initial_rmse: float | None = None, title: 
         x = np.arange(1, len(rmse) + 1)
         if initial_rmse is not None:
             x, rmse = np.concatenate([[0], x]), [initial_rmse] + rmse
-        ax.plot(x, rmse, "o-", color=_color(k), label=m)
+        guarded = getattr(r, "params_unguarded", None) is not None  # the iterations are the estimate's, not the result's
+        ax.plot(x, rmse, "o-", color=_color(k), label=f"{m} (estimate: the guard changed it)" if guarded else m)
     ax.xaxis.get_major_locator().set_params(integer=True)
     ax.set_xlabel("outer iteration (0 = nominal geometry)" if initial_rmse is not None else "outer iteration")
     ax.set_ylabel("projection RMSE (masked)")

@@ -234,3 +234,19 @@ def test_a_one_slice_grid_and_no_iterations_leave_no_blank_panels_and_no_warning
     assert len(slices.axes) == 1 and not any("sagittal" in ax.get_ylabel() for ax in slices.axes)
     assert any("no outer iterations" in t.get_text() for t in rmse.axes[0].texts)
     assert paths["slices"].read_bytes().startswith(PNG) and paths["rmse"].read_bytes().startswith(PNG)
+
+
+def test_the_rmse_figure_labels_a_method_whose_guard_changed_its_estimate(tmp_path, inputs, monkeypatch):
+    """The RMSE-per-iteration figure showed a method improving where the guard had kept the nominal geometry, with
+    nothing to tell it from an applied correction; its line is now labelled as the estimate's."""
+    from robot_ct_ros.jobs import figures
+
+    _, grid, truth_vol, nominal, true, results = inputs
+    m1 = results["m1"]
+    kept = CalibrationResult("m2", np.zeros_like(m1.params), nominal, m1.volume, m1.history, 1.0,
+                             notes=("guard: kept",), params_unguarded=m1.params)
+    labels = []
+    monkeypatch.setattr(figures, "_save", lambda fig, path: labels.extend(
+        line.get_label() for ax in fig.axes for line in ax.lines) or path)
+    figures.plot_rmse(tmp_path / "rmse.png", {"m1": m1, "m2": kept})
+    assert labels == ["m1", "m2 (estimate: the guard changed it)"]
