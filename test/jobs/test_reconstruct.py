@@ -15,7 +15,7 @@ from robot_ct_ros.jobs.reconstruct import reconstruct_bag
 
 @pytest.fixture(scope="module")
 def bag(tmp_path_factory):
-    geom = circular_scan(24, 60.0, 150.0, 16, 40, 0.8, 0.8)
+    geom = circular_scan(96, 60.0, 150.0, 16, 40, 0.8, 0.8)  # enough views for the field of view's direction bins
     fine = VolumeGrid.centered((32, 48, 48), 0.3)
     li = forward_project(voxelize(mouse_phantom(body_width_mm=9.0, length_mm=10.0), fine), fine, geom)
     return write_scan(tmp_path_factory.mktemp("bags") / "scan", li, geom, projection_units="line_integral")
