@@ -41,8 +41,8 @@ can do from what the reconstruction feeds it:
 18. a smooth background (polynomial across the detector) that each view's NCC ignores: the metric high-passed;
 19. where in the image each view's placement lies: the detector shift at which the NCC peaks (searched
     exhaustively, no estimator), of the images as they are, normalised locally (windowed NCC, the issue's
-    candidate), low-passed or with the residuals weighted robustly, against volumes from the true and the nominal geometry, with each view's own
-    data in and held out;
+    candidate), low-passed or with the residuals weighted robustly, against volumes from the true and the
+    nominal geometry, with each view's own data in and held out;
 20. table 19's held-out row (the true geometry, the images as they are) over the exterior grid's voxel and
     SIRT passes: whether a finer or a more converged exterior lets the other views place a view better.
 
@@ -416,9 +416,9 @@ def shift_optimum(measured, model, mask, kind=None, sigma_px: float = 0.0, reach
 def table_metric_optimum(st: Study, say, folds: int = 12, filters=FILTERS) -> list:
     """19: where in the image each view's placement lies. Per view, the detector shift at which the NCC of the data
     and the volume's reprojection (through the nominal geometry) peaks (:func:`shift_optimum`, exhaustive), of the
-    images as they are, normalised locally, low-passed or robustly weighted (:data:`FILTERS`), against the volumes from the true and
-    from the nominal geometry, with every view's data in and with each view's fold held out (``folds``
-    interleaved): slope on the truth's projection shift (table 12's combinations), scatter about slope x truth,
+    images as they are, normalised locally, low-passed or robustly weighted (:data:`FILTERS`), against the
+    volumes from the true and from the nominal geometry, with every view's data in and with each view's fold held
+    out (``folds`` interleaved): slope on the truth's projection shift (table 12's combinations), scatter about slope x truth,
     and the RMS distance from the truth, px of the full-size detector (coarse level)."""
     _, nom, grid, _, _ = st.level("coarse")
     rows = []

@@ -558,7 +558,8 @@ def _single_image(raw: RawBag, topic: str, shape, encodings, warnings: list):
 
 
 STARVED_FLAT_COUNTS = 100.0
-"""A usable pixel reading 0 counts where its flat field holds at least this many is reported (:func:`zero_counts_warning`)."""
+"""A usable pixel reading 0 counts where its flat field holds at least this many is reported
+(:func:`zero_counts_warning`)."""
 
 
 def zero_counts_warning(counts, flat, valid) -> str | None:
@@ -616,12 +617,14 @@ def line_integral_warning(li, valid) -> str | None:
     median = float(np.median(values))
     if median > COUNTS_MEDIAN_LINE_INTEGRAL:
         return (f"the usable line integrals have a median of {median:.4g}, an attenuation of e^-{median:.0f} that no "
-                "detector measures: these look like raw counts (robot-ct import: give --counts with --flat)")
+                "detector measures: these look like raw counts (robot-ct import: give --counts with --flat), or a "
+                "simulator's sums over path lengths in voxels rather than -ln(I/I0) (the volume then comes out in "
+                "1/voxel, not 1/mm)")
     negative = float(np.mean(values < NEGATIVE_LINE_INTEGRAL))
     if median < NEGATIVE_MEDIAN_LINE_INTEGRAL or negative > NEGATIVE_SHARE:
         return (f"the usable line integrals are negative (median {median:.3g}, {100 * negative:.0f} % below "
                 f"{NEGATIVE_LINE_INTEGRAL:g}): more light than the flat field; sign-flipped (log(I/I0) written for "
-                "-log(I/I0))?")
+                "-log(I/I0)), or a flat field dimmer than the exposures (the source drifted)?")
     return None
 
 

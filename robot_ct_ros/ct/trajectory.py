@@ -64,7 +64,7 @@ def circular_scan(n_views: int, sod_mm: float, sdd_mm: float, n_rows: int, n_col
         raise ValueError(f"need 0 < sod_mm < sdd_mm, got sod={sod_mm}, sdd={sdd_mm}")
     a, e1, e2 = _orbit_frame(axis)
     c = np.asarray(center_mm, dtype=np.float64).reshape(3)
-    full = arc_rad >= 2 * math.pi - 1e-12
+    full = abs(arc_rad) >= 2 * math.pi - 1e-12  # either sense of rotation
     theta = start_rad + arc_rad * np.arange(n_views) / (n_views if full else max(n_views - 1, 1))
     w = np.cos(theta)[:, None] * e1 + np.sin(theta)[:, None] * e2
     v = np.broadcast_to(a, w.shape)

@@ -57,27 +57,38 @@ MIN_VOXELS_PER_AXIS = 8
 pixels) has voxels in the wrong unit, most likely (:func:`voxel_size_note`)."""
 MAX_VOXEL_PER_PIXEL = 20.0
 """Voxels more than this many times the detector pixel at the isocentre: the wrong unit, most likely."""
+MICROMETRE_READING_PER_PIXEL = (0.1, 10.0)
+"""The voxel figure read as micrometres must lie within these multiples of the detector pixel at the isocentre for
+:func:`voxel_size_note` to suspect it: a deliberately coarse voxel reads as an implausibly small one in um."""
 
 
-def voxel_size_note(scan: ScanData, grid: VolumeGrid, voxel_mm=None, shape_xyz=None) -> str | None:
-    """A note when ``grid``'s voxels look like the wrong unit (e.g. ``--voxel-mm 41.2`` meant as um), else None:
-    voxels more than :data:`MAX_VOXEL_PER_PIXEL` times the detector pixel at the isocentre (pitch /
-    magnification at the scan centre), or, for a voxel size given (``voxel_mm``) on a grid sized by the scan
-    (no ``shape_xyz``), fewer than
-    :data:`MIN_VOXELS_PER_AXIS` voxels along an axis the detector resolves (x, y across the scan axis: its
-    columns; z along it: its rows). A note, not a refusal: the grid is what was asked for."""
+def voxel_size_note(scan: ScanData, grid: VolumeGrid, voxel_mm=None, shape_xyz=None,
+                    option: str | None = "--voxel-mm") -> str | None:
+    """A note when ``grid``'s voxels look like the wrong unit (e.g. ``--voxel-mm 41.2`` meant as um), else None.
+    Suspected only where the figure read as um is a plausible voxel (:data:`MICROMETRE_READING_PER_PIXEL` of the
+    detector pixel at the isocentre: pitch / magnification at the scan centre), and then when the voxels are more
+    than :data:`MAX_VOXEL_PER_PIXEL` times that pixel, or, for a voxel size given (``voxel_mm``) on a grid sized by
+    the scan (no ``shape_xyz``), when fewer than :data:`MIN_VOXELS_PER_AXIS` lie along an axis the detector
+    resolves (x, y across the scan axis: its columns; z along it: its rows). ``option``: the command-line option
+    that set the voxel, named in the advice (None: none to name). A note, not a refusal."""
     g = scan.geom
     pixel_mm = min(g.row_pitch_mm, g.col_pitch_mm) / float(np.median(g.magnification(scan.scan_center_mm())))
-    voxel_mm = float(max(grid.voxel_size_mm))
+    grid_voxel_mm = float(max(grid.voxel_size_mm))
+    read_as_um_mm = grid_voxel_mm / 1000.0
+    low, high = MICROMETRE_READING_PER_PIXEL
+    if not low * pixel_mm <= read_as_um_mm <= high * pixel_mm:
+        return None
     nx, ny, nz = grid.shape_zyx[::-1]
     resolved = [n for n, pixels in ((nx, g.n_cols), (ny, g.n_cols), (nz, g.n_rows)) if pixels >= MIN_VOXELS_PER_AXIS]
-    coarse = voxel_mm > MAX_VOXEL_PER_PIXEL * pixel_mm
+    coarse = grid_voxel_mm > MAX_VOXEL_PER_PIXEL * pixel_mm
     few = voxel_mm is not None and shape_xyz is None and any(n < MIN_VOXELS_PER_AXIS for n in resolved)
     if not (coarse or few):
         return None
-    return (f"voxels of {voxel_mm:g} mm are {voxel_mm / pixel_mm:.0f} times the detector pixel at the isocentre "
-            f"({pixel_mm * 1000:.1f} um) and make a grid of {nx} x {ny} x {nz}: the voxel size looks like the wrong "
-            f"unit (--voxel-mm is in mm: for {voxel_mm:g} um, give --voxel-mm {voxel_mm / 1000:g})")
+    advice = (f"{option} is in mm: for {grid_voxel_mm:g} um, give {option} {read_as_um_mm:g}" if option
+              else f"um given where mm are meant? {grid_voxel_mm:g} um would be {read_as_um_mm:g} mm")
+    return (f"voxels of {grid_voxel_mm:g} mm are {grid_voxel_mm / pixel_mm:.0f} times the detector pixel at the "
+            f"isocentre ({pixel_mm * 1000:.1f} um) and make a grid of {nx} x {ny} x {nz}: the voxel size looks like "
+            f"the wrong unit ({advice})")
 
 
 def drift_times(scan: ScanData) -> np.ndarray | None:
@@ -288,7 +299,7 @@ def calibrate_bag(bag, out, settings: CalibrationSettings | None = None, *, voxe
     scan = read_scan(bag, keep_raw=True)
     refuse_another_bags_folder(Path(out), scan, "--out" if options == "command line" else "output_dir")
     grid = scan_grid(scan, voxel_mm, shape_xyz)
-    unit_note = voxel_size_note(scan, grid, voxel_mm, shape_xyz)
+    unit_note = voxel_size_note(scan, grid, voxel_mm, shape_xyz, "--voxel-mm" if options == "command line" else None)
     if unit_note:
         say(f"note: {unit_note}")
     method = (settings or CalibrationSettings()).method

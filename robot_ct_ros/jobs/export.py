@@ -95,12 +95,14 @@ def corrected_geometry(path, nominal_scan=None, *, say=None) -> ConeGeometry:
     ``corrected_bag`` names the bag with /ct/geometry_corrected), or such a corrected bag itself.
     With ``nominal_scan`` (a :class:`~robot_ct_ros.bag.reader.ScanData`), the corrected bag must
     hold the same views (same stamps) and the same projections. ``say``: where the reader's warnings on the
-    corrected bag go (``warning: ...``).
+    corrected bag go (``warning: ...``; those the nominal scan has too are left out, said with it).
     """
     _, bag = _corrected_paths(path)
     scan = _read(bag)
+    said = set(nominal_scan.warnings) if nominal_scan is not None else set()  # the nominal bag's: said with it
     for w in scan.warnings if say is not None else ():
-        say(f"warning: {bag.name}: {w}")
+        if w not in said:
+            say(f"warning: {bag.name}: {w}")
     if scan.geom_corrected is None:
         raise ValueError(f"{bag}: no /ct/geometry_corrected covering every frame")
     if nominal_scan is not None and not np.array_equal(scan.stamps_ns, nominal_scan.stamps_ns):

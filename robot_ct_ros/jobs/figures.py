@@ -279,7 +279,7 @@ def plot_rmse(path, results: dict, *, initial_rmse: float | None = None, title: 
         x = np.arange(1, len(rmse) + 1)
         if initial_rmse is not None:
             x, rmse = np.concatenate([[0], x]), [initial_rmse] + rmse
-        guarded = getattr(r, "params_unguarded", None) is not None  # the iterations are the estimate's, not the result's
+        guarded = getattr(r, "params_unguarded", None) is not None  # its iterations: the estimate's, not the result's
         ax.plot(x, rmse, "o-", color=_color(k), label=f"{m} (estimate: the guard changed it)" if guarded else m)
     ax.xaxis.get_major_locator().set_params(integer=True)
     ax.set_xlabel("outer iteration (0 = nominal geometry)" if initial_rmse is not None else "outer iteration")

@@ -203,10 +203,11 @@ def report_job(report: dict) -> str | None:
     return report.get("job") or ("report" if "rows" in report else None)
 
 
-def refuse_other_job(out, job: str) -> None:
+def refuse_other_job(out, job: str, option: str = "--out") -> None:
     """A folder holds one job's results: refuse ``out`` where report.json is another job's (``calibrate``,
     ``reconstruct``, ``report``). Their files would mix: a report replacing a calibration's report.json, the
-    corrected bag and volume left without the report that describes them, a report's figures beside a calibration."""
+    corrected bag and volume left without the report that describes them, a report's figures beside a calibration.
+    ``option``: what the user sets the folder with, named in the refusal."""
     previous = Path(out) / "report.json"
     if not previous.is_file():
         return
@@ -215,7 +216,7 @@ def refuse_other_job(out, job: str) -> None:
     except ValueError:
         return
     if earlier is not None and earlier != job:
-        raise ValueError(f"{out} holds the results of robot-ct {earlier}; give {job} its own --out folder")
+        raise ValueError(f"{out} holds the results of robot-ct {earlier}; give {job} its own {option} folder")
 
 
 def start_output(out) -> Path:

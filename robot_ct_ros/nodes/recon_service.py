@@ -79,7 +79,6 @@ class ReconServiceNode(Node):
 
         self.state, self.message, self.error = "idle", "waiting for a scan", ""  # state: idle|running|done|failed
         self.runs = self.full_runs = self.partial_runs = self.corrected_published = 0
-        self._short_note = ""  # the next whole-scan run's note that fewer frames arrived than the scan announced
         self.run_partial = False
         self.partial_reports: list[dict] = []
         self.report: dict | None = None   # last finished run's report
@@ -151,12 +150,12 @@ class ReconServiceNode(Node):
                            "collected here (frames are not latched: a recon_service started after the scan has none; "
                            "set bag_path to the recorded bag, or replay it)", 0)
                 return
-            self._short_note = ""
+            short = []
             if self.planner.shortfall is not None:
                 announced, paired = self.planner.shortfall
-                self._short_note = (f"the scan announced {announced} frames; {paired} arrived here with their geometry "
-                                    f"within {self.planner.wait_s:g} s of its end: corrected with those")
-            ok, why = self.start_run()
+                short = [f"the scan announced {announced} frames; {paired} arrived here with their geometry within "
+                         f"{self.planner.wait_s:g} s of its end: corrected with those"]
+            ok, why = self.start_run(notes=short)
             if not ok:  # the scan's run is used up: say so where a run's failure is said, not only in the log
                 self._fail(self.runs + 1, f"automatic correction not started: {why}", self.n_paired)
         elif run == "partial":
@@ -200,8 +199,9 @@ class ReconServiceNode(Node):
             self._publish_progress("refused", response.message, self.runs + 1, None, 0.0)
         return response
 
-    def start_run(self, partial: bool = False) -> tuple[bool, str]:
-        """Start a correction run on a worker thread; (started, message)."""
+    def start_run(self, partial: bool = False, notes=()) -> tuple[bool, str]:
+        """Start a correction run on a worker thread; (started, message). ``notes``: what this run's report's
+        bag_warnings say first (the automatic run's note of frames that did not arrive)."""
         from robot_ct_ros.jobs.calibrate import refuse_another_bags_folder
         from robot_ct_ros.jobs.output import refuse_other_job
 
@@ -212,7 +212,7 @@ class ReconServiceNode(Node):
                 out, bag, n = self.output_dir, Path(self.service.bag_path), None
             else:
                 out = self.output_dir / f"partial_{self.n_paired:04d}" if partial else self.output_dir
-                refuse_other_job(out, "calibrate")  # before the scan is written there, as the job would after
+                refuse_other_job(out, "calibrate", "output_dir")  # before the scan is written there, as the job would
                 refuse_another_bags_folder(out, "scan", "output_dir")
                 bag, n = self.scan.write_bag(out / "scan")
         except (ValueError, OSError) as exc:
@@ -225,8 +225,8 @@ class ReconServiceNode(Node):
         self.state, self.error, self._t_run = "running", "", time.monotonic()
         self.message = f"run {self.runs}: {f'{n} views' if n is not None else f'bag {bag}'}, {self.method}"
         self._progress("start", self.message, self.runs, n)
-        self._worker = threading.Thread(target=self._job, args=(self.runs, bag, out, n, partial), name="recon",
-                                        daemon=True)
+        self._worker = threading.Thread(target=self._job, args=(self.runs, bag, out, n, partial, list(notes)),
+                                        name="recon", daemon=True)
         self._worker.start()
         # the view count of a bag given by path is known once the job has read it (recon/progress, the report)
         return True, f"started run {self.runs} on {bag}{f' ({n} views)' if n is not None else ''} into {out}"
@@ -244,7 +244,7 @@ class ReconServiceNode(Node):
         except Exception:  # noqa: BLE001 - shutting down
             pass
 
-    def _job(self, run: int, bag: Path, out: Path, n, partial: bool) -> None:
+    def _job(self, run: int, bag: Path, out: Path, n, partial: bool, notes: list) -> None:
         from robot_ct_ros.jobs.calibrate import calibrate_bag
         from robot_ct_ros.jobs.output import write_json
 
@@ -256,15 +256,17 @@ class ReconServiceNode(Node):
                                        shape_xyz=self.service.shape_xyz,
                                        evaluate_truth=self.service.evaluate_truth, markdown=True, say=say,
                                        options="ROS parameters")
-            report = correction.report | {"partial": partial, "scan_id": self.scan.scan_id}
+            report = correction.report | {"partial": partial, "scan_id": self.scan.scan_id, "run": run}
             if not self.service.bag_path or partial:  # the scan as received: what the collection dropped
-                short = [self._short_note] if self._short_note and not partial else []
-                report["bag_warnings"] = short + list(self.scan.warnings) + list(report.get("bag_warnings", []))
-                for warning in short + list(self.scan.warnings):
+                report["bag_warnings"] = notes + list(self.scan.warnings) + list(report.get("bag_warnings", []))
+                for warning in notes + list(self.scan.warnings):
                     self.get_logger().warning(warning)
             if self.stream is not None:
                 report["live"] = self.stream.summary()
-            write_json(report["paths"]["report_json"], report)  # report.json holds what recon/report says
+            try:  # report.json holds what recon/report says; the run is done whether or not this rewrite succeeds
+                write_json(report["paths"]["report_json"], report)
+            except OSError as exc:
+                self.get_logger().warning(f"report.json keeps the job's own report: {exc}")
             result = (run, report, correction, None)
         except Exception as exc:  # noqa: BLE001 - reported; the node keeps serving
             result = (run, None, None, f"{type(exc).__name__}: {exc}")
@@ -302,7 +304,6 @@ class ReconServiceNode(Node):
         now = self.get_clock().now().nanoseconds
         for k, sl in mid_slices(correction.volume).items():
             self.slice_pubs[k].publish(fmt.serialize(fmt.image_from_array(sl, now, fmt.FRAME_WORLD), fmt.IMAGE))
-        report["run"] = run
         self.report = report
         self.report_pub.publish(String(data=json.dumps(clean_json(report), default=json_default)))
         self.state = "done"

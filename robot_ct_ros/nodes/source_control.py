@@ -243,8 +243,8 @@ class SourceControlNode(LifecycleNode):
         if self.beam_on:  # the driver's state, not the request's: a refused switch-off is not reported off
             fault = self._holder().fault if self._holder() is not None else ""
             response.success = False
-            response.message = (f"e-stop latched, but the beam is still ON: {fault or 'the source did not switch off'}; "
-                                "the switch-off is retried on every tick")
+            response.message = (f"e-stop latched, but the beam is still ON: "
+                                f"{fault or 'the source did not switch off'}; the switch-off is retried on every tick")
         else:
             response.success, response.message = True, "e-stop latched, beam off"
         return response

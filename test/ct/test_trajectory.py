@@ -37,7 +37,7 @@ def test_circular_scan_axis_center_offset_and_arc():
     cr = g.project_points(c)[:, 0]
     np.testing.assert_allclose(cr[:, 0], 10.0 - 4.0, atol=1e-9)
     np.testing.assert_allclose(cr[:, 1], 4.5, atol=1e-9)
-    # sources stay in the plane through c perpendicular to the axis, spanning [0.3, 0.3 + pi)
+    # sources stay in the plane through c perpendicular to the axis, spanning [0.3, 0.3 + pi]
     np.testing.assert_allclose(g.source_mm[:, 1], c[1], atol=1e-12)
     with pytest.raises(ValueError):
         circular_scan(4, 300.0, 200.0, 4, 4, 1.0, 1.0)
@@ -162,3 +162,7 @@ def test_a_partial_arc_spans_the_whole_arc_and_a_full_circle_does_not_repeat_its
     full = circular_scan(12, 100.0, 200.0, 4, 8, 1.0, 1.0)
     ang = np.degrees(np.unwrap(np.arctan2(full.source_mm[:, 1], full.source_mm[:, 0])))
     np.testing.assert_allclose(ang, 30.0 * np.arange(12), atol=1e-9)
+    # a full circle turned the other way (a protocol's arc_deg -360) too; the first version repeated its first view
+    back = circular_scan(12, 100.0, 200.0, 4, 8, 1.0, 1.0, arc_rad=-2 * np.pi)
+    ang = np.degrees(np.unwrap(np.arctan2(back.source_mm[:, 1], back.source_mm[:, 0])))
+    np.testing.assert_allclose(ang, -30.0 * np.arange(12), atol=1e-9)

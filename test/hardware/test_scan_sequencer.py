@@ -368,7 +368,6 @@ def test_an_abort_after_the_exposure_counts_the_frame_taken(tmp_path):
     assert rig.seq.frames == 0
 
 
-
 def test_an_abort_while_the_exposure_is_answered_counts_the_frame_the_detector_published(tmp_path):
     """An e-stop during a short exposure said "(1 frames kept)" while the bag held 2: the detector had answered (and
     published the frame) but no tick had taken the answer in, or it answered just after the abort. Now an answer

@@ -330,8 +330,14 @@ def test_automatic_runs_say_what_they_lacked_and_report_json_holds_what_recon_re
     assert any(note in w for w in probe.reports[-1]["bag_warnings"]), probe.reports[-1]["bag_warnings"]
     on_disk = json.loads((out / "report.json").read_text())
     assert any(note in w for w in on_disk["bag_warnings"]) and on_disk["scan_id"] == probe.reports[-1]["scan_id"]
+    assert on_disk["run"] == probe.reports[-1]["run"] == 1
+    # a run asked for by hand has no such note (the first version carried the automatic run's to every later run)
+    run = probe.node.create_client(Trigger, "recon/run")
+    assert ros.call(run, Trigger.Request()).success
+    assert ros.spin_until(lambda: recon.done and probe.reports[-1].get("run") == 2, timeout_s=60.0), recon.state
+    assert not any("announced" in w for w in probe.reports[-1]["bag_warnings"]), probe.reports[-1]["bag_warnings"]
 
     (out / "scan").rename(out / "another_scan_corrected")  # the folder now holds another bag's correction
-    answer = ros.call(probe.node.create_client(Trigger, "recon/run"), Trigger.Request())
+    answer = ros.call(run, Trigger.Request())
     assert not answer.success and "another bag" in answer.message and "output_dir" in answer.message, answer.message
     assert not (out / "scan").exists()  # refused before the collected scan was written there
