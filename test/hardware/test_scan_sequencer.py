@@ -4,7 +4,6 @@ import json
 from types import SimpleNamespace
 
 import numpy as np
-import pytest
 import yaml
 
 from robot_ct_ros.ct.hand_eye import HandEye, tool_goals_from_geometry
