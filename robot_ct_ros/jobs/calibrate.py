@@ -294,12 +294,13 @@ def calibrate_bag(bag, out, settings: CalibrationSettings | None = None, *, voxe
 
     Refused before the work: a folder holding another bag's calibration, and a grid that would not
     fit in memory (the refusal names the grid settings of ``options``, jobs.output.GRID_OPTIONS)."""
+    cli = options == "command line"  # the refusals and notes name the command line's options, else ROS's
     refuse_out_in_bag(out, bag)
-    refuse_other_job(out, "calibrate")
+    refuse_other_job(out, "calibrate", "--out" if cli else "output_dir")
     scan = read_scan(bag, keep_raw=True)
-    refuse_another_bags_folder(Path(out), scan, "--out" if options == "command line" else "output_dir")
+    refuse_another_bags_folder(Path(out), scan, "--out" if cli else "output_dir")
     grid = scan_grid(scan, voxel_mm, shape_xyz)
-    unit_note = voxel_size_note(scan, grid, voxel_mm, shape_xyz, "--voxel-mm" if options == "command line" else None)
+    unit_note = voxel_size_note(scan, grid, voxel_mm, shape_xyz, "--voxel-mm" if cli else None)
     if unit_note:
         say(f"note: {unit_note}")
     method = (settings or CalibrationSettings()).method

@@ -100,6 +100,10 @@ def _number(params, name: str, path: Path) -> float:
     return x
 
 
+MI_COMPRESSED = 15
+"""The MAT 5 data type of a zlib-compressed element, not padded to 8 bytes."""
+
+
 def _mat_damage(path) -> str | None:
     """Why a file with a MATLAB 5 header cannot be read, where its layout tells: cut inside a data element
     (each top-level element is an 8-byte tag of type and byte count, padded to 8 bytes unless compressed),
@@ -124,10 +128,6 @@ def _mat_damage(path) -> str | None:
                     "(an incomplete copy or download?)")
         pos = end
     return "damaged: its layout is whole but its data do not read"
-
-
-MI_COMPRESSED = 15
-"""The MAT 5 data type of a zlib-compressed element, not padded to 8 bytes."""
 
 
 def read_htc2022(path) -> HtcData:
