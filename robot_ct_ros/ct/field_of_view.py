@@ -14,14 +14,17 @@ from numba import njit, prange
 
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
 from robot_ct_ros.ct.reconstruction import estimate_scan_axis
+from robot_ct_ros.ct.scan_weights import rows_run_across_axis
 
 __all__ = ["field_of_view_mask"]
 
 
 @njit(parallel=True, cache=True)
-def _line_coverage_kernel(pm, depth_sign, src, e1, e2, origin, steps, shape_zyx, n_cols, n_bins, out):
+def _line_coverage_kernel(pm, depth_sign, src, e1, e2, origin, steps, shape_zyx, across, n_across, n_bins, out):
     """``out[k, j, i]``: 1 where the rays measured through the voxel at block centre (i, j, k)
-    cover every one of ``n_bins`` direction bins over 180 degrees, else 0."""
+    cover every one of ``n_bins`` direction bins over 180 degrees, else 0. A ray is measured where
+    it meets the detector within its ``n_across`` pixels along the detector index ``across`` (0: the
+    column, 1: the row), the one that runs across the scan axis."""
     nz, ny, nx = shape_zyx[0], shape_zyx[1], shape_zyx[2]
     full = np.uint64((1 << n_bins) - 1)
     for flat in prange(nz * ny * nx):
@@ -36,8 +39,8 @@ def _line_coverage_kernel(pm, depth_sign, src, e1, e2, origin, steps, shape_zyx,
             lam = pm[v, 2, 0] * x + pm[v, 2, 1] * y + pm[v, 2, 2] * z + pm[v, 2, 3]
             if lam * depth_sign[v] <= 0.0:
                 continue
-            col = (pm[v, 0, 0] * x + pm[v, 0, 1] * y + pm[v, 0, 2] * z + pm[v, 0, 3]) / lam
-            if col < -0.5 or col > n_cols - 0.5:
+            c = (pm[v, across, 0] * x + pm[v, across, 1] * y + pm[v, across, 2] * z + pm[v, across, 3]) / lam
+            if c < -0.5 or c > n_across - 0.5:
                 continue
             dx, dy, dz = x - src[v, 0], y - src[v, 1], z - src[v, 2]
             a = math.atan2(dx * e2[0] + dy * e2[1] + dz * e2[2], dx * e1[0] + dy * e1[1] + dz * e1[2])
@@ -54,12 +57,13 @@ def field_of_view_mask(geom: ConeGeometry, grid: VolumeGrid, *, max_evaluations:
     """Voxels FDK reconstructs from complete data: bool ``grid.shape_zyx``.
 
     A voxel counts when the measured rays through it (those that meet a view's detector within
-    its columns) cover every direction about the scan axis (:func:`estimate_scan_axis`),
+    its extent across the scan axis: its columns, or its rows on a portrait detector,
+    :func:`~robot_ct_ros.ct.scan_weights.rows_run_across_axis`) cover every direction about the scan axis (:func:`estimate_scan_axis`),
     modulo 180 degrees, in bins of at most 45 degrees and at least ~6 views each. For a
     centred detector on a full circle that is the cylinder every view sees; with an offset
     detector the conjugate views fill in; the square grid's corners outside it are left out
-    (FDK puts there what incomplete data give, streaks that are no object). Rows are not
-    checked: the cone's top and bottom are the pixel mask's business. To bound the cost
+    (FDK puts there what incomplete data give, streaks that are no object). The extent along the
+    axis is not checked: the cone's top and bottom are the pixel mask's business. To bound the cost
     (voxels x views), the test runs on block centres of a coarser grid (each block takes its
     centre's answer) when the grid holds more than ``max_evaluations / n_views`` voxels. When
     no voxel has complete data (a limited-angle or degenerate scan), every voxel counts.
@@ -94,8 +98,10 @@ def field_of_view_mask(geom: ConeGeometry, grid: VolumeGrid, *, max_evaluations:
     first = 0.5 * (np.array([min(bx, nx), min(by, ny), min(bz, nz)]) - 1)
     origin = grid.index_to_world(first)
     cov = np.zeros(cshape, dtype=np.uint8)
+    across = 0 if rows_run_across_axis(geom, axis) else 1
     _line_coverage_kernel(pm, depth_sign, geom.source_mm, e1, e2, origin, np.ascontiguousarray(steps),
-                          np.array(cshape, dtype=np.int64), int(geom.n_cols), n_bins, cov)
+                          np.array(cshape, dtype=np.int64), across, int(geom.n_cols if across == 0 else geom.n_rows),
+                          n_bins, cov)
     if not cov.any():
         return np.ones(grid.shape_zyx, dtype=bool)
     kk, jj, ii = (np.arange(n) // b for n, b in zip((nz, ny, nx), (bz, by, bx)))

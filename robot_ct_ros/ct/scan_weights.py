@@ -15,7 +15,7 @@ import numpy as np
 
 from robot_ct_ros.ct.geometry import ConeGeometry
 
-__all__ = ["FDKWarning", "estimate_scan_axis", "estimate_scan_centre", "fdk_view_weights", "scan_arc", "source_angles",
+__all__ = ["FDKWarning", "estimate_scan_axis", "estimate_scan_centre", "rows_run_across_axis", "fdk_view_weights", "scan_arc", "source_angles",
            "short_scan_weights", "displaced_detector_weights", "displaced_detector_layout", "displaced_pixel_weights",
            "centre_column"]
 
@@ -59,6 +59,17 @@ def estimate_scan_axis(geom: ConeGeometry) -> np.ndarray:
     if n is None:  # the plane's normal: fixed, or the best there is (views looking many ways on a noisy arc)
         n = vt[2]
     return n if np.dot(n, vmean) >= 0 else -n
+
+
+def rows_run_across_axis(geom: ConeGeometry, axis=None) -> bool:
+    """Whether the detector's rows (its ``u``, the column index) run across the scan ``axis`` (default
+    :func:`estimate_scan_axis`), as on a usual landscape detector, rather than along it (a portrait
+    detector, turned a quarter in its plane). Its left and right edges, which an interior scan
+    truncates, are then its first and last columns; otherwise its first and last rows. Decided over
+    the whole scan: the mean ``|u . axis|`` against the mean ``|v . axis|``, ties to the columns."""
+    n = estimate_scan_axis(geom) if axis is None else np.asarray(axis, dtype=np.float64)
+    n = n / np.linalg.norm(n)
+    return bool(np.mean(np.abs(geom.u @ n)) <= np.mean(np.abs(geom.v @ n)))
 
 
 def estimate_scan_centre(geom: ConeGeometry, axis=None) -> np.ndarray | None:

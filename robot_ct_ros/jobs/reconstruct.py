@@ -63,7 +63,8 @@ def reconstruct_bag(bag, out, *, geometry: str = "auto", voxel_mm=None, shape_xy
     with fdk_warnings(say) as approximate:
         vol = fdk(li, geom, grid, valid_mask=mask)
     out = start_output(out)  # report.json is written last: without it, the folder holds an unfinished run
-    outside = 1.0 - float(np.mean(field_of_view_mask(geom, grid)))  # across the axis: rows are not checked
+    # across the axis only: the cone's top and bottom are not the field of view's business
+    outside = 1.0 - float(np.mean(field_of_view_mask(geom, grid)))
     if outside > 0.3:  # beyond a square grid's corners (21 %): FDK puts streaks there, not the object
         notes.append(f"{100 * outside:.0f} % of the grid lies outside the field of view (voxels that the measured "
                      "rays do not reach from every direction); FDK's values there are streaks, not the object")

@@ -48,3 +48,14 @@ def test_field_of_view_mask_turns_with_the_scan_and_is_all_true_without_complete
     # a quarter turn: no voxel's rays cover every direction, FDK is approximate everywhere, nothing is cut
     short = circular_scan(30, 100.0, 160.0, 4, 80, 0.2, 0.2, arc_rad=np.pi / 2)
     assert field_of_view_mask(short, grid).all()
+
+
+def test_field_of_view_mask_of_a_portrait_detector_is_the_landscape_one():
+    """The same rays on a detector turned a quarter in its plane (columns along the axis): its rows are the extent
+    across the axis. Testing its columns took the cone's top and bottom for the field of view (100 % against 33 %)."""
+    landscape = circular_scan(96, 60.0, 150.0, 16, 32, 1.0, 1.0)
+    portrait = landscape.replace(u=landscape.v, v=-landscape.u, n_rows=landscape.n_cols, n_cols=landscape.n_rows)
+    grid = VolumeGrid.centered((8, 40, 40), 0.5)
+    mask = field_of_view_mask(landscape, grid)
+    assert 0.2 < mask.mean() < 0.5
+    np.testing.assert_array_equal(field_of_view_mask(portrait, grid), mask)

@@ -303,7 +303,8 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
     # x and y); the final volume is reconstructed on the user's grid, and the gauge is fixed on its points
     est_grid = axis_last(grid, nominal)
     # how much object the detector's edges see: decides the volumes (projections auto) and the exterior model
-    level = truncation_level(li, mask) if settings.projections == "auto" or settings.exterior != "on" else None
+    level = (truncation_level(li, mask, geom=nominal)
+             if settings.projections == "auto" or settings.exterior != "on" else None)
     truncated = settings.projections == "truncated"
     if settings.projections == "auto":
         truncated = level > TRUNCATED_ABOVE

@@ -7,8 +7,11 @@ their estimates; from then on every new view (or batch of views) is estimated ag
 running volume (the method's coarse level: its binning, search box and sampling), scored by
 the projection NCC of the volume's reprojection at the estimate against the view, and
 back-projected with the estimate into the sum. Each view is filtered alone, weighted by
-``2 pi / n_views`` (the whole scan's angular step) around the grid's z axis, so adding a view
-never changes another's contribution.
+``2 pi / n_views`` (the whole scan's angular step) about the scan's axis and centre, so adding a
+view never changes another's contribution. Axis and centre are the warm-up views' (as
+:func:`~robot_ct_ros.ct.reconstruction.fdk` takes them from the whole scan: any world frame, a grid
+anywhere), unless given; the running volume's grid is the ROI grid with its z along that axis,
+widened across it.
 
 Nothing here is the whole-scan calibration (:func:`~robot_ct_ros.ct.calibration.calibrate`):
 the live estimates depend on which views were in the volume when a view arrived; the final
@@ -26,7 +29,7 @@ from robot_ct_ros.ct.calibration.masks import as_view_mask, bin_masked, usable_d
 from robot_ct_ros.ct.calibration.model import project
 from robot_ct_ros.ct.calibration.registry import get_method
 from robot_ct_ros.ct.calibration.settings import CalibrationSettings
-from robot_ct_ros.ct.calibration.volume import estimation_grid
+from robot_ct_ros.ct.calibration.volume import axis_last, estimation_grid
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
 from robot_ct_ros.ct.metrics import ncc
 
@@ -72,26 +75,53 @@ class StreamingEstimator:
         Views collected before the first volume and the first estimates.
     fdk_kwargs : dict, optional
         Options of the filtering (window, cutoff, truncation, ...).
+    axis, center_mm : array (3,), optional
+        The scan's rotation axis (unit) and a point on it (mm), where the caller knows them. By
+        default both come from the warm-up views' nominal geometry
+        (:func:`~robot_ct_ros.ct.scan_weights.estimate_scan_axis`,
+        :func:`~robot_ct_ros.ct.reconstruction.scan_centre`); with fewer than 3 warm-up views, which
+        tell no axis, the grid's z and its centre.
     """
 
     def __init__(self, settings: CalibrationSettings, grid: VolumeGrid, n_views: int, *,
-                 warmup_views: int = DEFAULT_WARMUP_VIEWS, fdk_kwargs: dict | None = None):
+                 warmup_views: int = DEFAULT_WARMUP_VIEWS, fdk_kwargs: dict | None = None, axis=None,
+                 center_mm=None):
         self.settings = settings
         self.method = get_method(settings.method)
         self.binning = max(1, int(settings.plan()["coarse_binning"]))
         self.roi_grid = grid
-        est = estimation_grid(grid, settings.padding)
-        self.grid = est.binned(self.binning) if self.binning > 1 else est
+        self.grid = self._estimation_grid(grid)  # until the warm-up tells the axis: the grid's own z
         self.n_views = max(1, int(n_views))
         self.warmup_views = max(1, int(warmup_views))
         self.fdk_kwargs = dict(fdk_kwargs or {})
-        self.axis = np.asarray(grid.direction_matrix, np.float64)[:, 2]
+        # the scan's axis and centre: given, or fixed by the warm-up views (_fix_frame)
+        self.axis = None if axis is None else np.asarray(axis, np.float64) / np.linalg.norm(axis)
+        self.center_mm = None if center_mm is None else np.asarray(center_mm, np.float64).reshape(3)
         self.config = None if self.method.estimate is None else self.method.configs(settings)[0]
         self._sum = np.zeros(self.grid.shape_zyx, np.float32)
         self._added = 0                     # views in the running sum
         self._pending: list = []            # warm-up views: (view_id, li, mask, nominal) at the coarse level
         self._ncc: list = []
         self.n_estimated = 0
+
+    def _estimation_grid(self, grid: VolumeGrid) -> VolumeGrid:
+        est = estimation_grid(grid, self.settings.padding)
+        return est.binned(self.binning) if self.binning > 1 else est
+
+    def _fix_frame(self, warmup: ConeGeometry) -> None:
+        """The scan's axis and centre (given, or the warm-up views'), and the running volume's grid: the ROI
+        grid's axes renamed so that z runs along the axis (:func:`axis_last`), widened across it."""
+        from robot_ct_ros.ct.reconstruction import scan_centre
+        from robot_ct_ros.ct.scan_weights import estimate_scan_axis
+
+        grid_z = np.asarray(self.roi_grid.direction_matrix, np.float64)[:, 2]
+        if self.axis is None:
+            self.axis = estimate_scan_axis(warmup) if warmup.n_views >= 3 else grid_z
+        if self.center_mm is None:
+            self.center_mm = (scan_centre(warmup, self.axis, fallback_mm=self.roi_grid.center_mm)
+                              if warmup.n_views >= 3 else np.asarray(self.roi_grid.center_mm, np.float64))
+        self.grid = self._estimation_grid(axis_last(self.roi_grid, warmup, self.axis))
+        self._sum = np.zeros(self.grid.shape_zyx, np.float32)
 
     @property
     def started(self) -> bool:
@@ -126,7 +156,7 @@ class StreamingEstimator:
         out = np.zeros(self.grid.shape_zyx, np.float32)
         for i in range(geom.n_views):
             q, q_geom = fdk_filter_motion_rows(li[i:i + 1], geom.subset(np.array([i])),
-                                               center_mm=self.grid.center_mm, axis=self.axis,
+                                               center_mm=self.center_mm, axis=self.axis,
                                                valid_mask=mask[i:i + 1], **self.fdk_kwargs)
             out += fdk_backproject(q, q_geom, self.grid) * np.float32(1.0 / self.n_views)
         return out
@@ -169,6 +199,7 @@ class StreamingEstimator:
         ids, params, geoms, scores = [], [], [], []
         for ids_p, li_p, mask_p, nom_p, full_p in parts:
             if not self.started:  # the first volume: nominal geometry, then rebuilt with the estimates
+                self._fix_frame(nom_p)
                 self._sum += self._backproject(li_p, mask_p, nom_p)
                 self._added = len(ids_p)
                 p = self._estimate(li_p, mask_p, nom_p, ids_p)

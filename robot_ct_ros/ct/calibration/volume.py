@@ -92,13 +92,19 @@ EXTERIOR_ABOVE = 0.3
 (docs/calibration.md, "The exterior model")."""
 
 
-def truncation_level(line_integrals: np.ndarray, valid_mask=None, edge_px: int = 2) -> float:
+def truncation_level(line_integrals: np.ndarray, valid_mask=None, edge_px: int = 2, geom=None) -> float:
     """How much object the left and right detector edges see: the median over views of the mean
     line integral in the ``edge_px`` outermost columns on each side (valid pixels only),
     relative to the 99.9th percentile of all data. About 0 when the object fits in the field of
-    view (noise averages out), a few per cent and more for an interior scan."""
+    view (noise averages out), a few per cent and more for an interior scan. The edges are those
+    across the scan axis: with ``geom`` given and its detector's rows along the axis (a portrait
+    detector, :func:`~robot_ct_ros.ct.scan_weights.rows_run_across_axis`), the outermost rows."""
+    from robot_ct_ros.ct.scan_weights import rows_run_across_axis
+
     li = np.asarray(line_integrals, dtype=np.float32)
     mask = as_view_mask(valid_mask, li.shape) & np.isfinite(li)
+    if geom is not None and not rows_run_across_axis(geom):
+        li, mask = np.swapaxes(li, -1, -2), np.swapaxes(mask, -1, -2)
     n_cols = li.shape[-1]
     edge_px = max(1, min(edge_px, n_cols // 2))  # a narrow detector: its edges are its own columns
     cols = np.unique(np.r_[0:edge_px, n_cols - edge_px:n_cols])
@@ -115,18 +121,20 @@ def estimation_grid(grid: VolumeGrid, padding: float) -> VolumeGrid:
     return grid.resized((nz, int(round(ny * padding)), int(round(nx * padding))))
 
 
-def axis_last(grid: VolumeGrid, geom: ConeGeometry) -> VolumeGrid:
+def axis_last(grid: VolumeGrid, geom: ConeGeometry, axis=None) -> VolumeGrid:
     """The same box and voxels as ``grid``, its axes named so that z is the one along the scan axis
     (:func:`~robot_ct_ros.ct.scan_weights.estimate_scan_axis`, within
     :data:`~robot_ct_ros.ct.calibration.masks.AXIS_ALIGNED_DEG`): a cyclic renaming, so the voxel centres are the
     very same points. The estimation widens a grid across its x and y (:func:`estimation_grid`) and keeps the FDK
     to its central x-y part: a world-aligned grid around a scan about +y (RTK's axis) was widened along the axis and
-    not across it. ``grid`` itself where its z already is along the axis, or none of its axes is."""
+    not across it. ``grid`` itself where its z already is along the axis, or none of its axes is. ``axis``: the
+    scan's unit axis where the caller knows it (default: estimated from ``geom``)."""
     from robot_ct_ros.ct.calibration.masks import AXIS_ALIGNED_DEG
     from robot_ct_ros.ct.scan_weights import estimate_scan_axis
 
     D = grid.direction_matrix
-    along = np.abs(estimate_scan_axis(geom) @ D) >= np.cos(np.deg2rad(AXIS_ALIGNED_DEG))
+    n = estimate_scan_axis(geom) if axis is None else np.asarray(axis, np.float64) / np.linalg.norm(axis)
+    along = np.abs(n @ D) >= np.cos(np.deg2rad(AXIS_ALIGNED_DEG))
     if along[2] or not along.any():
         return grid
     k = int(np.flatnonzero(along)[0])

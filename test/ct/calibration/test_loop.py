@@ -388,6 +388,20 @@ def test_truncation_level_tells_interior_scans_apart():
     assert truncation_level(hot) > TRUNCATED_ABOVE
 
 
+@pytest.mark.parametrize("body_width_mm", [9.0, 40.0])
+def test_truncation_level_reads_the_edges_across_the_axis_of_a_portrait_detector(body_width_mm):
+    """The same rays on a detector turned a quarter (rows along the axis): its first and last rows are the edges an
+    interior scan truncates. Its columns' ends, where a long object leaves the cone, read 0.49 for a mouse that fits."""
+    from robot_ct_ros.ct.calibration.volume import TRUNCATED_ABOVE, truncation_level
+
+    nominal, _, _, li = _small_scan(n_views=8, body_width_mm=body_width_mm, length_mm=30.0)
+    portrait = nominal.replace(u=nominal.v, v=-nominal.u, n_rows=nominal.n_cols, n_cols=nominal.n_rows)
+    lp = np.ascontiguousarray(li[:, :, ::-1].transpose(0, 2, 1))
+    assert truncation_level(lp, geom=portrait) == pytest.approx(truncation_level(li, geom=nominal), rel=1e-6)
+    assert truncation_level(li, geom=nominal) == truncation_level(li)
+    assert (truncation_level(lp, geom=portrait) > 5 * TRUNCATED_ABOVE) == (body_width_mm > 20)
+
+
 def test_prior_keeps_views_whose_data_the_volume_cannot_explain_near_nominal():
     """Registered against a volume of another object, views follow spurious optima by the data
     alone; the posterior keeps them near the nominal geometry, and still moves views whose data
