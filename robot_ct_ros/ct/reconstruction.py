@@ -81,6 +81,7 @@ __all__ = [
     "fdk",
     "fdk_filter_projections",
     "fdk_backproject",
+    "warn_if_empty",
     "fdk_view_weights",
     "displaced_detector_weights",
     "short_scan_weights",
@@ -688,13 +689,19 @@ def fdk(line_integrals: np.ndarray, geom: ConeGeometry, grid: VolumeGrid, *, win
                                        displaced_detector=displaced_detector, short_scan=short_scan,
                                        mu_water_per_mm=mu_water_per_mm)
     vol = fdk_backproject(q, q_geom, grid)
-    if not vol.any() and np.any(q):
+    warn_if_empty(vol, q, geom)
+    return vol
+
+
+def warn_if_empty(vol: np.ndarray, filtered: np.ndarray, geom: ConeGeometry) -> None:
+    """:class:`FDKWarning` where the back-projection of ``filtered`` (not all zero) put nothing into ``vol``: any
+    executor's :func:`fdk` says it alike."""
+    if not vol.any() and np.any(filtered):
         # not an error (a slab beyond the cone's ends is legitimately empty), but nothing of the data is in it
         hint = (": a one-row detector back-projects onto the voxels within half a pixel of its plane, and no voxel "
                 "centre lies there (a grid one slice thick, or an odd number of slices centred on the row, has one)"
                 if geom.n_rows == 1 else ": the grid lies outside every view's cone")
-        warnings.warn(f"FDK put nothing into the grid{hint}", FDKWarning, stacklevel=2)
-    return vol
+        warnings.warn(f"FDK put nothing into the grid{hint}", FDKWarning, stacklevel=3)
 
 
 def resample(volume: np.ndarray, src: VolumeGrid, dst: VolumeGrid) -> np.ndarray:

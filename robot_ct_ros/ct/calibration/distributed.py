@@ -292,8 +292,8 @@ class DaskExecutor:
     def fdk(self, line_integrals, geom: ConeGeometry, grid: VolumeGrid, *, center_mm=None, **kwargs) -> np.ndarray:
         """:func:`~robot_ct_ros.ct.reconstruction.fdk`: the projections filtered here, sent once, and
         back-projected onto slabs of the grid's z planes as tasks."""
-        from robot_ct_ros.ct.reconstruction import scan_centre
         from robot_ct_ros.ct.reconstruction import fdk_filter_motion_rows  # rows along the motion, as fdk
+        from robot_ct_ros.ct.reconstruction import scan_centre, warn_if_empty
 
         if center_mm is None:  # as fdk
             center_mm = scan_centre(geom, kwargs.get("axis"), grid.center_mm)
@@ -305,6 +305,7 @@ class DaskExecutor:
                    for a, b in slabs]
         vol = np.concatenate(self.client.gather(futures), axis=0)
         self.client.cancel([q_f, g_f])
+        warn_if_empty(vol, q, geom)
         return vol
 
     def close(self) -> None:

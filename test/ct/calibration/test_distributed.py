@@ -211,3 +211,15 @@ def test_a_scheduler_address_connects_and_a_worker_address_is_refused():
         worker = next(iter(lc.scheduler_info["workers"]))
         with pytest.raises(SchedulerUnreachable, match="answers as a Dask [Ww]orker, not as a scheduler"):
             DaskExecutor(worker)
+
+
+def test_fdk_on_the_cluster_says_as_fdk_does_when_it_puts_nothing_into_the_grid(cluster):
+    """A grid beyond every view's cone: fdk warns, and the cluster's fdk did not (the same calibration said less on
+    Dask than in process)."""
+    from robot_ct_ros.ct.reconstruction import FDKWarning
+
+    nominal, grid, measured, mask, _ = _scan()
+    far = VolumeGrid.centered(grid.shape_zyx, grid.voxel_size_mm, (0.0, 0.0, 500.0))
+    for run in (fdk, cluster.fdk):
+        with pytest.warns(FDKWarning, match="put nothing into the grid"):
+            assert not run(measured, nominal, far, valid_mask=mask).any()
