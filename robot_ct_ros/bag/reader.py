@@ -664,20 +664,24 @@ def scan_from_raw(raw: RawBag, path, *, keep_raw: bool = False, min_views: int |
 
     causes: list[str] = []  # why frames or geometries were not used: named when too few views are left
     frames, bad_enc, bad_size, empty = [], 0, 0, 0
+    dropped_stamps = set()  # frames dropped above: their geometries are not "without a frame"
     for _, msg in _decode(raw, fmt.TOPIC_PROJECTION, fmt.IMAGE, warnings):
         try:
             arr = fmt.array_from_image(msg, fmt.READ_ENCODINGS)
         except ValueError as exc:
+            dropped_stamps.add(fmt.stamp_to_ns(msg.header.stamp))
             bad_enc += 1
             enc_reason = str(exc)
             continue
         if arr.shape != shape:
+            dropped_stamps.add(fmt.stamp_to_ns(msg.header.stamp))
             bad_size += 1
             size_seen = arr.shape
             continue
         with np.errstate(invalid="ignore"):
             usable = np.isfinite(arr) & (arr > 0 if info["projection_units"] == "counts" else True)
         if not usable.any():  # a frame with nothing in it is no view: kept, it would weigh as one
+            dropped_stamps.add(fmt.stamp_to_ns(msg.header.stamp))
             empty += 1
             continue
         frames.append((fmt.stamp_to_ns(msg.header.stamp), arr))
@@ -712,7 +716,8 @@ def scan_from_raw(raw: RawBag, path, *, keep_raw: bool = False, min_views: int |
     causes.extend(warnings[n_warn:])
 
     paired = sorted(set(frames) & set(geoms))
-    lone_frames, lone_geoms = len(frames) - len(paired), len(geoms) - len(paired)
+    lone_frames = len(frames) - len(paired)
+    lone_geoms = len(set(geoms) - set(frames) - dropped_stamps - rejected)  # not those whose frame was dropped
     if lone_frames:
         warnings.append(f"{lone_frames} frames have no geometry with the same stamp and are not used")
     if lone_geoms:

@@ -69,17 +69,23 @@ def voxel_size_note(scan: ScanData, grid: VolumeGrid, voxel_mm=None, shape_xyz=N
     detector pixel at the isocentre: pitch / magnification at the scan centre), and then when the voxels are more
     than :data:`MAX_VOXEL_PER_PIXEL` times that pixel, or, for a voxel size given (``voxel_mm``) on a grid sized by
     the scan (no ``shape_xyz``), when fewer than :data:`MIN_VOXELS_PER_AXIS` lie along an axis the detector
-    resolves (x, y across the scan axis: its columns; z along it: its rows). ``option``: the command-line option
-    that set the voxel, named in the advice (None: none to name). A note, not a refusal."""
+    resolves (x, y across the scan axis: its columns; z along it: its rows). Whatever the unit, a voxel size given
+    on a grid sized by the scan that leaves one voxel along such an axis gets a note too. ``option``: the
+    command-line option that set the voxel, named in the advice (None: none to name). A note, not a refusal."""
     g = scan.geom
     pixel_mm = min(g.row_pitch_mm, g.col_pitch_mm) / float(np.median(g.magnification(scan.scan_center_mm())))
     grid_voxel_mm = float(max(grid.voxel_size_mm))
     read_as_um_mm = grid_voxel_mm / 1000.0
     low, high = MICROMETRE_READING_PER_PIXEL
-    if not low * pixel_mm <= read_as_um_mm <= high * pixel_mm:
-        return None
     nx, ny, nz = grid.shape_zyx[::-1]
     resolved = [n for n, pixels in ((nx, g.n_cols), (ny, g.n_cols), (nz, g.n_rows)) if pixels >= MIN_VOXELS_PER_AXIS]
+    if not low * pixel_mm <= read_as_um_mm <= high * pixel_mm:
+        if voxel_mm is not None and shape_xyz is None and any(n == 1 for n in resolved):
+            # whatever the unit: a single voxel across what the detector resolves is no image
+            return (f"voxels of {grid_voxel_mm:g} mm make a grid of {nx} x {ny} x {nz}: one voxel across what the "
+                    f"detector resolves ({grid_voxel_mm / pixel_mm:.0f} times its pixel at the isocentre, "
+                    f"{pixel_mm * 1000:.1f} um)" + (f"; is {option} {voxel_mm:g} meant?" if option else ""))
+        return None
     coarse = grid_voxel_mm > MAX_VOXEL_PER_PIXEL * pixel_mm
     few = voxel_mm is not None and shape_xyz is None and any(n < MIN_VOXELS_PER_AXIS for n in resolved)
     if not (coarse or few):

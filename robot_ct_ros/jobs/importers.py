@@ -243,29 +243,36 @@ def check_not_parallel(vectors, source) -> None:
                          "scan bag describes cone and fan beams only")
 
 
-def astra_geometry(vectors, n_rows: int, n_cols: int, row_pitch_mm: float | None = None) -> ConeGeometry:
-    """The :class:`ConeGeometry` of ASTRA ``cone_vec`` (n, 12) or ``fanflat_vec`` (n, 6) rows (module docstring)."""
+def astra_geometry(vectors, n_rows: int, n_cols: int, row_pitch_mm: float | None = None,
+                   source: str = "ASTRA vectors") -> ConeGeometry:
+    """The :class:`ConeGeometry` of ASTRA ``cone_vec`` (n, 12) or ``fanflat_vec`` (n, 6) rows (module docstring).
+    ``source``: what the errors name (the vectors' file)."""
     vec = np.asarray(vectors, dtype=np.float64)
     n = vec.shape[0]
     if vec.shape[1] == 6:
         if n_rows != 1:
-            raise ValueError(f"fanflat_vec describes a one-row detector but the projections have {n_rows} rows")
+            raise ValueError(f"{source}: fanflat_vec describes a one-row detector but the projections have "
+                             f"{n_rows} rows")
         cu = np.linalg.norm(vec[:, 4:6], axis=1)
         if np.any(cu == 0):
-            raise ValueError("fanflat_vec: a zero detector vector u")
-        col_pitch = _check_pitch(cu[0], "the column pitch |u|")
+            raise ValueError(f"{source}: fanflat_vec: a zero detector vector u in view {int(np.argmin(cu))}")
+        col_pitch = _check_pitch(cu[0], f"{source}: the column pitch |u|")
         row_pitch = col_pitch if row_pitch_mm is None else _check_pitch(row_pitch_mm, "--row-pitch-mm")
         z = np.zeros(n)
         vec = np.stack([vec[:, 0], vec[:, 1], z, vec[:, 2], vec[:, 3], z, vec[:, 4], vec[:, 5], z,
                         z, z, np.full(n, row_pitch)], axis=1)
     for k, what in ((6, "column pitch |u|"), (9, "row pitch |v|")):
         p = np.linalg.norm(vec[:, k:k + 3], axis=1)
-        _check_pitch(p.min(), f"the {what}")
-        _check_pitch(p.max(), f"the {what}")
+        for view in (int(np.argmin(p)), int(np.argmax(p))):
+            _check_pitch(p[view], f"{source}: the {what} in view {view}")
+        if np.ptp(p) > 1e-9 * p.max():  # ConeGeometry, as a scan bag, holds one pitch
+            raise ValueError(f"{source}: the {what} varies between views ({p.min():g} mm in view "
+                             f"{int(np.argmin(p))}, {p.max():g} mm in view {int(np.argmax(p))}); a scan bag holds "
+                             "one pitch")
     u, v = vec[:, 6:9], vec[:, 9:12]
     cosang = np.abs(np.einsum("ij,ij->i", u, v)) / (np.linalg.norm(u, axis=1) * np.linalg.norm(v, axis=1))
     if np.any(cosang > 1e-6):
-        raise ValueError(f"ASTRA vectors: u and v are not orthogonal in view {int(np.argmax(cosang))}")
+        raise ValueError(f"{source}: u and v are not orthogonal in view {int(np.argmax(cosang))}")
     return ConeGeometry.from_astra_vec(vec, n_rows, n_cols)
 
 
@@ -445,7 +452,7 @@ def import_astra(projections, vectors, out, *, layout: str = "views-first", row_
     check_view_count(proj.shape[0], proj.shape[0], projections)
     if row_pitch_mm is not None and vec.shape[1] == 12:
         raise ValueError("--row-pitch-mm is for fanflat_vec only; cone_vec's v holds the row pitch")
-    geom = astra_geometry(vec, proj.shape[1], proj.shape[2], row_pitch_mm)
+    geom = astra_geometry(vec, proj.shape[1], proj.shape[2], row_pitch_mm, source=f"ASTRA vectors {vectors}")
     check_plausible(geom, vectors, say)
     notes = {"generator": "robot-ct import astra", "projections": Path(projections).name, "layout": layout,
              "geometry": f"{Path(vectors).name} (ASTRA {'cone_vec' if vec.shape[1] == 12 else 'fanflat_vec'})"}

@@ -166,6 +166,18 @@ def test_wrong_size_frames_and_unpaired_messages_are_reported(tmp_path, tiny_sca
     assert "stamp already seen" in text and "12 views" in text
 
 
+def test_a_dropped_frame_s_geometry_is_not_reported_as_one_without_a_frame(tmp_path, tiny_scan):
+    """An all-NaN frame is dropped and said so; its geometry has a frame with its stamp, and was not also reported as
+    "without a frame" (an outside tester's misleading third warning)."""
+    geom, frames, flat, _ = tiny_scan
+    bad = frames.copy()
+    bad[7] = np.nan
+    scan = read_scan(_custom_bag(tmp_path / "nanframe", geom, bad, flat))
+    text = " | ".join(scan.warnings)
+    assert scan.n_views == 11 and "1 frames dropped: not one pixel holds" in text
+    assert "no frame with the same stamp" not in text, text
+
+
 def test_clear_errors_for_unusable_scans(tmp_path, tiny_scan):
     geom, frames, flat, _ = tiny_scan
     with pytest.raises(ScanBagError, match="no /ct/flat_field"):

@@ -132,6 +132,16 @@ def test_import_errors_are_one_line(tmp_path, capsys):
     np.savetxt(tmp_path / "vm.txt", g.to_astra_vec() * 1e-3)  # metres
     assert run("--projections", p, "--vectors", str(tmp_path / "vm.txt")) == 2
     _one_line_error(capsys, "give millimetres")
+    # a zero u, and a pitch that changes between views: the file and the view named
+    zero_u, varies = g.to_astra_vec(), g.to_astra_vec()
+    zero_u[5, 6:9] = 0.0
+    varies[7, 9:12] *= 1.01
+    np.savetxt(tmp_path / "vu0.txt", zero_u)
+    np.savetxt(tmp_path / "vpv.txt", varies)
+    assert run("--projections", p, "--vectors", str(tmp_path / "vu0.txt")) == 2
+    _one_line_error(capsys, "vu0.txt", "column pitch |u| in view 5 must be positive")
+    assert run("--projections", p, "--vectors", str(tmp_path / "vpv.txt")) == 2
+    _one_line_error(capsys, "vpv.txt", "row pitch |v| varies between views", "in view 7")
     assert run("--projections", str(tmp_path / "missing.npy"), "--vectors", v) == 2
     _one_line_error(capsys, "cannot access", "missing.npy")
     assert run("--projections", p, "--vectors", str(tmp_path / "missing.txt")) == 2

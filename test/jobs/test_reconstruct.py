@@ -62,3 +62,12 @@ def test_a_coarser_voxel_or_a_small_grid_asked_for_is_no_wrong_unit(bag, tmp_pat
     --voxel-mm 0.002."""
     report, _ = _run(bag, tmp_path / "r", voxel_mm=voxel_mm, shape_xyz=shape_xyz)
     assert not any("wrong unit" in n for n in report["notes"]), report["notes"]
+
+
+def test_a_voxel_that_leaves_one_voxel_across_the_detector_is_noted_whatever_the_unit(bag, tmp_path):
+    """20 mm voxels on a scan whose pixel at the isocentre is 0.32 mm read as 20 um, 1/16 of a pixel: no unit to
+    suspect, and the 1 x 1 x 1 grid went without a word (an outside tester)."""
+    report, said = _run(bag, tmp_path / "r", voxel_mm=20.0)
+    notes = [n for n in report["notes"] if "one voxel across" in n]
+    assert len(notes) == 1 and "1 x 1 x 1" in notes[0] and "wrong unit" not in notes[0], report["notes"]
+    assert any(notes[0] in line for line in said)
