@@ -42,8 +42,7 @@ class ScanCollector:
         self.latched[topic] = (fmt.TOPIC_TYPES[topic], data)
         if topic == fmt.TOPIC_SCAN_INFO:
             try:
-                info = json.loads(fmt.deserialize(data, fmt.STRING).data)
-                self.scan_id = str((info.get("notes") or {}).get("scan_id", "")) if isinstance(info, dict) else ""
+                self.scan_id = fmt.scan_id_of(json.loads(fmt.deserialize(data, fmt.STRING).data))
             except (ValueError, AttributeError):
                 self.scan_id = ""
         return new_scan

@@ -271,6 +271,12 @@ def scan_info_from_msg(msg) -> dict:
     return validate_scan_info(info)
 
 
+def scan_id_of(info) -> str:
+    """The scan's id a parsed /ct/scan_info names (``notes.scan_id``, the scan_sequencer's), "" when it names none."""
+    notes = info.get("notes") if isinstance(info, dict) else None
+    return str(notes.get("scan_id", "")) if isinstance(notes, dict) else ""
+
+
 def info_mm(info: dict, key: str):
     """An optional 3-vector of the scan info converted to mm (None when absent)."""
     v = _vec3(info, key)

@@ -208,13 +208,16 @@ class ReconServiceNode(Node):
         if self.running:
             return False, f"a run is in progress ({self.message})"
         try:
-            if self.service.bag_path and not partial:
+            if self.service.bag_path and not partial:  # the bag's scan: its id is the job's to read
                 out, bag, n = self.output_dir, Path(self.service.bag_path), None
+                scan_id, warnings = None, None
             else:
                 out = self.output_dir / f"partial_{self.n_paired:04d}" if partial else self.output_dir
                 refuse_other_job(out, "calibrate", "output_dir")  # before the scan is written there, as the job would
                 refuse_another_bags_folder(out, "scan", "output_dir")
                 bag, n = self.scan.write_bag(out / "scan")
+                # the scan as written, taken here: the collection is the executor's, and a new scan resets it
+                scan_id, warnings = self.scan.scan_id, list(notes) + self.scan.warnings
         except (ValueError, OSError) as exc:
             return False, f"cannot run: {exc}"
         self.runs += 1
@@ -225,7 +228,7 @@ class ReconServiceNode(Node):
         self.state, self.error, self._t_run = "running", "", time.monotonic()
         self.message = f"run {self.runs}: {f'{n} views' if n is not None else f'bag {bag}'}, {self.method}"
         self._progress("start", self.message, self.runs, n)
-        self._worker = threading.Thread(target=self._job, args=(self.runs, bag, out, n, partial, list(notes)),
+        self._worker = threading.Thread(target=self._job, args=(self.runs, bag, out, n, partial, scan_id, warnings),
                                         name="recon", daemon=True)
         self._worker.start()
         # the view count of a bag given by path is known once the job has read it (recon/progress, the report)
@@ -244,7 +247,10 @@ class ReconServiceNode(Node):
         except Exception:  # noqa: BLE001 - shutting down
             pass
 
-    def _job(self, run: int, bag: Path, out: Path, n, partial: bool, notes: list) -> None:
+    def _job(self, run: int, bag: Path, out: Path, n, partial: bool, scan_id, warnings) -> None:
+        """The correction of ``bag`` on the worker thread, which never reads the collection (the executor feeds it).
+        ``scan_id`` and ``warnings`` (the run's notes, then what the collection dropped): the collected scan's, taken
+        when the run started; None for a bag given by path (its own id; its reader's warnings are the job's)."""
         from robot_ct_ros.jobs.calibrate import calibrate_bag
         from robot_ct_ros.jobs.output import write_json
 
@@ -256,10 +262,12 @@ class ReconServiceNode(Node):
                                        shape_xyz=self.service.shape_xyz,
                                        evaluate_truth=self.service.evaluate_truth, markdown=True, say=say,
                                        options="ROS parameters")
-            report = correction.report | {"partial": partial, "scan_id": self.scan.scan_id, "run": run}
-            if not self.service.bag_path or partial:  # the scan as received: what the collection dropped
-                report["bag_warnings"] = notes + list(self.scan.warnings) + list(report.get("bag_warnings", []))
-                for warning in notes + list(self.scan.warnings):
+            if scan_id is None:
+                scan_id = fmt.scan_id_of(correction.scan.info)
+            report = correction.report | {"partial": partial, "scan_id": scan_id, "run": run}
+            if warnings is not None:  # the scan as received: what the collection dropped
+                report["bag_warnings"] = warnings + list(report.get("bag_warnings", []))
+                for warning in warnings:
                     self.get_logger().warning(warning)
             if self.stream is not None:
                 report["live"] = self.stream.summary()

@@ -341,3 +341,53 @@ def test_automatic_runs_say_what_they_lacked_and_report_json_holds_what_recon_re
     answer = ros.call(run, Trigger.Request())
     assert not answer.success and "another bag" in answer.message and "output_dir" in answer.message, answer.message
     assert not (out / "scan").exists()  # refused before the collected scan was written there
+
+
+def _feed(recon, bag, scan_id: str) -> None:
+    """``bag``'s messages handed to ``recon``'s collection as the executor would, its scan_info naming ``scan_id``."""
+    from robot_ct_ros.bag.reader import read_raw_messages
+
+    for m in read_raw_messages(bag).messages:
+        if m.topic == fmt.TOPIC_SCAN_INFO:
+            info = json.loads(fmt.deserialize(m.data, fmt.STRING).data)
+            info["notes"] = (info.get("notes") or {}) | {"scan_id": scan_id}
+            data = fmt.serialize(fmt.typestore().types[fmt.STRING](data=json.dumps(info)), fmt.STRING)
+            recon._on_latched(m.topic, data)
+        elif m.topic in fmt.LATCHED_TOPICS:
+            recon._on_latched(m.topic, m.data)
+        else:
+            recon._on_frame(m.topic, m.data)
+
+
+def test_a_runs_report_names_the_scan_it_corrected_not_the_collection_at_its_end(ros, tmp_path, monkeypatch):
+    """Review B6: the worker thread read the collection's scan_id and warnings at the end of a run, by when the next
+    scan may have reset it; with bag_path the report named the collection's scan, not the bag's."""
+    import threading
+
+    from robot_ct_ros.jobs import calibrate
+
+    bag, release = _bag(tmp_path), threading.Event()
+    real = calibrate.calibrate_bag
+    monkeypatch.setattr(calibrate, "calibrate_bag", lambda *a, **k: release.wait(30.0) and real(*a, **k))
+    recon = ros.add(ReconServiceNode(context=ros.context, parameter_overrides=_params(
+        output_dir=str(tmp_path / "topics"), method="none", auto_run=False, evaluate_truth=False)))
+    _feed(recon, bag, "first")
+    assert recon.scan.scan_id == "first" and recon.n_paired == N and not recon.scan.warnings
+    assert recon.start_run()[0]
+    _feed(recon, bag, "second")  # the next scan arrives during the run, a frame twice
+    recon._on_frame(fmt.TOPIC_PROJECTION, recon.scan.per_frame[fmt.TOPIC_PROJECTION][min(recon.scan.per_frame[
+        fmt.TOPIC_PROJECTION])])
+    assert recon.scan.scan_id == "second" and recon.scan.warnings
+    release.set()
+    assert ros.spin_until(lambda: recon.done, timeout_s=60.0) and recon.state == "done", recon.error
+    assert recon.report["scan_id"] == "first" and recon.report["bag_warnings"] == [], recon.report
+
+    # with bag_path the bag's own scan is corrected: the report names it (the scan written above names "first")
+    by_path = ros.add(ReconServiceNode("recon_by_path", context=ros.context, namespace="by_path",
+                                       parameter_overrides=_params(output_dir=str(tmp_path / "by_path"), method="none",
+                                                                   bag_path=str(tmp_path / "topics" / "scan"),
+                                                                   auto_run=False, evaluate_truth=False)))
+    _feed(by_path, bag, "collected")
+    assert by_path.start_run()[0]
+    assert ros.spin_until(lambda: by_path.done, timeout_s=60.0) and by_path.state == "done", by_path.error
+    assert by_path.report["scan_id"] == "first", by_path.report["scan_id"]
