@@ -12,7 +12,8 @@ Parameters
   many subscribers), method ("" = no offline job; "none" = reconstruct only; else a calibration
   method, robot_ct_ros.ct.calibration.registry), the other calibration settings
   (robot_ct_ros.ct.calibration.CalibrationSettings: iterations, prior_sigma_translation_m, ...),
-  output_dir (corrected bag, volume .npy/.tif and report.json, as ``robot-ct calibrate``),
+  output_dir (corrected bag, volume .npy/.tif and report.json, as ``robot-ct calibrate``; with a method,
+  refused at start if it cannot be written),
   exit_when_done (end the node when all is done, exit status 1 if the job failed; default: spin on).
 """
 
@@ -32,7 +33,7 @@ from robot_ct_ros.bag import format as fmt
 from robot_ct_ros.bag.reader import read_raw_messages
 from robot_ct_ros.ct.calibration import CalibrationSettings
 from robot_ct_ros.bag.format import ScanBagError
-from robot_ct_ros.nodes.common import declare_settings, run_settings_node
+from robot_ct_ros.nodes.common import declare_settings, run_settings_node, writable_dir
 from robot_ct_ros.parameters import setting, validate
 from robot_ct_ros.nodes.recorder import LATCHED, message_class
 
@@ -93,7 +94,9 @@ class ReplayNode(Node):
         self.settings = declare_settings(self, CalibrationSettings, exclude=("method",))
         if self.method:
             self.settings = self.settings.replace(method=self.method)
-        self.output_dir = Path(rs.output_dir).expanduser().resolve()
+        # with a job, refused at start if it cannot be written (not after republishing the whole bag)
+        self.output_dir = (writable_dir(rs.output_dir, "output_dir") if self.method
+                           else Path(rs.output_dir).expanduser().resolve())
         try:
             raw = read_raw_messages(self.bag_path)
         except ScanBagError as exc:

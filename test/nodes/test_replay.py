@@ -82,7 +82,8 @@ def test_frame_groups_end_with_a_projection():
 
 def test_exit_when_done_ends_the_executable_with_the_jobs_status(tmp_path):
     """Run as an offline tool (``ros2 run robot_ct_ros replay ... exit_when_done:=true``) the node ends once the
-    job is done: exit 0 with the report written, 1 when the job failed (here: the output place is a file)."""
+    job is done: exit 0 with the report written, 1 when the job failed (here: the output folder holds the results
+    of another job; an output place that cannot be written is refused at start)."""
     import os
     import subprocess
     import sys
@@ -92,15 +93,17 @@ def test_exit_when_done_ends_the_executable_with_the_jobs_status(tmp_path):
     repo = Path(__file__).resolve().parents[2]
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_DOMAIN_ID=str(150 + os.getpid() % 50),
                PYTHONPATH=str(repo))
-    (tmp_path / "a_file").write_text("not a folder")
-    for out, status in ((tmp_path / "out", 0), (tmp_path / "a_file" / "out", 1)):
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "report.json").write_text(json.dumps({"job": "reconstruct"}))
+    for out, status in ((tmp_path / "out", 0), (tmp_path / "other", 1)):
         proc = subprocess.run([sys.executable, "-m", "robot_ct_ros.nodes.replay", "--ros-args", "-p",
                                f"bag_path:={bag}", "-p", "rate_hz:=0.0", "-p", "method:=none", "-p",
                                f"output_dir:={out}", "-p", "exit_when_done:=true"],
                               capture_output=True, text=True, env=env, timeout=120)
         assert proc.returncode == status, proc.stderr[-2000:]
         assert "exiting (exit_when_done)" in proc.stderr, proc.stderr[-2000:]
-        assert (out / "report.json").exists() == (status == 0)
+        assert json.loads((out / "report.json").read_text()).get("job") == ("calibrate" if status == 0 else
+                                                                            "reconstruct")
 
 
 def test_an_exiting_replay_delivers_its_report_to_the_subscriber_waiting_for_it(ros, tmp_path):
@@ -162,3 +165,18 @@ def test_the_beam_state_reaches_transient_local_subscribers_from_a_replayed_bag(
         bag_path=str(tmp_path / "scan"), rate_hz=100.0, wait_for_subscribers=1)))
     assert ros.spin_until(lambda: node.done and len(got_frames) == N and beam and beam[-1] is False, timeout_s=20.0)
     assert beam[0] is True
+
+
+def test_an_unwritable_output_dir_is_refused_at_start_when_a_job_will_write_there(ros, tmp_path):
+    """Review N3: replay failed on an output_dir it cannot write only after republishing the whole bag; the node
+    refuses it at start, as recon_service does, when it has a job (method) to run; without one it is not used."""
+    import pytest
+
+    bag = _bag(tmp_path)[0]
+    (tmp_path / "a_file").write_text("not a folder")
+    with pytest.raises(ValueError, match="parameter output_dir"):
+        ReplayNode(context=ros.context, parameter_overrides=_params(
+            bag_path=str(bag), rate_hz=100.0, method="none", output_dir=str(tmp_path / "a_file" / "out")))
+    node = ros.add(ReplayNode(context=ros.context, parameter_overrides=_params(
+        bag_path=str(bag), rate_hz=0.0, output_dir=str(tmp_path / "a_file" / "out"))))
+    assert node.done and node.error is None
