@@ -65,3 +65,23 @@ def test_the_demo_replaces_only_its_own_outputs(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["demo", "--views", "3"])  # a bag with fewer than 4 views is no scan: refused before any work
     assert "at least 4 views" in capsys.readouterr().err
+
+
+def test_the_exterior_reach_is_measured_across_the_protocols_scan_axis(monkeypatch):
+    """Review N4: the reach was the phantom's extent along x and y whatever the protocol's axis; it is its extent
+    across the axis, in the ROI grid's frame (geometry.axis_frame), the one the exterior grid is cut in."""
+    from robot_ct_ros.ct.geometry import axis_frame
+    from robot_ct_ros.hardware.detector import make_phantom
+    from robot_ct_ros.testing import demo
+
+    s = demo.demo_settings(truncated=True)
+    setup = demo.demo_setup
+    protocol, grabber = setup(s)
+    centre_mm = 1000.0 * (np.asarray(grabber["sim_phantom_center_m"]) - np.asarray(protocol["roi_center_m"]))
+    lo, hi = make_phantom(s["phantom"], centre_mm).bounds_mm()
+    corners = np.array([[(lo, hi)[k >> i & 1][i] for i in range(3)] for k in range(8)])
+    for axis in ([0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 0.6, 0.8]):
+        monkeypatch.setattr(demo, "demo_setup", lambda s, axis=axis: ({**setup(s)[0], "axis": axis}, setup(s)[1]))
+        expected = np.max(np.abs(corners @ axis_frame(axis))[:, :2])
+        assert demo.recon_parameters(s)["exterior_half_width_mm"] == pytest.approx(expected), axis
+    assert expected != pytest.approx(np.max(np.abs(corners)[:, :2]))  # the axes differ in what they give

@@ -90,6 +90,7 @@ def recon_parameters(s: dict) -> dict:
     0.1 mm, the prior understates the source's error across the beam by 31 %, close to the
     guard's tolerance (docs/calibration.md §4, "Use"). The calibration's own default (0.3 mm,
     0.3 deg) is for robots whose accuracy nobody measured."""
+    from robot_ct_ros.ct.geometry import axis_frame
     from robot_ct_ros.ct.hand_eye import HandEye, device_position_sigma_mm
 
     hand_eye = HandEye.from_dict(_config_hand_eye())
@@ -105,11 +106,14 @@ def recon_parameters(s: dict) -> dict:
         params["iterations"] = s["iterations"]
     if s["truncated"]:
         # the whole phantom lies around the ROI: model it (docs/calibration.md, "The exterior model"),
-        # out to its far side across the scan axis (z), as a user who knows the object would
+        # out to its far side across the scan axis, as a user who knows the object would: the phantom's box
+        # in the ROI grid's frame (z along the protocol's axis), where the exterior grid is cut
         protocol, grabber = demo_setup(s)
         centre_mm = 1000.0 * (np.asarray(grabber["sim_phantom_center_m"]) - np.asarray(protocol["roi_center_m"]))
         lo, hi = make_phantom(s["phantom"], centre_mm).bounds_mm()
-        params.update(exterior="on", exterior_half_width_mm=float(np.max(np.maximum(-lo[:2], hi[:2]))))
+        corners = np.array([[(lo, hi)[k >> i & 1][i] for i in range(3)] for k in range(8)])
+        across = np.abs(corners @ axis_frame(protocol["axis"]))[:, :2]
+        params.update(exterior="on", exterior_half_width_mm=float(np.max(across)))
     return params
 
 
