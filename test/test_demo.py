@@ -40,7 +40,7 @@ def test_a_truncated_demo_models_the_phantom_around_the_roi():
     truncated = recon_parameters(demo_settings(truncated=True))
     assert truncated["exterior"] == "on"
     # the 25 mm wide mouse, its spine (6.6 mm off its centre) in the ROI: its far side 17 mm away
-    assert truncated["exterior_half_width_mm"] == pytest.approx(17.0, abs=0.1)
+    assert truncated["exterior_half_width_m"] == pytest.approx(0.017, abs=1e-4)  # a ROS parameter: SI
     assert "exterior" not in recon_parameters(demo_settings())
 
 
@@ -83,5 +83,5 @@ def test_the_exterior_reach_is_measured_across_the_protocols_scan_axis(monkeypat
     for axis in ([0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 0.6, 0.8]):
         monkeypatch.setattr(demo, "demo_setup", lambda s, axis=axis: ({**setup(s)[0], "axis": axis}, setup(s)[1]))
         expected = np.max(np.abs(corners @ axis_frame(axis))[:, :2])
-        assert demo.recon_parameters(s)["exterior_half_width_mm"] == pytest.approx(expected), axis
+        assert demo.recon_parameters(s)["exterior_half_width_m"] == pytest.approx(expected * 1e-3), axis
     assert expected != pytest.approx(np.max(np.abs(corners)[:, :2]))  # the axes differ in what they give

@@ -113,7 +113,7 @@ def recon_parameters(s: dict) -> dict:
         lo, hi = make_phantom(s["phantom"], centre_mm).bounds_mm()
         corners = np.array([[(lo, hi)[k >> i & 1][i] for i in range(3)] for k in range(8)])
         across = np.abs(corners @ axis_frame(protocol["axis"]))[:, :2]
-        params.update(exterior="on", exterior_half_width_mm=float(np.max(across)))
+        params.update(exterior="on", exterior_half_width_m=float(np.max(across)) * 1e-3)
     return params
 
 

@@ -200,6 +200,14 @@ def test_prior_parameters_are_si_and_zero_turns_the_prior_off(ros, tmp_path):
     assert off.prior_sigma is None
 
 
+def test_the_exterior_grids_lengths_are_parameters_in_metres(ros, tmp_path):
+    """Review I4: exterior_voxel_mm and exterior_half_width_mm were ROS parameters in mm; they are in metres."""
+    node = ros.add(ReconServiceNode("recon_exterior", context=ros.context, parameter_overrides=_params(
+        output_dir=str(tmp_path / "a"), auto_run=False, exterior_voxel_m=0.001, exterior_half_width_m=0.03)))
+    assert node.settings.exterior_voxel_mm == 1.0 and node.settings.exterior_half_width_mm == 30.0
+    assert node.get_parameter("exterior_voxel_m").value == 0.001 and not node.has_parameter("exterior_voxel_mm")
+
+
 def test_drift_order_parameter_is_off_by_default_and_passes_a_degree(ros, tmp_path):
     default = ros.add(ReconServiceNode("recon_nodrift", context=ros.context, parameter_overrides=_params(
         output_dir=str(tmp_path / "a"), auto_run=False)))

@@ -182,14 +182,16 @@ class CalibrationSettings:
                                           maximum=1.0, ros_none=-1.0, kind=float)
     exterior: str = setting("auto", "model the object outside the ROI with a coarse grid reconstructed with it (strongly "
                             "truncated interior scans); auto: when the truncation level exceeds "
-                            "calibration.volume.EXTERIOR_ABOVE and the object's reach is stated (exterior_half_width_mm) "
-                            "or guessed (exterior_reach_guess)",
+                            "calibration.volume.EXTERIOR_ABOVE and the object's reach is stated "
+                            "(exterior_half_width_mm; on ROS exterior_half_width_m) or guessed (exterior_reach_guess)",
                             choices=EXTERIOR_MODES)
-    exterior_voxel_mm: float = setting(0.5, "voxel of the exterior grid", unit="mm", minimum=0.01, maximum=10.0)
+    exterior_voxel_mm: float = setting(0.5, "voxel of the exterior grid", unit="mm", minimum=0.01, maximum=10.0,
+                                       ros_name="exterior_voxel_m", ros_scale=1e-3, ros_unit="m")
     exterior_half_width_mm: float = setting(0.0, "how far the object reaches from the ROI centre across the scan axis, "
                                             "the exterior grid's reach (0: not stated; see exterior_reach_guess)",
-                                            unit="mm", minimum=0.0)
-    exterior_reach_guess: bool = setting(True, "where exterior_half_width_mm is not stated and the exterior is modelled "
+                                            unit="mm", minimum=0.0, ros_name="exterior_half_width_m", ros_scale=1e-3,
+                                            ros_unit="m")
+    exterior_reach_guess: bool = setting(True, "where the object's reach is not stated and the exterior is modelled "
                                          "(on, or auto on a strongly truncated scan), the reach whose model best "
                                          "predicts views it was not built from; off: on reaches up to the sources and "
                                          "auto keeps the ROI model")

@@ -54,6 +54,17 @@ def test_ros_parameters_are_si_and_round_trip():
         from_ros_values(CalibrationSettings, {"iterations": 1.5})
 
 
+def test_lengths_cross_the_ros_boundary_in_metres():
+    """Review I4: the exterior grid's voxel and reach were ROS parameters in mm (exterior_voxel_mm); at ROS
+    interfaces lengths are in metres (the design's SI rule), as the prior's are. The core and the CLI keep mm."""
+    units = {s.ros_name: s.ros_unit for s in specs(CalibrationSettings) if s.ros}
+    assert not [n for n, u in units.items() if u in ("mm", "um", "deg") or n.endswith(("_mm", "_um", "_deg"))], units
+    ros = ros_defaults(CalibrationSettings)
+    assert ros["exterior_voxel_m"] == pytest.approx(0.5e-3) and ros["exterior_half_width_m"] == 0.0
+    s = from_ros_values(CalibrationSettings, {"exterior_voxel_m": 0.001, "exterior_half_width_m": 0.03})
+    assert s.exterior_voxel_mm == 1.0 and s.exterior_half_width_mm == 30.0
+
+
 def test_the_auto_schedule_runs_exterior_with_the_exterior_model_and_accurate_without():
     s = CalibrationSettings()
     assert s.schedule == "auto" and s.iterations is None and s.stop_ncc_gain is None and s.exterior_iterations is None
