@@ -46,6 +46,7 @@ from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Bool, Header
 
+from robot_ct_ros.bag import format as fmt
 from robot_ct_ros.hardware.arm import ArmError, ArmRunner, ArmSettings, ArmWatch, arm_health
 from robot_ct_ros.hardware.arms import make_arm
 from robot_ct_ros.hardware.connection import BackgroundConnection
@@ -56,7 +57,6 @@ from robot_ct_ros.nodes.common import (LifecycleSettings, WorkerFaults, declare_
 from robot_ct_ros.nodes.hand_eye_params import pose_msg_to_ur, ur_to_pose_msg  # noqa: F401 - re-exported
 from robot_ct_ros.parameters import setting, validate
 
-TOPIC_DIAGNOSTICS = "/diagnostics"
 
 __all__ = ["ArmDriverNode", "ArmDriverSettings", "pose_msg_to_ur", "ur_to_pose_msg", "main"]
 
@@ -96,7 +96,7 @@ class ArmDriverNode(LifecycleNode):
         self.pose_pub = self.create_publisher(PoseStamped, f"{ns}/tool_pose", 10)
         self.true_pose_pub = self.create_publisher(PoseStamped, f"{ns}/true_tool_pose", 10)
         self.in_position_pub = self.create_publisher(Bool, f"{ns}/in_position", 10)
-        self.diag_pub = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS, 10)
+        self.diag_pub = self.create_publisher(DiagnosticArray, fmt.TOPIC_DIAGNOSTICS, 10)
         self.create_subscription(PoseStamped, f"{ns}/goal_pose", self._on_goal, 10)
         self.create_timer(1.0, self._publish_diagnostics)
 

@@ -1,4 +1,4 @@
-"""What every node executable shares: argument handling, spinning and clean shutdown."""
+"""What every node executable shares: argument handling, spinning and clean shutdown, the topics' QoS."""
 
 from __future__ import annotations
 
@@ -7,6 +7,10 @@ import os
 import sys
 from pathlib import Path
 from typing import Callable
+
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from robot_ct_ros.bag import format as fmt
 
 
 def run_node(node_factory: Callable[[], "object"], description: str, argv: list[str] | None = None) -> int:
@@ -95,6 +99,23 @@ def warn_undeclared_parameters(node) -> list[str]:
         node.get_logger().warning(f"{len(unknown)} parameter(s) that {node.get_name()} does not have, ignored: "
                                   + ", ".join(hints))
     return unknown
+
+
+def topic_qos(topic: str, depth: int | None = None) -> QoSProfile:
+    """The rclpy QoS profile of ``topic`` as the topic contract states it: bag.format.offered_qos, what a bag records
+    as offered (history, depth, reliability, durability; deadlines and liveliness stay rclpy's defaults). ``depth``:
+    another history depth, for a subscriber that keeps more than the publisher offers."""
+    q = fmt.offered_qos(topic)
+    return QoSProfile(history=HistoryPolicy[q.history.name], depth=q.depth if depth is None else int(depth),
+                      reliability=ReliabilityPolicy[q.reliability.name],
+                      durability=DurabilityPolicy[q.durability.name])
+
+
+LATCHED = topic_qos(fmt.TOPIC_SCAN_INFO)
+"""The latched and state topics' profile (reliable, transient-local, keep-last 1); the nodes' own latched outputs
+(reports, slices, scan/status, scan/armed) take it too."""
+STREAM = topic_qos(fmt.TOPIC_PROJECTION)
+"""The frame and geometry streams' profile (reliable, volatile, keep-last 100)."""
 
 
 def writable_dir(path, parameter: str) -> Path:

@@ -24,20 +24,18 @@ from collections import deque
 from dataclasses import dataclass
 
 from rclpy.node import Node
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseArray, PoseStamped
 from sensor_msgs.msg import Image
 
 from robot_ct_ros.bag import format as fmt
 from robot_ct_ros.ct.hand_eye import geometry_from_tool_poses
-from robot_ct_ros.nodes.common import declare_settings, publish_diagnostic, run_settings_node
+from robot_ct_ros.nodes.common import STREAM, declare_settings, publish_diagnostic, run_settings_node
 from robot_ct_ros.nodes.hand_eye_params import check_pose, declare_hand_eye, pose_to_matrix_mm, stamp_to_ns
 from robot_ct_ros.parameters import setting, validate
 
 __all__ = ["GeometryPublisherNode", "GeometryPublisherSettings", "STREAM", "ROLES", "main"]
 
-STREAM = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
 ROLES = ("source", "detector")
 
 

@@ -48,7 +48,6 @@ import json
 import time
 
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseArray, PoseStamped
 from sensor_msgs.msg import Image
@@ -59,15 +58,13 @@ from robot_ct_ros.bag import format as fmt
 from robot_ct_ros.hardware.detector import (DetectorError, DetectorSettings, Frame, SimulatedDetectorSettings,
                                             TruePoses, make_detector)
 from robot_ct_ros.hardware.exposure import BeamLog, ExposureGate, frame_usable
-from robot_ct_ros.nodes.common import (LifecycleSettings, ServiceThread, WorkerFaults, declare_settings,
-                                      error_transition, publish_diagnostic, refuse_unavailable_transitions,
-                                      run_settings_node, transition_result)
+from robot_ct_ros.nodes.common import (LATCHED, STREAM, LifecycleSettings, ServiceThread, WorkerFaults,
+                                      declare_settings, error_transition, publish_diagnostic,
+                                      refuse_unavailable_transitions, run_settings_node, transition_result)
 from robot_ct_ros.nodes.hand_eye_params import declare_hand_eye, pose_to_matrix_mm, stamp_to_ns
 
 __all__ = ["PcdGrabberNode", "LATCHED", "STREAM", "main"]
 
-LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
-STREAM = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
 
 
 class PcdGrabberNode(LifecycleNode):

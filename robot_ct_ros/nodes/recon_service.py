@@ -26,7 +26,6 @@ from pathlib import Path
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseArray
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
@@ -36,12 +35,11 @@ from robot_ct_ros.bag.collector import PER_FRAME, ScanCollector
 from robot_ct_ros.ct.calibration import CalibrationSettings
 from robot_ct_ros.jobs.online import RunPlanner, ServiceSettings
 from robot_ct_ros.jobs.streaming import StreamingCorrector, mid_slices
-from robot_ct_ros.nodes.common import declare_settings, publish_diagnostic, run_settings_node, writable_dir
+from robot_ct_ros.nodes.common import (LATCHED, STREAM, declare_settings, publish_diagnostic, run_settings_node,
+                                       topic_qos, writable_dir)
 from robot_ct_ros.nodes.recorder import message_class
 
-LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
-STREAM = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
-STATUS = QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
+STATUS = topic_qos(fmt.TOPIC_SCAN_INFO, depth=10)  # scan/status: latched as the scan's own topics are; 10 kept
 SLICES = ("axial", "sagittal", "coronal")
 PUBLISH_BATCH = 10  # corrected geometries per 50 ms tick: subscribers keep up, their depth-100 history never overflows
 

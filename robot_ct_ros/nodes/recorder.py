@@ -33,18 +33,17 @@ from pathlib import Path
 
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_srvs.srv import Trigger
 
 from robot_ct_ros.bag import ScanBagWriter
 from robot_ct_ros.bag import format as fmt
-from robot_ct_ros.nodes.common import declare_settings, publish_diagnostic, run_settings_node, writable_dir
+from robot_ct_ros.nodes.common import (LATCHED, STREAM, declare_settings, publish_diagnostic, run_settings_node,
+                                       topic_qos, writable_dir)
 from robot_ct_ros.parameters import setting, validate
 
-LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
-STREAM = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
-ANY = QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT)
-STATE = QoSProfile(depth=100, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
+ANY = QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT)  # any other topic: matches every publisher
+STATE = topic_qos(fmt.TOPIC_BEAM_ON, depth=100)  # the state topics, every change kept
 """A state topic's subscription: transient-local like its publisher, but every change kept (a depth of 1 dropped the
 first of a beam off and on that arrive in one callback round, as a replay sends them)."""
 

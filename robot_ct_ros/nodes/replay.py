@@ -26,18 +26,16 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
 from robot_ct_ros.bag import format as fmt
 from robot_ct_ros.bag.reader import read_raw_messages
 from robot_ct_ros.ct.calibration import CalibrationSettings
 from robot_ct_ros.bag.format import ScanBagError
-from robot_ct_ros.nodes.common import declare_settings, run_settings_node, writable_dir
+from robot_ct_ros.nodes.common import LATCHED, STREAM, declare_settings, run_settings_node, writable_dir
 from robot_ct_ros.parameters import setting, validate
-from robot_ct_ros.nodes.recorder import LATCHED, message_class
+from robot_ct_ros.nodes.recorder import message_class
 
-STREAM = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 
 
 def frame_groups(messages) -> tuple[list, list]:

@@ -33,7 +33,6 @@ import json
 import time
 
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseArray, PoseStamped
 from sensor_msgs.msg import Image
@@ -43,13 +42,11 @@ from std_srvs.srv import SetBool, Trigger
 from robot_ct_ros.bag import format as fmt
 from robot_ct_ros.hardware.scan_protocol import ScanProtocol
 from robot_ct_ros.hardware.scan_sequencer import ROLES, ScanSequencer, ScanSequencerSettings
-from robot_ct_ros.nodes.common import declare_settings, publish_diagnostic, run_settings_node
+from robot_ct_ros.nodes.common import LATCHED, STREAM, declare_settings, publish_diagnostic, run_settings_node
 from robot_ct_ros.nodes.hand_eye_params import declare_hand_eye, matrix_mm_to_pose, pose_to_matrix_mm, stamp_to_ns
 
 __all__ = ["ScanOrchestratorNode", "ScanProtocol", "main"]  # ScanProtocol: where it was imported from before
 
-LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
-STREAM = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
 LEVELS = {"ok": DiagnosticStatus.OK, "warn": DiagnosticStatus.WARN, "error": DiagnosticStatus.ERROR}
 
 

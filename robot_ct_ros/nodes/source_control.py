@@ -32,19 +32,17 @@ activates itself in its constructor, so a plain ``ros2 run`` works without a lif
 from __future__ import annotations
 
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from std_msgs.msg import Bool
 from std_srvs.srv import SetBool, Trigger
 
 from robot_ct_ros.bag import format as fmt
 from robot_ct_ros.hardware.xray_source import InterlockedSource, SimulatedXraySource, SourceError, SourceSettings
-from robot_ct_ros.nodes.common import (LifecycleSettings, declare_settings, publish_diagnostic, publish_while_up,
-                                      refuse_unavailable_transitions, run_settings_node)
+from robot_ct_ros.nodes.common import (LATCHED, LifecycleSettings, declare_settings, publish_diagnostic,
+                                      publish_while_up, refuse_unavailable_transitions, run_settings_node)
 
 __all__ = ["SourceControlNode", "LATCHED", "main"]
 
-LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 
 
 class SourceControlNode(LifecycleNode):
