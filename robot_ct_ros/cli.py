@@ -351,7 +351,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "the field of view")
 
     p = sub.add_parser("simulate", help="simulate a robotic ROI scan of a phantom into a scan bag")
-    p.add_argument("--phantom", choices=PHANTOMS, default="carotid")
+    p.add_argument("--phantom", choices=PHANTOMS, default="carotid", help="simulated object (default carotid)")
     p.add_argument("--views", type=scan_views, default=360, help="number of views (default 360)")
     p.add_argument("--rows", type=whole, default=272, help="detector rows after binning (default 272)")
     p.add_argument("--cols", type=whole, default=636, help="detector columns after binning (default 636)")
@@ -514,6 +514,24 @@ def _remove_if_empty(folder) -> None:
         pass
 
 
+def _stdout_closed() -> bool:
+    """Whether standard output's reader has gone (a pipe closed); if so, output goes to the null device from now
+    on, so that the interpreter's last flush does not fail again."""
+    import os
+    import select
+
+    try:
+        fd = sys.stdout.fileno()
+        poll = select.poll()
+        poll.register(fd, select.POLLOUT)
+        if not any(events & select.POLLERR for _, events in poll.poll(0)):  # a pipe without a reader: POLLERR
+            return False
+        os.dup2(os.open(os.devnull, os.O_WRONLY), fd)
+        return True
+    except (OSError, ValueError, AttributeError):  # no file descriptor (captured output), or no poll here
+        return False
+
+
 def _failed(command: str | None, out: Path | None = None) -> int:
     """The exit status and one line for the exception being handled (no traceback for the expected ones);
     ``command`` None: before the command was known; ``out`` the command's output folder, if any."""
@@ -533,6 +551,11 @@ def _failed(command: str | None, out: Path | None = None) -> int:
     except MemoryError as exc:  # the estimate before allocating was too optimistic
         print(f"{prog}: out of memory ({exc or 'allocation failed'}); use a smaller --shape or a "
               "larger --voxel-mm", file=sys.stderr)
+        return 2
+    except BrokenPipeError as exc:
+        if _stdout_closed():  # `robot-ct info BAG | head -1`: the reader went away, as Unix tools take it
+            return 141
+        print(f"{prog}: cannot access: {exc.strerror or exc}", file=sys.stderr)
         return 2
     except OSError as exc:  # a file that cannot be read or written, with its name
         where = f" {exc.filename}" if getattr(exc, "filename", None) else ""

@@ -432,3 +432,25 @@ def test_a_signal_while_the_parser_is_built_ends_with_one_line(monkeypatch, caps
         assert cli.main(["info", "x"]) == status
         err = capsys.readouterr().err
         assert err.strip() == words, err
+
+
+def test_a_reader_that_goes_away_ends_the_command_silently():
+    """`robot-ct info BAG | head -1` printed "cannot access: Broken pipe" and exit status 2 for a sound bag; it now
+    ends as Unix tools do on a closed pipe (no message, status 141)."""
+    import os
+    import subprocess
+    import sys
+
+    repo = Path(__file__).resolve().parents[1]
+    proc = subprocess.Popen([sys.executable, "-m", "robot_ct_ros.cli", "info", str(repo / "bags" / "sim_mouse_80")],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=repo,
+                            env=dict(os.environ, PYTHONPATH=str(repo)))
+    proc.stdout.close()  # before it writes a line
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=120) == 141 and err == "", err
+
+
+def test_simulate_help_names_the_default_phantom(capsys):
+    with pytest.raises(SystemExit):
+        main(["simulate", "--help"])
+    assert "(default carotid)" in " ".join(capsys.readouterr().out.split())

@@ -64,7 +64,12 @@ class ScanBagWriter:
         self._writer.open()
         _checksum_chunks(getattr(self._writer, "storage", None))
         self._open = True
-        for topic in (fmt.TOPIC_SCAN_INFO, fmt.TOPIC_PROJECTION, fmt.TOPIC_GEOMETRY, fmt.TOPIC_FLAT_FIELD):
+        # the contract's topics are listed from the start (a bag cut short still names them); a scan of line
+        # integrals has no flat field, and an empty /ct/flat_field would only puzzle ros2 bag info and Foxglove
+        topics = [fmt.TOPIC_SCAN_INFO, fmt.TOPIC_PROJECTION, fmt.TOPIC_GEOMETRY]
+        if self.info is None or self.info.get("projection_units") == "counts":
+            topics.append(fmt.TOPIC_FLAT_FIELD)
+        for topic in topics:
             self._connection(topic, fmt.TOPIC_TYPES[topic])
         if self.info is not None:
             self.write_info(self.info, self._start_ns)

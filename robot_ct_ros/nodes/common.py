@@ -50,8 +50,10 @@ def run_node(node_factory: Callable[[], "object"], description: str, argv: list[
         rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     except rclpy_implementation.RCLError as exc:  # rcl refused a ROS argument, e.g. "-p name:=" (no value)
         reason = " ".join(str(exc).split("\n")[0].split())
-        print(f"{prog}: bad ROS arguments ({reason}); an empty string value is written -p \"name:=''\"",
-              file=sys.stderr)
+        ros_args = argv[argv.index("--ros-args") + 1:] if "--ros-args" in argv else []
+        empty_value = any(a in ("-p", "--param") and b.endswith(":=") for a, b in zip(ros_args, ros_args[1:]))
+        hint = "; an empty string value is written -p \"name:=''\"" if empty_value else ""
+        print(f"{prog}: bad ROS arguments ({reason}){hint}", file=sys.stderr)
         return 2
     node = None
     previous = {s: signal.signal(s, stop) for s in (signal.SIGINT, signal.SIGTERM)}

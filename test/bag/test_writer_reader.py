@@ -81,6 +81,11 @@ def test_line_integral_bag_needs_no_flat(tmp_path, tiny_scan):
     out, mask = scan.to_line_integrals()
     np.testing.assert_array_equal(out, li)
     assert mask.all()
+    # and lists no empty /ct/flat_field topic (ros2 bag info and Foxglove showed one with 0 messages)
+    from rosbags.rosbag2 import Reader
+
+    with Reader(bag) as reader:
+        assert fmt.TOPIC_FLAT_FIELD not in {c.topic for c in reader.connections}
 
 
 def test_rejected_frames_are_never_projections(tmp_path, tiny_scan, check_bag):

@@ -108,6 +108,12 @@ def test_a_ros_argument_rcl_cannot_parse_is_one_reason_and_exit_2():
     assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
     last = proc.stderr.strip().splitlines()[-1]
     assert "bad ROS arguments" in last and "output_dir:=" in last and "name:=''" in last, proc.stderr
+    # a params file rcl cannot open is another mistake: no hint about empty values
+    proc = subprocess.run([sys.executable, "-m", "robot_ct_ros.nodes.recorder", "--ros-args", "--params-file",
+                           "/nonexistent/recorder.yaml"], capture_output=True, text=True, env=env, timeout=60)
+    last = proc.stderr.strip().splitlines()[-1]
+    assert proc.returncode == 2 and "bad ROS arguments" in last and "recorder.yaml" in last, proc.stderr
+    assert "name:=''" not in last, last
 
 
 def test_a_parameter_the_node_does_not_have_is_named_with_the_closest_one():

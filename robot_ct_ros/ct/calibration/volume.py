@@ -96,7 +96,7 @@ def truncation_level(line_integrals: np.ndarray, valid_mask=None, edge_px: int =
     """How much object the left and right detector edges see: the median over views of the mean
     line integral in the ``edge_px`` outermost columns on each side (valid pixels only),
     relative to the 99.9th percentile of all data. About 0 when the object fits in the field of
-    view (noise averages out), a few per cent and more for an interior scan. The edges are those
+    view (noise averages out; never below 0), a few per cent and more for an interior scan. The edges are those
     across the scan axis: with ``geom`` given and its detector's rows along the axis (a portrait
     detector, :func:`~robot_ct_ros.ct.scan_weights.rows_run_across_axis`), the outermost rows."""
     from robot_ct_ros.ct.scan_weights import rows_run_across_axis
@@ -111,7 +111,8 @@ def truncation_level(line_integrals: np.ndarray, valid_mask=None, edge_px: int =
     edge, m = li[..., cols], mask[..., cols]
     per_view = (np.where(m, edge, 0.0).sum(axis=(1, 2)) / np.maximum(m.sum(axis=(1, 2)), 1))
     peak = float(np.percentile(li[mask], 99.9)) if mask.any() else 0.0
-    return float(np.median(per_view) / peak) if peak > 0 else 0.0
+    # noise about a zero edge can make the median slightly negative: no object there reads as 0, not -0.000
+    return max(0.0, float(np.median(per_view) / peak)) if peak > 0 else 0.0
 
 
 def estimation_grid(grid: VolumeGrid, padding: float) -> VolumeGrid:

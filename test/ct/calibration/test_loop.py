@@ -386,6 +386,9 @@ def test_truncation_level_tells_interior_scans_apart():
     mask[:, 0] = False
     assert truncation_level(hot, mask) < 0.1 * TRUNCATED_ABOVE
     assert truncation_level(hot) > TRUNCATED_ABOVE
+    below = inside.copy()
+    below[:, :, :2] = below[:, :, -2:] = -1e-3 * float(inside.max())  # noise about an empty edge: no object there
+    assert truncation_level(below) == 0.0  # was -0.001, printed "truncation level -0.000"
 
 
 @pytest.mark.parametrize("body_width_mm", [9.0, 40.0])
