@@ -59,6 +59,9 @@ LAYOUTS = ("views-first", "astra")
 """Projection array layouts: (views, rows, cols), or ASTRA's 3-D (rows, views, cols)."""
 MIN_PITCH_MM = 1e-3
 MAX_PITCH_MM = 10.0
+FINEST_DETECTOR_PITCH_MM = 5e-3
+"""A pixel pitch below this (finer than X-ray detectors' pixels) is warned on import: metres given for mm, most
+likely (1.6 mm written 0.0016); accepted, since an optically magnified detector may quote a finer one."""
 
 
 def _load(path, what: str) -> np.ndarray:
@@ -382,7 +385,7 @@ def check_plausible(geom: ConeGeometry, source: str, say=_say) -> None:
     ``MAX_HALF_FAN_DEG`` allows from the source, a source closer than ``MIN_SDD_MM`` to the detector), naming
     the likely mix-up; warn where the views span less
     than 20 degrees, however few the views (angles in radians where degrees were meant). ``source``: the
-    geometry's file."""
+    geometry's file. Warn, too, of a pixel finer than :data:`FINEST_DETECTOR_PITCH_MM` (metres for mm)."""
     from robot_ct_ros.ct.scan_weights import scan_arc
 
     sdd = np.asarray(geom.sdd_mm, np.float64)
@@ -402,6 +405,11 @@ def check_plausible(geom: ConeGeometry, source: str, say=_say) -> None:
         raise ValueError(f"{source}: view {view} has its source {sdd[view]:g} mm from the detector, closer than any "
                          f"scanner ({MIN_SDD_MM:g} mm): are the distances in metres, or the vectors a parallel beam's "
                          "(ASTRA parallel_vec / parallel3d_vec have the same columns as fanflat_vec / cone_vec)?")
+    pitch_mm = min(geom.row_pitch_mm, geom.col_pitch_mm)
+    if pitch_mm < FINEST_DETECTOR_PITCH_MM:
+        say(f"warning: a detector pixel of {pitch_mm * 1000:g} um, finer than X-ray detectors' "
+            f"({FINEST_DETECTOR_PITCH_MM * 1000:g} um and up): metres where mm were meant? ({pitch_mm:g} m would be "
+            f"{pitch_mm * 1000:g} mm)")
     if geom.n_views > 2:
         arc = float(np.degrees(scan_arc(geom)[0]))
     elif geom.n_views == 2:  # scan_arc counts 2 views a full circle: the angle between their viewing directions

@@ -149,6 +149,11 @@ def test_geometries_no_scanner_has_are_refused_and_radians_are_warned(tmp_path, 
     assert "warning" in out and "radians" in out and "6.2 deg" in out, out
     degrees = _write_xml([[500.0, 800.0, a, 0, 0, 0, 0, 0, 0] for a in angles], tmp_path / "d.xml")
     assert run(degrees, "d") == 0 and "warning" not in capsys.readouterr().out
+    # a 1.6 mm pitch written in metres: 1.6 um pixels, warned (it passed the range check without a word)
+    assert main(["import", "rtk", "--projections", str(tmp_path / "p.npy"), "--geometry", str(degrees),
+                 "--pitch-mm", "0.0016,0.0016", "--out", str(tmp_path / "um")]) == 0
+    out = capsys.readouterr().out
+    assert "warning" in out and "1.6 um" in out and "metres" in out and "1.6 mm" in out, out
     # a negative origin pair after a space, as RTK's centred origins are: not taken for an option
     assert run(degrees, "o", "--origin-mm", "-1.25,-2.25") == 0
     g, go = read_scan(tmp_path / "d").geom, read_scan(tmp_path / "o").geom
