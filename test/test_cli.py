@@ -454,3 +454,12 @@ def test_simulate_help_names_the_default_phantom(capsys):
     with pytest.raises(SystemExit):
         main(["simulate", "--help"])
     assert "(default carotid)" in " ".join(capsys.readouterr().out.split())
+
+
+def test_binnings_schedule_auto_would_refuse_are_refused_before_the_bag_is_read(tmp_path, capsys):
+    """--fine-binning 4 under schedule auto was accepted, and the run failed once the bag was read and its truncation
+    measured, on the ROI model only: it is refused at once now, before the bag is opened (none exists here)."""
+    assert main(["calibrate", str(tmp_path / "no_bag"), "--fine-binning", "4", "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "coarse_binning (2) must be at least fine_binning (4)" in err and "no_bag" not in err, err
+    assert not (tmp_path / "o").exists()

@@ -111,7 +111,9 @@ class CalibrationSettings:
     Raises
     ------
     ValueError
-        A field outside its bounds or choices (the message names the field).
+        A field outside its bounds or choices (the message names the field), or ``coarse_binning``
+        below ``fine_binning`` under a schedule the run may take (``auto``: ``accurate`` and,
+        unless ``exterior`` is off, ``exterior``), a level left off taking the schedule's.
     """
 
     method: str = setting("ncc-lle-exact", "calibration method, or none for the nominal geometry",
@@ -237,13 +239,18 @@ class CalibrationSettings:
                 object.__setattr__(self, name, None)
             elif value is not None and not (value > 0 and math.isfinite(value)):
                 raise ValueError(f"{name} must be positive (or off: the same as prior_translation_mm); got {value!r}")
-        coarse, fine = self.coarse_binning, self.fine_binning  # set here, by a named schedule, or by resolved()
-        if self.schedule != AUTO_SCHEDULE:  # a named schedule gives the level left off
-            coarse = SCHEDULES[self.schedule]["coarse_binning"] if coarse is None else coarse
-            fine = SCHEDULES[self.schedule]["fine_binning"] if fine is None else fine
-        if coarse is not None and fine is not None and coarse < fine:
-            raise ValueError(f"coarse_binning ({coarse}) must be at least fine_binning ({fine}): the coarse level is "
-                             f"the more binned one (a field left off takes the schedule's {self.schedule!r} value)")
+        # the binnings under each schedule that may run: a named one, or both of auto's (the exterior one only where
+        # the exterior model may be used), so that a run does not fail once it has chosen its schedule
+        auto = self.schedule == AUTO_SCHEDULE
+        runs = (self.schedule,) if not auto else ("accurate",) + (("exterior",) if self.exterior != "off" else ())
+        for name in runs:
+            coarse = SCHEDULES[name]["coarse_binning"] if self.coarse_binning is None else self.coarse_binning
+            fine = SCHEDULES[name]["fine_binning"] if self.fine_binning is None else self.fine_binning
+            if coarse < fine:
+                which = (f"the schedule's {name!r} value" if not auto else f"the value of schedule {name!r}, which "
+                         f"auto runs {'with' if name == 'exterior' else 'without'} the exterior model")
+                raise ValueError(f"coarse_binning ({coarse}) must be at least fine_binning ({fine}): the coarse level "
+                                 f"is the more binned one (a field left off takes {which})")
         scheme, sep, where = self.scheduler.partition("://")
         if self.scheduler not in ("", "local") and not (sep and where and scheme in DASK_PROTOCOLS):
             raise ValueError(f"scheduler must be empty (in-process), local or a Dask scheduler address such as "

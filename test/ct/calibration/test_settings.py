@@ -208,11 +208,26 @@ def test_a_coarse_level_finer_than_the_fine_one_is_refused():
         CalibrationSettings(coarse_binning=2, fine_binning=4)
     with pytest.raises(ValueError, match="coarse_binning"):  # the schedule's coarse level (2) under accurate
         CalibrationSettings(fine_binning=4).resolved(False)
-    assert CalibrationSettings(coarse_binning=1).resolved(False).plan()["fine_binning"] == 1  # one level
+    one_level = CalibrationSettings(coarse_binning=1, exterior="off")  # (exterior: its fine level is 2)
+    assert one_level.resolved(False).plan()["fine_binning"] == 1
     # a named schedule's level is known at once: refused where the settings are made (a node's start), not at the run
     for named in (dict(schedule="fast", coarse_binning=1), dict(schedule="accurate", fine_binning=4)):
         with pytest.raises(ValueError, match="coarse_binning"):
             CalibrationSettings(**named)
+
+
+def test_binnings_either_schedule_of_auto_refuses_are_refused_when_the_settings_are_made():
+    """Under schedule auto the binnings were checked only once a run had chosen its schedule, after the data were
+    read and the truncation measured (the command line and the recon_service accepted --fine-binning 4 and the run
+    failed, on the ROI model only). Both schedules auto may run are checked where the settings are made now."""
+    for changes, schedule in ((dict(fine_binning=4), "accurate"), (dict(fine_binning=3), "accurate"),
+                              (dict(coarse_binning=1), "exterior"),
+                              (dict(coarse_binning=1, exterior="on"), "exterior")):
+        with pytest.raises(ValueError, match=rf"coarse_binning \(\d\) must be at least fine_binning .*'{schedule}'"):
+            CalibrationSettings(**changes)
+    CalibrationSettings(coarse_binning=1, exterior="off")  # exterior off: auto never runs the exterior schedule
+    CalibrationSettings(coarse_binning=1, fine_binning=1)
+    CalibrationSettings(fine_binning=2, coarse_binning=4)
 
 
 def test_a_zero_per_arm_prior_is_off_as_on_ros():

@@ -28,7 +28,7 @@ def _scan(n_views=12, n_det=24):
 def test_the_running_volume_is_the_fdk_of_the_views_so_far_and_warmup_waits():
     """method none: no estimate, the volume grows; after every view it is the FDK of the whole scan."""
     nominal, grid, li, mask = _scan()
-    settings = CalibrationSettings(method="none", padding=1.0, coarse_binning=1)
+    settings = CalibrationSettings(method="none", padding=1.0, coarse_binning=1, fine_binning=1)
     est = StreamingEstimator(settings, grid, nominal.n_views, warmup_views=3)
     steps = [est.add_views(li[i:i + 1], mask[i:i + 1], nominal.subset(np.array([i])), [i]) for i in range(2)]
     assert steps == [None, None] and not est.started
@@ -66,7 +66,7 @@ def test_a_portrait_detector_streams_the_same_volume():
     nominal, grid, li, mask = _scan()
     portrait = nominal.replace(u=nominal.v, v=-nominal.u, n_rows=nominal.n_cols, n_cols=nominal.n_rows)
     lp = np.ascontiguousarray(li[:, :, ::-1].transpose(0, 2, 1))
-    settings = CalibrationSettings(method="none", padding=1.0, coarse_binning=1)
+    settings = CalibrationSettings(method="none", padding=1.0, coarse_binning=1, fine_binning=1)
     est = StreamingEstimator(settings, grid, nominal.n_views, warmup_views=1)
     for i in range(nominal.n_views):
         est.add_views(lp[i:i + 1], mask[i:i + 1], portrait.subset(np.array([i])), [i])
