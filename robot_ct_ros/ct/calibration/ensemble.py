@@ -26,10 +26,13 @@ def member_seeds(seed: int, members: int) -> list[int]:
 
 
 def average_estimates(results, line_integrals, nominal: ConeGeometry, grid: VolumeGrid, *, valid_mask=None,
-                      points_mm=None, fdk_kwargs: dict | None = None) -> CalibrationResult:
+                      points_mm=None, fdk_kwargs: dict | None = None, fdk=None,
+                      final_volume: bool = True) -> CalibrationResult:
     """One estimate from several :class:`CalibrationResult` of the same scan (runs of
     :func:`~robot_ct_ros.ct.calibration.loop.calibrate` with different sampling seeds): the
-    mean of their parameters, reconstructed (FDK).
+    mean of their parameters, reconstructed (FDK: ``fdk``, default
+    :func:`~robot_ct_ros.ct.reconstruction.fdk`, e.g. an executor's; none with ``final_volume``
+    False, the result's ``volume`` None).
 
     Each run's parameters are already in the nominal geometry's gauge (:func:`calibrate` removes
     the global rigid motion and holds the magnification), so they average directly. What the
@@ -43,7 +46,8 @@ def average_estimates(results, line_integrals, nominal: ConeGeometry, grid: Volu
     model, each run's guard verdict) and, where the guard changed any run, ``params_unguarded``:
     the mean of the runs' estimates before their guards.
     """
-    from robot_ct_ros.ct.reconstruction import fdk
+    if fdk is None:
+        from robot_ct_ros.ct.reconstruction import fdk
 
     results = list(results)
     if not results:
@@ -56,8 +60,10 @@ def average_estimates(results, line_integrals, nominal: ConeGeometry, grid: Volu
     spread = (float(np.mean([moved_px(nominal, r.params, params, points) for r in results]))
               if len(results) > 1 else float("nan"))
     geom = nominal.perturbed(params)
-    li, mask = usable_data(line_integrals, valid_mask)  # as calibrate's final FDK
-    volume = fdk(li, geom, grid, valid_mask=mask, **(fdk_kwargs or {}))
+    volume = None
+    if final_volume:
+        li, mask = usable_data(line_integrals, valid_mask)  # as calibrate's final FDK
+        volume = fdk(li, geom, grid, valid_mask=mask, **(fdk_kwargs or {}))
     wall = sum(r.wall_s for r in results) + time.perf_counter() - t0
     first = results[0]
     settings = first.settings.replace(ensemble=len(results)) if first.settings is not None else None

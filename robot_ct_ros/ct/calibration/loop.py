@@ -149,17 +149,19 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
                   accuracy=accuracy, executor=executor, final_volume=final_volume)
         if settings.ensemble <= 1 or not method.samples or configs is not None:
             result = _calibrate_once(line_integrals, nominal, grid, settings, **kw)
-            unused = _unused_settings(method, settings)
-            return replace(result, notes=result.notes + (unused,)) if unused else result
-        runs = []
-        kw["reach_memo"] = {}  # the reach guess (nominal geometry, no sampling) is the same for every member
-        for k, seed in enumerate(member_seeds(settings.seed, settings.ensemble)):
-            say(f"ensemble member {k + 1}/{settings.ensemble} (sampling seed {seed})")
-            runs.append(_calibrate_once(line_integrals, nominal, grid, settings.replace(seed=seed), **kw))
-    result = average_estimates(runs, line_integrals, nominal, grid, valid_mask=valid_mask, points_mm=gauge_points_mm,
-                               fdk_kwargs=fdk_kwargs)
-    say(f"ensemble of {settings.ensemble}: the members lie {result.spread_px:.3f} px from their mean")
-    return result
+        else:
+            runs = []
+            # the reach guess (nominal geometry, no sampling) is the same for every member; only the mean's volume
+            kw |= dict(reach_memo={}, final_volume=False)
+            for k, seed in enumerate(member_seeds(settings.seed, settings.ensemble)):
+                say(f"ensemble member {k + 1}/{settings.ensemble} (sampling seed {seed})")
+                runs.append(_calibrate_once(line_integrals, nominal, grid, settings.replace(seed=seed), **kw))
+            result = average_estimates(runs, line_integrals, nominal, grid, valid_mask=valid_mask,
+                                       points_mm=gauge_points_mm, fdk_kwargs=fdk_kwargs, fdk=executor.fdk,
+                                       final_volume=final_volume)
+            say(f"ensemble of {settings.ensemble}: the members lie {result.spread_px:.3f} px from their mean")
+    unused = _unused_settings(method, settings)
+    return replace(result, notes=result.notes + (unused,)) if unused else result
 
 
 def _in_nominal_gauge(params, nominal: ConeGeometry, points, held) -> np.ndarray:

@@ -569,6 +569,38 @@ def test_calibrate_without_the_final_volume_returns_the_same_geometry():
     assert calibrate(measured, nominal, grid, method="none", final_volume=False).volume is None
 
 
+def test_an_ensemble_honours_final_volume_reconstructs_on_the_executor_and_names_unused_settings(monkeypatch):
+    """An ensemble reconstructed its mean geometry in this process whatever the executor (scheduler), also with
+    final_volume False, and dropped the notes on settings that did not apply, which a single run adds."""
+    from robot_ct_ros.ct import reconstruction
+    from robot_ct_ros.ct.calibration import loop
+    from robot_ct_ros.ct.calibration.distributed import InProcess
+
+    nominal, _, grid, measured = _small_scan(n_views=12, n_det=32)
+    real, on_executor, elsewhere = reconstruction.fdk, [], []
+
+    class Counted(InProcess):
+        def fdk(self, line_integrals, geom, grid_, **kwargs):
+            on_executor.append(grid_.shape_zyx)
+            return real(line_integrals, geom, grid_, **kwargs)
+
+    monkeypatch.setattr(loop, "executor_for", lambda settings: Counted())
+    monkeypatch.setattr(reconstruction, "fdk",
+                        lambda li, geom, grid_, **kw: elsewhere.append(1) or real(li, geom, grid_, **kw))
+    kw = dict(method="ncc-lle", iterations=1, schedule="fast", projections="complete", exterior="off",
+              exterior_voxel_mm=0.25, ensemble=2)
+    both = calibrate(measured, nominal, grid, **kw)
+    assert on_executor.count(grid.shape_zyx) == 1 and not elsewhere  # the mean's volume alone, on the executor
+    np.testing.assert_allclose(both.volume, real(measured, both.geom, grid), rtol=1e-5, atol=1e-6)
+    on_executor.clear()
+    without = calibrate(measured, nominal, grid, final_volume=False, **kw)
+    assert without.volume is None and grid.shape_zyx not in on_executor and not elsewhere
+    np.testing.assert_array_equal(without.params, both.params)
+    for result in (both, without):
+        unused = [n for n in result.notes if "exterior_voxel_mm 0.25 did not apply: exterior is off" in n]
+        assert len(unused) == 1, result.notes
+
+
 def test_calibrate_leaves_the_callers_data_as_they_were():
     """usable_data hands clean data through uncopied: no step of the loop may write into them."""
     nominal, true, grid, measured = _small_scan(n_views=12, n_det=32)
