@@ -199,10 +199,10 @@ def _unused_settings(method, settings) -> str:
     if settings.projections == "complete" and (given := changed(["sirt_iterations"])):
         notes.append(f"{given[0]} did not apply: projections complete (the volumes are FDK's)")
 
-    lle = ["lle_neighbours", "lle_ridge"] if not method.uses_prior else ["lle_ridge"] if method.name == "ncc-lle" else []
-    if given := changed(lle):
-        notes.append(f"{', '.join(given)} did not apply: {method.name} "
-                     + ("embeds no samples" if not method.uses_prior else "has a closed form without a ridge"))
+    if given := changed([n for n in ("lle_neighbours", "lle_ridge") if n not in method.lle_settings]):
+        notes.append(f"{', '.join(given)} did not apply: {method.name} " + (
+            f"reads only {', '.join(method.lle_settings)} of the embedding's settings" if method.lle_settings
+            else "embeds no samples"))
     if settings.prior_sigma is None and (given := changed(["prior_source_mm", "prior_detector_mm"])):
         notes.append(f"{', '.join(given)} did not apply: the prior is off (prior_translation_mm or "
                      "prior_rotation_deg 0)")

@@ -45,6 +45,9 @@ class Method:
     samples : bool
         Whether it draws random samples: then ``seed`` changes the estimate and ``ensemble``
         averages runs; otherwise every run is the same and an ensemble runs once.
+    lle_settings : tuple of str
+        The embedding's settings its ``configs`` read (``lle_neighbours``, ``lle_ridge``); empty for
+        a method that embeds no samples. The result's notes name the others, where given, as not applied.
     """
 
     name: str
@@ -55,6 +58,7 @@ class Method:
     fresh_samples: Callable = lambda config, k: config
     uses_prior: bool = False
     samples: bool = False
+    lle_settings: tuple = ()
 
 
 def _lle(weighting: str) -> Callable:
@@ -78,11 +82,11 @@ def _gdc(name: str) -> Callable:
 METHODS = {m.name: m for m in (
     Method(NO_CORRECTION, "no correction: the nominal geometry", None, None),
     Method("l2-lle", "LLE with L2 weights (Chen et al. 2016)", estimate_views, _lle("l2"), narrowed, _reseeded,
-           uses_prior=True, samples=True),
+           uses_prior=True, samples=True, lle_settings=("lle_neighbours", "lle_ridge")),
     Method("ncc-lle", "LLE with the published NCC closed-form weights (Li et al.)", estimate_views, _lle("ncc"),
-           narrowed, _reseeded, uses_prior=True, samples=True),
+           narrowed, _reseeded, uses_prior=True, samples=True, lle_settings=("lle_neighbours",)),  # no ridge
     Method("ncc-lle-exact", "LLE with the exact NCC-maximising weights", estimate_views, _lle("ncc-exact"),
-           narrowed, _reseeded, uses_prior=True, samples=True),
+           narrowed, _reseeded, uses_prior=True, samples=True, lle_settings=("lle_neighbours", "lle_ridge")),
     Method("gdc", "Gauss-Newton on the L2 reprojection error (Sun et al. 2016)", estimate_views_gdc, _gdc("gdc")),
     Method("gdc-log", "the same on Laplacian-of-Gaussian filtered projections (Sun et al. 2021)", estimate_views_gdc,
            _gdc("gdc-log")),

@@ -601,6 +601,28 @@ def test_an_ensemble_honours_final_volume_reconstructs_on_the_executor_and_names
         assert len(unused) == 1, result.notes
 
 
+def test_the_lle_settings_a_method_ignores_come_from_the_registry_not_from_its_name_or_prior():
+    """Whether lle_ridge applied was decided by the name "ncc-lle", whether the method embeds samples at all by
+    its prior: an embedding without a prior, or another closed form, got the wrong "did not apply" note."""
+    from dataclasses import replace
+
+    from robot_ct_ros.ct.calibration import CalibrationSettings
+    from robot_ct_ros.ct.calibration.loop import _unused_settings
+    from robot_ct_ros.ct.calibration.registry import get_method
+
+    given = CalibrationSettings(lle_neighbours=8, lle_ridge=1e-3)
+    assert {n: get_method(n).lle_settings for n in ("ncc-lle-exact", "l2-lle", "ncc-lle", "gdc", "none")} == {
+        "ncc-lle-exact": ("lle_neighbours", "lle_ridge"), "l2-lle": ("lle_neighbours", "lle_ridge"),
+        "ncc-lle": ("lle_neighbours",), "gdc": (), "none": ()}
+    no_prior = replace(get_method("l2-lle"), name="l2-lle-data", uses_prior=False)
+    assert "lle_" not in _unused_settings(no_prior, given)
+    closed = replace(get_method("ncc-lle-exact"), name="closed", lle_settings=("lle_neighbours",))
+    assert "lle_ridge 0.001 did not apply: closed" in _unused_settings(closed, given)
+    assert "lle_neighbours 8" not in _unused_settings(closed, given)
+    assert "lle_neighbours 8, lle_ridge 0.001 did not apply: gdc embeds no samples" in _unused_settings(
+        get_method("gdc"), given)
+
+
 def test_calibrate_leaves_the_callers_data_as_they_were():
     """usable_data hands clean data through uncopied: no step of the loop may write into them."""
     nominal, true, grid, measured = _small_scan(n_views=12, n_det=32)
