@@ -55,15 +55,15 @@ def _checked(spec):
 
 
 def _prior_sigma(text: str):
-    """``MM,DEG`` -> (translation mm, rotation deg); ``none`` -> (0, 0): no prior."""
+    """``MM,DEG`` -> (translation mm, rotation deg); ``none`` -> (0, 0): no prior, as is 0 for either."""
     if text.strip().lower() == "none":
         return 0.0, 0.0
     try:
         mm, deg = (float(x) for x in text.split(","))
     except ValueError:
         raise argparse.ArgumentTypeError("prior sigma is MM,DEG (e.g. 0.3,0.3) or none") from None
-    if not (mm > 0 and deg > 0 and np.isfinite(mm) and np.isfinite(deg)):
-        raise argparse.ArgumentTypeError("prior sigmas must be positive and finite")
+    if not (mm >= 0 and deg >= 0 and np.isfinite(mm) and np.isfinite(deg)):
+        raise argparse.ArgumentTypeError("prior sigmas must be >= 0 and finite (0 for either: no prior)")
     return mm, deg
 
 
@@ -147,7 +147,7 @@ def add_settings_arguments(p: argparse.ArgumentParser, skip=("method",)) -> None
     d = CalibrationSettings()
     group.add_argument("--prior-sigma", type=_prior_sigma, default=None, metavar="MM,DEG",
                        help="the robots' per-view coordination error (translations in mm, rotations in deg), the "
-                            f"prior of the MAP estimate; none: the data alone "
+                            f"prior of the MAP estimate; none (or 0 for either): the data alone "
                             f"[{d.prior_translation_mm:g},{d.prior_rotation_deg:g}]")
 
 

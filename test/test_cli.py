@@ -463,3 +463,20 @@ def test_binnings_schedule_auto_would_refuse_are_refused_before_the_bag_is_read(
     err = capsys.readouterr().err
     assert "coarse_binning (2) must be at least fine_binning (4)" in err and "no_bag" not in err, err
     assert not (tmp_path / "o").exists()
+
+
+def test_prior_sigma_takes_0_for_either_value_as_the_settings_and_ros_do(capsys):
+    """--prior-sigma 0.3,0 was refused ("must be positive"), while the settings and ROS take 0 for either (no prior)."""
+    import argparse
+
+    from robot_ct_ros.cli import add_settings_arguments, settings_from_args
+
+    p = argparse.ArgumentParser()
+    add_settings_arguments(p)
+    s = settings_from_args(p.parse_args(["--prior-sigma", "0.3,0"]))
+    assert (s.prior_translation_mm, s.prior_rotation_deg) == (0.3, 0.0) and s.prior_sigma is None
+    assert settings_from_args(p.parse_args(["--prior-sigma", "0,0.2"])).prior_sigma is None
+    for value in ("-0.1,0.3", "0.3,inf"):
+        with pytest.raises(SystemExit):
+            p.parse_args([f"--prior-sigma={value}"])
+        assert "prior sigmas must be >= 0 and finite" in capsys.readouterr().err
