@@ -246,9 +246,6 @@ def _cmd_calibrate(args) -> int:
 
 
 def _cmd_report(args) -> int:
-    from robot_ct_ros.bag.reader import read_scan
-    from robot_ct_ros.jobs.calibrate import scan_grid
-    from robot_ct_ros.jobs.output import check_memory
     from robot_ct_ros.ct.calibration import get_method
     from robot_ct_ros.jobs.report import report_bag
 
@@ -257,10 +254,7 @@ def _cmd_report(args) -> int:
         get_method(m)
     settings = settings_from_args(args)
     bag, out = _paths(args)
-    scan = read_scan(bag)
-    check_memory(scan_grid(scan, args.voxel_mm, args.shape), scan.n_views, scan.geom.det_shape, "report")
-    del scan
-    report_bag(bag, out, methods, settings, voxel_mm=args.voxel_mm, shape_xyz=args.shape)
+    report_bag(bag, out, methods, settings, voxel_mm=args.voxel_mm, shape_xyz=args.shape)  # checks the memory
     return 0
 
 

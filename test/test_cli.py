@@ -480,3 +480,21 @@ def test_prior_sigma_takes_0_for_either_value_as_the_settings_and_ros_do(capsys)
         with pytest.raises(SystemExit):
             p.parse_args([f"--prior-sigma={value}"])
         assert "prior sigmas must be >= 0 and finite" in capsys.readouterr().err
+
+
+
+def test_report_reads_the_bag_once(tmp_path, small_bag, monkeypatch):
+    """The command line read the whole bag for the report's memory check, then the job read it again."""
+    from robot_ct_ros.bag import reader
+    from robot_ct_ros.jobs import report
+
+    reads, real = [], reader.read_scan
+
+    def counted(*args, **kwargs):
+        reads.append(args[0])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(reader, "read_scan", counted)
+    monkeypatch.setattr(report, "read_scan", counted)
+    assert main(["report", str(small_bag), "--methods", "none", "--out", str(tmp_path / "r")]) == 0
+    assert len(reads) == 1, reads

@@ -24,7 +24,7 @@ from robot_ct_ros.jobs.output import (check_memory, fdk_warnings, refuse_other_j
                                       write_json, write_volume)
 
 __all__ = ["Correction", "correct_scan", "write_correction", "calibrate_bag", "scan_grid", "voxel_size_note",
-           "drift_times", "geometry_error", "truth_metrics", "markdown_report"]
+           "drift_times", "geometry_error", "truth_metrics", "markdown_report", "settings_used"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -167,6 +167,16 @@ def truth_metrics(scan: ScanData, line_integrals, mask, geom: ConeGeometry, volu
     return out
 
 
+def settings_used(result: CalibrationResult) -> dict:
+    """What a calibration ran with, as the reports record it: the resolved ``iterations`` (at most) and
+    ``schedule``, and the ``prior_sigma`` the estimator used: None for a method without a prior, whose
+    settings keep the robots' stated accuracy for the guard all the same."""
+    used = result.settings
+    return {"iterations": used.iterations, "schedule": used.schedule,
+            "prior_sigma": None if used.prior_sigma is None or not get_method(result.method).uses_prior
+            else list(used.prior_sigma)}
+
+
 def correct_scan(scan: ScanData, settings: CalibrationSettings | None = None, grid: VolumeGrid | None = None, *,
                  evaluate_truth: bool = False, say=_say) -> Correction:
     """Calibrate the per-view geometry of a scan in memory and reconstruct it on ``grid``.
@@ -204,10 +214,7 @@ def correct_scan(scan: ScanData, settings: CalibrationSettings | None = None, gr
     used = result.settings
     report = base_report(scan, grid)
     report.update({"job": "calibrate", "method": settings.method, "method_used": result.method,
-                   "iterations": used.iterations, "schedule": used.schedule, "settings": used.to_dict(),
-                   # what the estimator used: a method without a prior used none (the settings keep the accuracy)
-                   "prior_sigma": None if used.prior_sigma is None or not get_method(result.method).uses_prior
-                   else list(used.prior_sigma),
+                   **settings_used(result), "settings": used.to_dict(),
                    "drift_order": used.drift_order, "seed": used.seed, "padding": used.padding,
                    "ensemble": result.members, "iterations_run": len(result.history),
                    "history": [dict(h.__dict__) for h in result.history],

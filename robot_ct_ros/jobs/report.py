@@ -7,8 +7,8 @@ from pathlib import Path
 
 from robot_ct_ros.bag.reader import read_scan
 from robot_ct_ros.ct.calibration import CalibrationSettings, calibrate, get_method
-from robot_ct_ros.jobs.calibrate import drift_times, scan_grid
-from robot_ct_ros.jobs.output import refuse_other_job, refuse_out_in_bag
+from robot_ct_ros.jobs.calibrate import drift_times, scan_grid, settings_used, voxel_size_note
+from robot_ct_ros.jobs.output import check_memory, fdk_warnings, refuse_other_job, refuse_out_in_bag
 from robot_ct_ros.jobs.output import say as _say
 
 __all__ = ["report_bag", "REPORT_METHODS"]
@@ -30,10 +30,17 @@ def report_bag(bag, out, methods=REPORT_METHODS, settings: CalibrationSettings |
     into ``out`` (:func:`robot_ct_ros.jobs.figures.write_report`, name ``report``). Returns the
     table rows and the paths.
 
+    report.json's ``notes`` record the settings as given (``settings``) and, per method, what it ran
+    with as a calibration's report does (:func:`~robot_ct_ros.jobs.calibrate.settings_used`:
+    ``iterations``, ``schedule``, ``prior_sigma``, and ``ensemble``, the runs averaged); their
+    ``notes`` keep a voxel size that looks like the wrong unit and what FDK only approximates on
+    this geometry, which are also said.
+
     Raises
     ------
     ValueError
-        An unknown method, or none given.
+        An unknown method, or none given; a grid that would not fit in memory with the projections
+        (checked before the work; the message says what would fit).
     """
     from robot_ct_ros.ct.calibration.volume import projection_consistency
     from robot_ct_ros.ct.reconstruction import fdk
@@ -52,8 +59,14 @@ def report_bag(bag, out, methods=REPORT_METHODS, settings: CalibrationSettings |
     scan = read_scan(bag)
     for w in scan.warnings:
         say(f"warning: {w}")
-    li, mask = scan.to_line_integrals()
     grid = scan_grid(scan, voxel_mm, shape_xyz)
+    job_notes = []
+    unit_note = voxel_size_note(scan, grid, voxel_mm, shape_xyz)
+    if unit_note:
+        say(f"note: {unit_note}")
+        job_notes.append(unit_note)
+    check_memory(grid, scan.n_views, scan.geom.det_shape, "report")
+    li, mask = scan.to_line_integrals()
     times = drift_times(scan) if settings.drift_order is not None else None
     say(f"{scan.n_views} views, detector {scan.geom.n_rows}x{scan.geom.n_cols}, grid {grid.shape_zyx[::-1]} of "
         f"{grid.voxel_size_mm[0] * 1000:.1f} um; methods {', '.join(methods)}; at most {settings.iterations_text()} "
@@ -67,17 +80,20 @@ def report_bag(bag, out, methods=REPORT_METHODS, settings: CalibrationSettings |
         return geom, reconstruct(geom), (), time.perf_counter() - t
 
     results = {}
-    for method in methods:
-        if method != "none":
-            say(f"{method}:")
-        results[method] = calibrate(li, scan.geom, grid, settings.replace(method=method), valid_mask=mask,
-                                    drift_times=times, progress=lambda m: say(f"  {m}"))
-    if scan.geom_corrected is not None:
-        results["bag corrected"] = timed_fdk(scan.geom_corrected)
-    truth = None
-    if scan.geom_true is not None:
-        results["true geometry"] = timed_fdk(scan.geom_true)
-        truth = (scan.geom_true, results["true geometry"][1], None)
+    with fdk_warnings(say) as approximate:  # what FDK only approximates on this geometry goes into the notes
+        for method in methods:
+            if method != "none":
+                say(f"{method}:")
+            results[method] = calibrate(li, scan.geom, grid, settings.replace(method=method), valid_mask=mask,
+                                        drift_times=times, progress=lambda m: say(f"  {m}"))
+        if scan.geom_corrected is not None:
+            results["bag corrected"] = timed_fdk(scan.geom_corrected)
+        truth = None
+        if scan.geom_true is not None:
+            results["true geometry"] = timed_fdk(scan.geom_true)
+            truth = (scan.geom_true, results["true geometry"][1], None)
+    job_notes += [f"FDK: {w}" for w in approximate]
+    used = {m: settings_used(results[m]) | {"ensemble": results[m].members} for m in methods}
     initial = projection_consistency(results["none"].volume, grid, scan.geom, li, mask)[0] if "none" in results else None
     name = Path(bag).name.removesuffix(".mcap")
     pts = roi_points(grid)
@@ -87,12 +103,12 @@ def report_bag(bag, out, methods=REPORT_METHODS, settings: CalibrationSettings |
                          initial_rmse=initial, reconstruct=reconstruct if truth is not None else None,
                          points_mm=pts, notes_per_method=per_method,
                          notes={"bag": str(bag), "methods": list(methods), "settings": shared,
-                                "iterations": settings.iterations,
-                                "schedule": settings.schedule,
-                                "prior_sigma": None if settings.prior_sigma is None else list(settings.prior_sigma),
+                                # what each method ran with (method -> value), as a calibration's report.json says
+                                **{k: {m: used[m][k] for m in methods}
+                                   for k in ("iterations", "schedule", "prior_sigma", "ensemble")},
                                 "drift_order": settings.drift_order, "seed": settings.seed,
-                                "ensemble": settings.ensemble, "padding": settings.padding,
-                                "grid": grid.to_dict(), "bag_warnings": list(scan.warnings)})
+                                "padding": settings.padding, "grid": grid.to_dict(),
+                                "bag_warnings": list(scan.warnings), "notes": job_notes})
     say("\n" + markdown_table(paths["rows"]) + "".join(f"\n{m}: {'; '.join(n)}" for m, n in per_method.items()))
     say(f"wrote {', '.join(str(paths[k]) for k in ('slices', 'rmse', 'param_error', 'markdown', 'json') if k in paths)}"
         f" ({time.perf_counter() - t0:.1f} s)")
