@@ -17,7 +17,7 @@ import numpy as np
 
 from robot_ct_ros.bag import format as fmt
 from robot_ct_ros.bag.reader import ScanData, read_scan
-from robot_ct_ros.ct.calibration import CalibrationResult, CalibrationSettings, calibrate, get_method
+from robot_ct_ros.ct.calibration import NO_CORRECTION, CalibrationResult, CalibrationSettings, calibrate, get_method
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
 from robot_ct_ros.jobs.output import say as _say
 from robot_ct_ros.jobs.output import (check_memory, fdk_warnings, refuse_other_job, refuse_out_in_bag, start_output,
@@ -140,13 +140,15 @@ def base_report(scan: ScanData, grid: VolumeGrid) -> dict:
             "recovered": scan.recovered, "bag_warnings": list(scan.warnings), "grid": grid.to_dict()}
 
 
-def truth_metrics(scan: ScanData, line_integrals, mask, geom: ConeGeometry, volume, grid: VolumeGrid) -> dict | None:
+def truth_metrics(scan: ScanData, line_integrals, mask, geom: ConeGeometry, volume, grid: VolumeGrid, *,
+                  nominal_volume=None) -> dict | None:
     """Figures against the true geometry of a simulated scan (None without /ct/geometry_true).
 
     Gauge-aligned reprojection error (pixels) of the nominal and of the corrected geometry
     against /ct/geometry_true on points filling the ROI, and SSIM of the nominal and the
     corrected reconstruction against the reconstruction with the true geometry (same grid,
-    same FDK).
+    same FDK). ``nominal_volume``: the nominal geometry's FDK where the caller has it (method
+    none: its own volume), else it is reconstructed here.
     """
     from robot_ct_ros.ct.metrics import roi_points, ssim
     from robot_ct_ros.ct.reconstruction import fdk
@@ -158,7 +160,7 @@ def truth_metrics(scan: ScanData, line_integrals, mask, geom: ConeGeometry, volu
     for name, g in (("nominal", scan.geom), ("corrected", geom)):
         out[f"reprojection_error_{name}_px"] = _reprojection_px(g, scan.geom_true, pts)
     ref = fdk(line_integrals, scan.geom_true, grid, valid_mask=mask)
-    nominal = volume if geom is scan.geom else fdk(line_integrals, scan.geom, grid, valid_mask=mask)
+    nominal = fdk(line_integrals, scan.geom, grid, valid_mask=mask) if nominal_volume is None else nominal_volume
     rng = float(ref.max() - ref.min())
     out["ssim_nominal"] = ssim(nominal, ref, data_range=rng)
     out["ssim_corrected"] = ssim(np.asarray(volume, np.float32), ref, data_range=rng)
@@ -234,7 +236,8 @@ def correct_scan(scan: ScanData, settings: CalibrationSettings | None = None, gr
     if evaluate_truth and scan.geom_true is not None:
         say("comparing with the true geometry")
         # of the geometry as the corrected bag and /ct/geometry_corrected carry it, to the last bit
-        report["truth"] = truth_metrics(scan, li, mask, fmt.as_transmitted(result.geom), result.volume, grid)
+        report["truth"] = truth_metrics(scan, li, mask, fmt.as_transmitted(result.geom), result.volume, grid,
+                                        nominal_volume=result.volume if result.method == NO_CORRECTION else None)
     report["wall_s"] = time.perf_counter() - t0
     return Correction(scan, grid, result, report)
 

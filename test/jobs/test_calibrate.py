@@ -218,3 +218,22 @@ def test_report_md_explains_a_low_independent_pixel_fraction_only():
                                 "prior_sigma": prior})
         assert f"independent pixels {fraction:.3f}" in text
         assert ("leans on the prior" in text) == remark, text
+
+
+def test_the_truth_of_an_uncorrected_scan_reuses_its_volume_as_the_nominal_one(tmp_path, monkeypatch):
+    """truth_metrics reused the volume of method none as the nominal reconstruction only when given the scan's own
+    geometry object, which correct_scan never passed (it passes the geometry as transmitted): method none paid for
+    a third FDK, of the geometry it had just reconstructed with."""
+    from robot_ct_ros.ct import reconstruction
+
+    scan = read_scan(_bag(tmp_path / "scan", np.eye(3)))
+    real, grids = reconstruction.fdk, []
+
+    def counted(li, geom, grid, **kwargs):
+        grids.append(grid.shape_zyx)
+        return real(li, geom, grid, **kwargs)
+
+    monkeypatch.setattr(reconstruction, "fdk", counted)
+    truth = correct_scan(scan, CalibrationSettings(method="none"), evaluate_truth=True, say=lambda s: None).report
+    assert len(grids) == 2, grids  # the nominal volume and the true geometry's, once each
+    assert truth["truth"]["ssim_nominal"] == truth["truth"]["ssim_corrected"]
