@@ -90,7 +90,7 @@ def test_the_running_volume_is_the_fdk_in_any_frame_with_the_grid_anywhere(axis,
         phantom[(z - cz) ** 2 + (y - cy) ** 2 + (x - cx) ** 2 < r * r] += mu
     li = forward_project(phantom, grid, nominal)
     mask = np.ones(li.shape, bool)
-    settings = CalibrationSettings(method="none", padding=1.0, coarse_binning=1)
+    settings = CalibrationSettings(method="none", padding=1.0, coarse_binning=1, fine_binning=1)
     est = StreamingEstimator(settings, grid, n_views, warmup_views=4)
     for i in range(n_views):
         est.add_views(li[i:i + 1], mask[i:i + 1], nominal.subset(np.array([i])), [i])
