@@ -18,6 +18,7 @@ import numpy as np
 
 from robot_ct_ros.ct.calibration.masks import as_view_mask
 from robot_ct_ros.ct.calibration.model import VolumeParts
+from robot_ct_ros.ct.calibration.settings import REACH_SETTING
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
 
 __all__ = ["REACH_FACTORS", "ReachChoice", "choose_reach", "exterior_grid", "exterior_support", "held_out_ncc",
@@ -160,7 +161,7 @@ class ReachChoice:
         table = ", ".join(f"{r:.1f} mm {s:.4f}" for r, s in self.scores)
         return (f"the object's reach was not stated: the exterior model reaches {self.reach_mm:.1f} mm, the reach "
                 f"whose model, built from 9 in 10 views, best predicted the views it did not see (held-out NCC: "
-                f"{table}); where the object's far side is known, state it (exterior_half_width_mm)")
+                f"{table}); where the object's far side is known, state it ({REACH_SETTING})")
 
 
 def choose_reach(line_integrals, geom: ConeGeometry, grid: VolumeGrid, mask, *, voxel_mm: float, iterations: int,

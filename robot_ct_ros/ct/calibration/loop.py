@@ -22,7 +22,7 @@ from robot_ct_ros.ct.calibration.kernels import blas_single_threaded
 from robot_ct_ros.ct.calibration.masks import bin_masked, usable_data
 from robot_ct_ros.ct.calibration.registry import get_method
 from robot_ct_ros.ct.calibration.result import CalibrationResult, IterationRecord
-from robot_ct_ros.ct.calibration.settings import CalibrationSettings
+from robot_ct_ros.ct.calibration.settings import REACH_SETTING, CalibrationSettings
 from robot_ct_ros.ct.calibration.volume import (EXTERIOR_ABOVE, TRUNCATED_ABOVE, EstimationVolume, axis_last,
                                                 estimation_grid,
                                                 projection_consistency, reconstruct_for_estimation,
@@ -61,7 +61,7 @@ def _guess_reach(li, mask, nominal, grid, settings, notes: list, say, memo: dict
         notes.append(f"the object's reach was not stated and could not be guessed ({e}): " + (
             "the exterior model reached up to the sources" if on else
             "the object outside the ROI of this strongly truncated scan was not modelled; state its reach "
-            "(exterior_half_width_mm)"))
+            f"({REACH_SETTING})"))
         return settings, on, not on
     notes.append(choice.note())
     say(choice.note())
@@ -318,8 +318,8 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
     guess_reach = not reach_stated and settings.exterior_reach_guess  # chosen by held-out prediction, below
     exterior_notes = []
     if exterior and not reach_stated and not guess_reach:
-        exterior_notes.append("the exterior model reached up to the sources: the object's reach "
-                              "(exterior_half_width_mm) was not stated, and reaching past the object costs accuracy")
+        exterior_notes.append(f"the exterior model reached up to the sources: the object's reach "
+                              f"({REACH_SETTING}) was not stated, and reaching past the object costs accuracy")
     unmodelled = False  # strongly truncated, the object outside the ROI not modelled: the guard is stricter
     if settings.exterior != "on":
         # auto models the object outside the ROI on a strongly truncated scan, with its reach stated or guessed: one
@@ -331,7 +331,7 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
             exterior_notes.append(f"strongly truncated (truncation level {level:.3f} > {EXTERIOR_ABOVE:g}), " + (
                 "and the object outside the ROI was not modelled (exterior off)" if settings.exterior == "off" else
                 "yet the object outside the ROI was not modelled: state how far the object reaches from the ROI "
-                "centre (exterior_half_width_mm), or let it be guessed (exterior_reach_guess)"))
+                f"centre ({REACH_SETTING}), or let it be guessed (exterior_reach_guess)"))
         if settings.exterior == "auto":
             say(f"truncation level {level:.3f}: {'the object outside the ROI is modelled' if exterior else 'ROI model'}")
     if exterior and guess_reach:
@@ -518,9 +518,9 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
         # geometry's, and no consistency figure can vouch for it
         unguarded, params = params, np.zeros_like(params)
         hint = ("the exterior model does not explain this scan well enough; where the object's reach was guessed, "
-                "state it: exterior_half_width_mm" if exterior else
+                f"state it: {REACH_SETTING}" if exterior else
                 "for an interior scan of a wide object, state how far it reaches from the ROI centre: "
-                "exterior_half_width_mm")
+                f"{REACH_SETTING}")
         notes.append(f"guard: the estimation model explains the data poorly (projection NCC {explained:.3f} < "
                      f"{min_ncc:g}); the data do not support the correction and the nominal geometry is "
                      f"kept ({hint})")

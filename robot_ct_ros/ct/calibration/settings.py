@@ -17,7 +17,11 @@ from robot_ct_ros.parameters import setting, to_dict, validate
 
 __all__ = ["CalibrationSettings", "SCHEDULES", "AUTO_SCHEDULE", "SCHEDULE_FIELDS", "FINE_VOLUMES", "PROJECTION_KINDS",
            "EXTERIOR_MODES", "DEFAULT_PADDING", "DEFAULT_PRIOR_MM", "DEFAULT_PRIOR_DEG", "DEFAULT_PRIOR_SIGMA",
-           "prior_sigma_from"]
+           "prior_sigma_from", "REACH_SETTING"]
+
+
+REACH_SETTING = "exterior_half_width_mm; on ROS exterior_half_width_m, in m"
+"""How the notes name the object's reach: its field (the command line's option) and its ROS parameter, which differ."""
 
 
 def prior_sigma_from(translation_mm: float, rotation_deg: float):

@@ -648,7 +648,8 @@ def test_exterior_auto_models_a_strongly_truncated_scan_only_when_the_objects_re
     assert modelled in stated and not any("not stated" in n or "not modelled" in n for n in stated)
     unstated = calibrate(wider, nominal, grid, exterior_reach_guess=False, **kw).notes  # auto is the default
     assert modelled not in unstated
-    assert any("strongly truncated" in n and "exterior_half_width_mm" in n for n in unstated)
+    assert any("strongly truncated" in n and "exterior_half_width_mm" in n and "on ROS exterior_half_width_m," in n
+               for n in unstated)
     too_few = calibrate(wider, nominal, grid, **kw).notes  # the guess needs 20 views
     assert modelled not in too_few
     assert any("could not be guessed" in n and "20 views" in n and "not modelled" in n for n in too_few), too_few
