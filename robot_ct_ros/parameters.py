@@ -5,8 +5,8 @@ carries its help text, unit, bounds or choices, and how it appears as a ROS para
 SI units at that boundary: ``ros_scale`` multiplies the core value, e.g. 1e-3 for mm -> m;
 ``ros_none`` is the ROS value that stands for None, since ROS parameters have no null). A field
 whose default is a tuple is a list of numbers (a ROS double or integer array; ``length`` items,
-each checked against the bounds); an optional field (default None) without ``ros_none`` is
-declared on ROS by its type and left unset. The
+each checked against the bounds); an optional list (default None) without ``ros_none`` is an empty
+array on ROS (unset); an optional number, string or flag needs a ``ros_none``. The
 nodes declare their parameters from these fields (:func:`robot_ct_ros.nodes.common.declare_settings`),
 the CLI builds its options from them, and ``to_dict`` goes into report.json, so a new setting
 reaches every front end at once, in the style of generate_parameter_library.

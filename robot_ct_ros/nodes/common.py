@@ -328,8 +328,9 @@ def declare_settings(node, cls, *, prefix: str = "", exclude=(), **defaults):
     instead of reporting a value it does not use (restart the node to change one). ``exclude``:
     fields the node declares its own way (they keep their defaults here). ``defaults`` override field defaults (core units). A value of
     the wrong type or out of range raises ValueError naming the parameter (never a traceback from
-    rclpy's internals). List fields (tuple defaults) are double or integer arrays; an optional field
-    (default None, no ``ros_none``) is declared by its type and stays unset unless given."""
+    rclpy's internals). List fields (tuple defaults) are double or integer arrays; an optional list
+    (default None, no ``ros_none``) is an empty array unless given (:func:`declare_optional_array`); an optional
+    number, string or flag needs a ``ros_none``."""
     import math
 
     from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
@@ -344,6 +345,8 @@ def declare_settings(node, cls, *, prefix: str = "", exclude=(), **defaults):
         name = prefix + s.ros_name
         unit = f" [{s.ros_unit}]" if s.ros_unit else ""
         extra = f" ({s.to_ros(None) if s.ros_none is not None else ''} = off)" if s.ros_none is not None else ""
+        if s.default is None and s.ros_none is None:
+            extra = " ([] = unset)"
         choices = f" One of: {', '.join(map(str, s.choices))}." if s.choices else ""
         desc = ParameterDescriptor(name=name, description=f"{s.help}{unit}{extra}{choices}{READ_AT_START}",
                                    read_only=True)
@@ -356,12 +359,17 @@ def declare_settings(node, cls, *, prefix: str = "", exclude=(), **defaults):
                 desc.integer_range = [IntegerRange(from_value=int(max(lo, -2 ** 63)), to_value=int(min(hi, 2 ** 63 - 1)),
                                                    step=1)]
         default = s.to_ros(defaults.get(s.name, s.default))
-        if default is None:  # an optional value with no ROS stand-in: declared by its type, left unset
-            default = _unset_parameter_type(s)
+        if default is None and s.kind is not tuple:
+            raise TypeError(f"{cls.__name__}.{s.name}: an optional number, string or flag needs a ros_none (the ROS "
+                            "value that stands for unset): a parameter without a value empties GetParameters")
         if s.kind is float or (s.kind is tuple and s.item_kind is float):
             whole_numbers_as_doubles(node, name, "double" if s.kind is float else "double_array")
         try:
-            values[s.ros_name] = value = node.declare_parameter(name, default, desc).value
+            if default is None:  # an optional list with no ROS stand-in: unset is the empty array
+                param = declare_optional_array(node, name, _unset_parameter_type(s), desc)
+            else:
+                param = node.declare_parameter(name, default, desc)
+            values[s.ros_name] = value = param.value
             if (core := s.from_ros(value)) is not None:
                 s.check(core)  # this field alone, so the message names the ROS parameter
         except (InvalidParameterTypeException, InvalidParameterValueException, ValueError, TypeError) as exc:
@@ -421,13 +429,27 @@ def whole_numbers_as_doubles(node, name: str, kind: str) -> None:
 
 
 def _unset_parameter_type(spec):
-    """The rclpy Parameter.Type to declare an optional setting with (no default value on ROS)."""
+    """The rclpy Parameter.Type of an optional list setting (declared empty when not given)."""
     from rclpy.parameter import Parameter
 
-    T = Parameter.Type
-    if spec.kind is tuple:
-        return T.INTEGER_ARRAY if spec.item_kind is int else T.DOUBLE_ARRAY
-    return {float: T.DOUBLE, int: T.INTEGER, str: T.STRING, bool: T.BOOL}[spec.kind]
+    return Parameter.Type.INTEGER_ARRAY if spec.item_kind is int else Parameter.Type.DOUBLE_ARRAY
+
+
+def declare_optional_array(node, name: str, array_type, descriptor):
+    """Declare the optional array parameter ``name`` of the rclpy Parameter.Type ``array_type`` (DOUBLE_ARRAY,
+    INTEGER_ARRAY); returns the Parameter. Not given (or given as ``[]``, which rcl reads as no value), it holds an
+    empty array of that type: unset.
+
+    A parameter declared by its type alone and not given has no value, and rclpy answers a GetParameters request
+    that names it with no values at all, also for the other names asked for, so ``ros2 param dump`` (one request
+    for every name) would print nothing. rclpy types an empty list as a byte array, so the empty default is stored
+    with its type (rclpy's ``Node._parameters``, the declared values; the parameter is read-only)."""
+    from rclpy.parameter import Parameter
+
+    param = node.declare_parameter(name, array_type, descriptor)
+    if param.type_ == Parameter.Type.NOT_SET:
+        param = node._parameters[name] = Parameter(name, array_type, [])
+    return param
 
 
 def publish_diagnostic(node, publisher, level, what: str, hardware_id: str, message: str, values) -> None:

@@ -7,6 +7,7 @@ config/hand_eye.yaml sets them for all nodes at once), per device ``source`` and
   hand_eye.<device>.translation_m   [x, y, z] metres, TCP frame -> device frame origin
   hand_eye.<device>.rotvec_rad      [rx, ry, rz] rotation vector, rad     } give one of them, as floats;
   hand_eye.<device>.rpy_rad         [roll, pitch, yaw] rad (R = Rz Ry Rx) } neither: the default mount
+                                    (each an empty array, unset, when not given)
 
 The device frames are defined in :mod:`robot_ct_ros.ct.hand_eye` (defaults: focal spot 0.12 m
 along tool +z with the beam along tool +z; detector centre 0.08 m along tool +z facing out).
@@ -32,14 +33,16 @@ def declare_hand_eye(node, prefix: str = "hand_eye") -> HandEye:
     from rcl_interfaces.msg import ParameterDescriptor
     from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 
-    from robot_ct_ros.nodes.common import READ_AT_START, whole_numbers_as_doubles
+    from robot_ct_ros.nodes.common import READ_AT_START, declare_optional_array, whole_numbers_as_doubles
 
     def declare(name, value):
         whole_numbers_as_doubles(node, name, "double_array")
+        desc = ParameterDescriptor(name=name, description=f"hand-eye mount of the device on its flange"
+                                   f"{' ([] = unset)' if value is None else ''}.{READ_AT_START}", read_only=True)
         try:
-            return node.declare_parameter(name, value, ParameterDescriptor(
-                name=name, description=f"hand-eye mount of the device on its flange.{READ_AT_START}",
-                read_only=True)).value
+            if value is None:  # optional: an empty array (unset) unless given
+                return list(declare_optional_array(node, name, Parameter.Type.DOUBLE_ARRAY, desc).value) or None
+            return node.declare_parameter(name, value, desc).value
         except (InvalidParameterTypeException, InvalidParameterValueException, TypeError) as exc:
             raise ValueError(f"parameter {name}: {exc}") from None
 
@@ -48,12 +51,11 @@ def declare_hand_eye(node, prefix: str = "hand_eye") -> HandEye:
     for dev in ("source", "detector"):
         base = getattr(default, dev)
         t = declare(f"{prefix}.{dev}.translation_m", [x * 1e-3 for x in base.translation_mm])
-        rv = declare(f"{prefix}.{dev}.rotvec_rad", Parameter.Type.DOUBLE_ARRAY)
-        rpy = declare(f"{prefix}.{dev}.rpy_rad", Parameter.Type.DOUBLE_ARRAY)
+        rv = declare(f"{prefix}.{dev}.rotvec_rad", None)
+        rpy = declare(f"{prefix}.{dev}.rpy_rad", None)
         if rv is None and rpy is None:
             rv = list(base.rotvec)
-        mounts[dev] = mount_from_si(list(t), None if rv is None else list(rv), None if rpy is None else list(rpy),
-                                    what=f"{prefix}.{dev}")
+        mounts[dev] = mount_from_si(list(t), rv, rpy, what=f"{prefix}.{dev}")
     return HandEye(**mounts)
 
 

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import importlib
 
+import numpy as np
+
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from robot_ct_ros.bag import format as fmt
@@ -36,3 +38,35 @@ def test_the_nodes_qos_profiles_are_the_contracts_and_unchanged():
                                         reliability=ReliabilityPolicy.RELIABLE)
     assert recon.STATUS == QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL,
                                       reliability=ReliabilityPolicy.RELIABLE)
+
+
+def test_every_parameter_of_every_node_comes_back_in_one_get_parameters_call(ros, tmp_path):
+    """Outside test 27 A #2: rclpy answers a GetParameters request that names an unset parameter (declared by
+    type only) with no values at all, so ``ros2 param dump`` (one request for every name) came back empty for
+    pcd_grabber, geometry_publisher and scan_orchestrator. Optional parameters now hold an empty array (unset)."""
+    from rcl_interfaces.msg import ParameterType
+    from rcl_interfaces.srv import GetParameters, ListParameters
+    from rclpy.parameter import Parameter
+
+    from robot_ct_ros.bag import write_scan
+    from robot_ct_ros.ct.trajectory import robotic_roi_scan
+
+    geom = robotic_roi_scan(n_views=4, n_rows=4, n_cols=6, fov_diameter_mm=0.3)
+    bag = write_scan(tmp_path / "scan", np.ones((4, 4, 6), np.float32), geom, projection_units="line_integral")
+    overrides = {"pcd_grabber": {"autostart": False}, "recon_service": {"output_dir": str(tmp_path / "recon")},
+                 "recorder": {"output_dir": str(tmp_path / "bags")},
+                 "replay": {"bag_path": str(bag), "rate_hz": 0.0, "output_dir": str(tmp_path / "replay")}}
+    probe = ros.node("probe")
+    for name in NODES:
+        module = importlib.import_module(f"robot_ct_ros.nodes.{name}")
+        cls = next(c for c in vars(module).values() if isinstance(c, type) and c.__module__ == module.__name__
+                   and c.__name__.endswith("Node"))
+        ros.add(cls(context=ros.context, parameter_overrides=[Parameter(k, value=v)
+                                                              for k, v in overrides.get(name, {}).items()]))
+        names = ros.call(probe.create_client(ListParameters, f"/{name}/list_parameters"),
+                         ListParameters.Request()).result.names
+        got = ros.call(probe.create_client(GetParameters, f"/{name}/get_parameters"),
+                       GetParameters.Request(names=names))
+        assert len(got.values) == len(names), (name, len(got.values), len(names))
+        unset = [n for n, v in zip(names, got.values) if v.type == ParameterType.PARAMETER_NOT_SET]
+        assert not unset, (name, unset)
