@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 from scipy.spatial.transform import Rotation
@@ -37,11 +38,22 @@ def _write_like_the_docs(path, frames, flat, stamps_ns, sources_m, detectors_m, 
             Pose(position=Point(x=detector_m[0], y=detector_m[1], z=detector_m[2]),
                  orientation=Quaternion(x=q[0], y=q[1], z=q[2], w=q[3]))])
 
+    never = QosTime(9223372036, 854775807)  # rmw's "infinite" duration, as rosbag2 writes it
+
+    def qos(depth, latched=False):  # offered QoS recorded per topic: reliable, keep-last; latched: transient-local
+        return [Qos(QosHistory.KEEP_LAST, depth, QosReliability.RELIABLE,
+                    QosDurability.TRANSIENT_LOCAL if latched else QosDurability.VOLATILE,
+                    never, never, QosLiveliness.AUTOMATIC, never, False)]
+
     with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
-        c_info = w.add_connection("/ct/scan_info", "std_msgs/msg/String", typestore=ts)
-        c_flat = w.add_connection("/ct/flat_field", "sensor_msgs/msg/Image", typestore=ts)
-        c_proj = w.add_connection("/ct/projection", "sensor_msgs/msg/Image", typestore=ts)
-        c_geom = w.add_connection("/ct/geometry", "geometry_msgs/msg/PoseArray", typestore=ts)
+        c_info = w.add_connection("/ct/scan_info", "std_msgs/msg/String", typestore=ts,
+                                  offered_qos_profiles=qos(1, latched=True))
+        c_flat = w.add_connection("/ct/flat_field", "sensor_msgs/msg/Image", typestore=ts,
+                                  offered_qos_profiles=qos(1, latched=True))
+        c_proj = w.add_connection("/ct/projection", "sensor_msgs/msg/Image", typestore=ts,
+                                  offered_qos_profiles=qos(100))
+        c_geom = w.add_connection("/ct/geometry", "geometry_msgs/msg/PoseArray", typestore=ts,
+                                  offered_qos_profiles=qos(100))
         t0 = stamps_ns[0] - 1
         w.write(c_info, t0, ts.serialize_cdr(String(data=json.dumps(info)), "std_msgs/msg/String"))
         w.write(c_flat, t0, ts.serialize_cdr(image(flat, t0), "sensor_msgs/msg/Image"))
@@ -69,6 +81,15 @@ def test_bag_written_with_rosbags_alone_is_read_and_calibrated(tmp_path, check_b
     _write_like_the_docs(bag, scan.counts, scan.flat, stamps, geom.source_mm * 1e-3, geom.detector_mm * 1e-3,
                          geom.u, geom.v, info)
     check_bag(bag)
+    # the QoS profiles bag-format.md says every topic records (a player reaches the transient-local scan_info)
+    from rosbags.rosbag2 import Reader
+
+    from robot_ct_ros.bag import format as fmt
+
+    with Reader(bag) as reader:
+        recorded = {c.topic: c.ext.offered_qos_profiles for c in reader.connections}
+    assert recorded == {t: [fmt.offered_qos(t)] for t in (fmt.TOPIC_SCAN_INFO, fmt.TOPIC_FLAT_FIELD,
+                                                        fmt.TOPIC_PROJECTION, fmt.TOPIC_GEOMETRY)}, recorded
 
     # the project reads it...
     from robot_ct_ros.bag import read_scan
@@ -117,7 +138,7 @@ def test_a_cut_bag_written_with_rosbags_alone_keeps_every_complete_frame(tmp_pat
                          geom.detector_mm * 1e-3, geom.u, geom.v, info)
     (mcap,) = sorted(bag.glob("*.mcap"))
     data = mcap.read_bytes()
-    for fraction in (0.9, 0.5):
+    for fraction in (0.8, 0.5):  # inside the one chunk: the summary (channels with their QoS) is the last 13 %
         cut = tmp_path / f"cut_{fraction}"
         cut.mkdir()
         (cut / mcap.name).write_bytes(data[:int(fraction * len(data))])
