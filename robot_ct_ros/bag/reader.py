@@ -381,6 +381,7 @@ class ScanData:
     integrals without flat). ``pixel_mask`` (rows, cols) bool: not dead and flat > 0.
     ``valid_mask`` (n, rows, cols) bool: ``pixel_mask`` and a finite, non-negative value in
     that frame. ``geom_corrected`` / ``geom_true`` when the bag holds them for every frame.
+    ``frame_id``: the world frame the geometries name (that of most /ct/geometry messages).
     ``warnings``: everything that was dropped or repaired, one line each. ``raw``: every message
     of the bag as read (``read_scan(keep_raw=True)``), so that a corrected copy needs no second read.
     """
@@ -398,6 +399,7 @@ class ScanData:
     geom_true: ConeGeometry | None = None
     recovered: bool = False
     raw: RawBag | None = None
+    frame_id: str = fmt.FRAME_WORLD
 
     @property
     def n_views(self) -> int:
@@ -524,7 +526,22 @@ def _by_stamp(items, what: str, warnings: list) -> dict:
     return out
 
 
-def _geometries(raw: RawBag, topic: str, warnings: list) -> dict:
+def _main_frame(frames: dict) -> str:
+    """The frame most geometries name (``frames``: frame_id -> count), :data:`fmt.FRAME_WORLD` for none."""
+    return min(frames, key=lambda name: (-frames[name], name)) if frames else fmt.FRAME_WORLD
+
+
+def geometry_frame(raw: RawBag) -> str:
+    """The world frame of a bag's messages: the frame_id most /ct/geometry messages name (the writer's,
+    docs/bag-format.md), :data:`fmt.FRAME_WORLD` when none can be read."""
+    frames: dict = {}
+    for _, msg in _decode(raw, fmt.TOPIC_GEOMETRY, fmt.POSE_ARRAY, []):
+        frames[msg.header.frame_id] = frames.get(msg.header.frame_id, 0) + 1
+    return _main_frame(frames)
+
+
+def _geometries(raw: RawBag, topic: str, warnings: list, frames_of: dict | None = None) -> dict:
+    """The usable geometries on ``topic`` by stamp; ``frames_of[topic]`` gets the frames they name (name -> count)."""
     items, bad, frames = [], 0, {}
     for _, msg in _decode(raw, topic, fmt.POSE_ARRAY, warnings):
         try:
@@ -539,6 +556,8 @@ def _geometries(raw: RawBag, topic: str, warnings: list) -> dict:
         warnings.append(f"the geometries on {topic} name {len(frames)} frames ("
                         + ", ".join(f"{name or '(empty)'!r}: {n}" for name, n in sorted(frames.items()))
                         + "); a bag's geometries must share one frame, and they are used as if they did")
+    if frames_of is not None and frames:
+        frames_of[topic] = frames
     return _by_stamp(items, f"geometries on {topic}", warnings)
 
 
@@ -712,7 +731,8 @@ def scan_from_raw(raw: RawBag, path, *, keep_raw: bool = False, min_views: int |
         if dropped:
             causes.append(warnings[-1])
     n_warn = len(warnings)
-    geoms = _geometries(raw, fmt.TOPIC_GEOMETRY, warnings)
+    frames_of: dict = {}  # geometry topic -> the frames its messages name (name -> count)
+    geoms = _geometries(raw, fmt.TOPIC_GEOMETRY, warnings, frames_of)
     causes.extend(warnings[n_warn:])
 
     paired = sorted(set(frames) & set(geoms))
@@ -786,7 +806,7 @@ def scan_from_raw(raw: RawBag, path, *, keep_raw: bool = False, min_views: int |
             warnings.append(li_warning)
 
     def extra(topic):
-        gs = _geometries(raw, topic, warnings)
+        gs = _geometries(raw, topic, warnings, frames_of)
         if not gs:
             return None
         have = [s in gs for s in paired]
@@ -799,10 +819,16 @@ def scan_from_raw(raw: RawBag, path, *, keep_raw: bool = False, min_views: int |
             warnings.append(f"{topic} ignored: {exc}")
             return None
 
+    geom_corrected, geom_true = extra(fmt.TOPIC_GEOMETRY_CORRECTED), extra(fmt.TOPIC_GEOMETRY_TRUE)
+    if len({frozenset(f) for f in frames_of.values()}) > 1:  # the topics disagree (one topic's mix is warned above)
+        warnings.append("the geometry topics name different frames ("
+                        + "; ".join(f"{topic}: " + ", ".join(repr(name) for name in sorted(f))
+                                    for topic, f in frames_of.items())
+                        + "); a bag's geometries must share one frame, and they are used as if they did")
     return ScanData(path=Path(path), counts=counts, stamps_ns=np.asarray(paired, np.int64), geom=geom, flat=flat,
                     pixel_mask=pixel_mask, valid_mask=valid, info=info, warnings=warnings,
-                    geom_corrected=extra(fmt.TOPIC_GEOMETRY_CORRECTED), geom_true=extra(fmt.TOPIC_GEOMETRY_TRUE),
-                    recovered=raw.recovered, raw=raw if keep_raw else None)
+                    geom_corrected=geom_corrected, geom_true=geom_true, recovered=raw.recovered,
+                    raw=raw if keep_raw else None, frame_id=_main_frame(frames_of.get(fmt.TOPIC_GEOMETRY, {})))
 
 
 def summarize(path) -> dict:

@@ -38,16 +38,18 @@ class ScanBagWriter:
     written first with log time ``start_ns`` (default: the first stamp written, or now).
 
     Use as a context manager; ``write_frame(counts, view_geometry, stamp_ns)`` per view.
+    ``frame_id``: the world frame every geometry written names (docs/bag-format.md: one frame per bag).
     """
 
     def __init__(self, path, info: dict | None, *, flush_every_frame: bool = True, fsync: bool = False,
-                 start_ns: int | None = None):
+                 start_ns: int | None = None, frame_id: str = fmt.FRAME_WORLD):
         from rosbags.rosbag2 import StoragePlugin, Writer
 
         self.path = Path(path)
         self.info = None if info is None else fmt.validate_scan_info(dict(info))
         self.flush_every_frame = flush_every_frame
         self.fsync = fsync
+        self.frame_id = frame_id
         self._writer = Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
         self._writer.set_custom_data(BAG_CUSTOM_DATA_KEY, fmt.FORMAT)
         self._connections: dict[tuple[str, str], object] = {}
@@ -168,9 +170,9 @@ class ScanBagWriter:
 
     def write_geometry(self, geom_view: ConeGeometry, stamp_ns: int, topic: str = fmt.TOPIC_GEOMETRY,
                        view: int = 0) -> None:
-        """One view of ``geom_view`` (mm) as a PoseArray (m) on ``topic``, stamped ``stamp_ns``."""
+        """One view of ``geom_view`` (mm) as a PoseArray (m) on ``topic``, stamped ``stamp_ns``, in ``frame_id``."""
         msg = fmt.view_pose_array(geom_view.source_mm[view], geom_view.detector_mm[view], geom_view.u[view],
-                                  geom_view.v[view], stamp_ns)
+                                  geom_view.v[view], stamp_ns, self.frame_id)
         self.write_msg(topic, msg, stamp_ns, fmt.POSE_ARRAY)
 
     def write_frame(self, frame, geom_view: ConeGeometry | None, stamp_ns: int, view: int = 0, *,
@@ -227,11 +229,11 @@ def default_stamps(n_views: int, start_ns: int = 1_767_225_600_000_000_000, peri
 
 def write_scan(path, frames, geom: ConeGeometry, *, info: dict | None = None, stamps_ns=None, flat=None,
                dead_pixels=None, geom_corrected: ConeGeometry | None = None, geom_true: ConeGeometry | None = None,
-               progress=None, **info_kw) -> Path:
+               progress=None, frame_id: str = fmt.FRAME_WORLD, **info_kw) -> Path:
     """Write a whole scan (frames (n, rows, cols) with per-view ``geom``) as a scan bag; returns the path.
 
     ``info`` defaults to ``scan_info_for(geom, **info_kw)``. ``progress`` wraps the view range
-    (e.g. ``tqdm``).
+    (e.g. ``tqdm``). ``frame_id``: the world frame the geometries name.
     """
     frames = np.asarray(frames)
     if frames.shape != (geom.n_views,) + geom.det_shape:
@@ -240,7 +242,7 @@ def write_scan(path, frames, geom: ConeGeometry, *, info: dict | None = None, st
     stamps = default_stamps(geom.n_views) if stamps_ns is None else np.asarray(stamps_ns, np.int64)
     t0 = int(stamps.min()) - 1_000_000  # scan_info, flat and dead pixels precede the first frame
     views = range(geom.n_views) if progress is None else progress(range(geom.n_views))
-    with ScanBagWriter(path, info, start_ns=t0) as w:
+    with ScanBagWriter(path, info, start_ns=t0, frame_id=frame_id) as w:
         if flat is not None:
             w.write_flat(flat, t0)
         if dead_pixels is not None:
@@ -250,23 +252,26 @@ def write_scan(path, frames, geom: ConeGeometry, *, info: dict | None = None, st
     return Path(path)
 
 
-def write_corrected_bag(src, dst, geom_corrected: ConeGeometry, stamps_ns, *, notes: str | None = None) -> Path:
+def write_corrected_bag(src, dst, geom_corrected: ConeGeometry, stamps_ns, *, notes: str | None = None,
+                        frame_id: str | None = None) -> Path:
     """Copy every message of the bag ``src`` to a new bag ``dst`` with /ct/geometry_corrected added.
 
     ``src`` is a bag path or the :class:`~robot_ct_ros.bag.reader.RawBag` already read from it.
     ``stamps_ns`` are the stamps of the views of ``geom_corrected`` (the paired frames' stamps);
-    corrected geometries already in ``src`` are replaced. Works on damaged bags (copies what
-    :func:`robot_ct_ros.bag.reader.read_raw_messages` recovers).
+    corrected geometries already in ``src`` are replaced. They name ``frame_id``, by default the frame
+    of ``src``'s /ct/geometry (:func:`~robot_ct_ros.bag.reader.geometry_frame`): one frame per bag.
+    Works on damaged bags (copies what :func:`robot_ct_ros.bag.reader.read_raw_messages` recovers).
 
     As the recorder's bags, every frame opens its own MCAP chunk (with its CRC), so one damaged chunk
     costs one view; each corrected geometry goes in at its stamp's place in log time, beside its frame.
     """
-    from .reader import RawBag, read_raw_messages
+    from .reader import RawBag, geometry_frame, read_raw_messages
 
     raw = src if isinstance(src, RawBag) else read_raw_messages(src)
     stamps = np.asarray(stamps_ns, np.int64)
     pending = sorted((int(s), i) for i, s in enumerate(stamps))[::-1]  # popped from the end, earliest first
-    w = ScanBagWriter(dst, None, flush_every_frame=False)
+    frame_id = geometry_frame(raw) if frame_id is None else frame_id
+    w = ScanBagWriter(dst, None, flush_every_frame=False, frame_id=frame_id)
     with w:
         for m in raw.messages:
             if m.topic == fmt.TOPIC_GEOMETRY_CORRECTED:

@@ -160,6 +160,39 @@ def test_geometries_in_more_than_one_frame_are_warned(tmp_path):
     assert any("name 2 frames ('base_link': 2, 'world': 2)" in w for w in scan.warnings), scan.warnings
 
 
+def test_the_corrected_geometry_carries_the_scans_frame_and_mixed_topics_are_warned(tmp_path, tiny_scan):
+    """Outside test 27 A #1: /ct/geometry_corrected always named "world", whatever the frame of the scan's
+    /ct/geometry, and the reader compared the frames within one topic only."""
+    from dataclasses import replace as dc_replace
+
+    from robot_ct_ros.bag.reader import scan_from_raw
+
+    geom, frames, flat, dead = tiny_scan
+    src = write_scan(tmp_path / "lab", frames, geom, flat=flat, frame_id="lab")
+    scan = read_scan(src)
+    assert scan.frame_id == "lab" and scan.warnings == []
+    dst = write_corrected_bag(src, tmp_path / "c", geom, scan.stamps_ns)
+    frames_of = {}
+    for m in read_raw_messages(dst).messages:
+        if m.msgtype == fmt.POSE_ARRAY:
+            frames_of.setdefault(m.topic, set()).add(fmt.deserialize(m.data, fmt.POSE_ARRAY).header.frame_id)
+    assert frames_of == {fmt.TOPIC_GEOMETRY: {"lab"}, fmt.TOPIC_GEOMETRY_CORRECTED: {"lab"}}
+    assert read_scan(dst).warnings == []
+    # a bag whose true geometry names another frame than /ct/geometry is warned, and still read
+    mixed = write_scan(tmp_path / "mixed", frames, geom, flat=flat, geom_true=geom, frame_id="lab")
+    raw = read_raw_messages(mixed)
+    relabelled = []
+    for m in raw.messages:
+        if m.topic == fmt.TOPIC_GEOMETRY_TRUE:
+            msg = fmt.deserialize(m.data, fmt.POSE_ARRAY)
+            msg.header.frame_id = "world"
+            m = dc_replace(m, data=fmt.serialize(msg, fmt.POSE_ARRAY))
+        relabelled.append(m)
+    scan = scan_from_raw(dc_replace(raw, messages=relabelled), mixed)
+    assert scan.geom_true is not None and scan.frame_id == "lab"
+    assert any("/ct/geometry: 'lab'" in w and "/ct/geometry_true: 'world'" in w for w in scan.warnings), scan.warnings
+
+
 def test_a_scan_info_that_is_not_cdr_and_a_bare_sqlite_file_are_named_as_such(tmp_path):
     """A bag compressed per message and read without its metadata.yaml failed with "no /ct/scan_info message
     (found: ..., /ct/scan_info (1))", and an sqlite3 file given alone was described as a damaged MCAP."""
