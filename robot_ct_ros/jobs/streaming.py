@@ -25,6 +25,8 @@ from multiprocessing import get_context
 
 import numpy as np
 
+from robot_ct_ros.bag.format import FRAME_WORLD
+
 __all__ = ["StreamingCorrector", "LiveUpdate", "mid_slices"]
 
 
@@ -39,7 +41,8 @@ class LiveUpdate:
     """One batch estimated by the worker: the frames' stamps, their corrected geometry (a
     ConeGeometry of those views), the projection NCC of each against the running volume (nan for
     the warm-up views), the running mean, the middle slices of the running volume (ROI, coarse
-    level) and how long after its arrival here each frame's geometry came back (s)."""
+    level) and how long after its arrival here each frame's geometry came back (s); ``frame_id`` the world frame
+    of the frames' /ct/geometry, which the estimates are in."""
 
     scan: int
     stamps_ns: np.ndarray
@@ -50,6 +53,7 @@ class LiveUpdate:
     slices: dict
     latency_s: np.ndarray
     worker_s: float
+    frame_id: str = FRAME_WORLD
 
 
 # ------------------------------------------------------------------------------ worker process
@@ -187,7 +191,8 @@ def _stream_task(scan: int, latched, frames: list, options: dict) -> dict:
     preview = resample(est.volume, est.grid, roi)
     slices = {k: np.ascontiguousarray(v, np.float32) for k, v in mid_slices(preview).items()}
     return out | {"stamps": stamps, "geom": step.geom, "ncc": step.ncc, "mean_ncc": step.mean_ncc,
-                  "views": est.n_estimated, "slices": slices, "worker_s": time.perf_counter() - t0}
+                  "views": est.n_estimated, "slices": slices, "worker_s": time.perf_counter() - t0,
+                  "frame_id": data.frame_id}
 
 
 # ------------------------------------------------------------------------------ the caller's side
@@ -291,7 +296,7 @@ class StreamingCorrector:
                 self.views, self.mean_ncc = int(res["views"]), float(res["mean_ncc"])
                 out.append(LiveUpdate(res["scan"], stamps, res["geom"], np.asarray(res["ncc"], float),
                                       float(res["mean_ncc"]), int(res["views"]), res["slices"], lat,
-                                      float(res["worker_s"])))
+                                      float(res["worker_s"]), str(res.get("frame_id", FRAME_WORLD))))
         if self._future is None and self._queue:
             frames, self._queue = self._queue, []
             latched = None

@@ -178,13 +178,13 @@ class ReconServiceNode(Node):
 
     def _publish_live(self, update) -> None:
         """A batch of live estimates: its geometries on /ct/geometry_live, the running volume's slices."""
-        for m in fmt.geometry_pose_arrays(update.geom, update.stamps_ns):
+        for m in fmt.geometry_pose_arrays(update.geom, update.stamps_ns, update.frame_id):  # the scan's frame
             self.live_pub.publish(fmt.serialize(m, fmt.POSE_ARRAY))
             self.live_published += 1
         if not self.running and not self.planner.full_started:  # nor are a run's slices, during or after it
             now = self.get_clock().now().nanoseconds
             for k, sl in update.slices.items():
-                self.slice_pubs[k].publish(fmt.serialize(fmt.image_from_array(sl, now, fmt.FRAME_WORLD), fmt.IMAGE))
+                self.slice_pubs[k].publish(fmt.serialize(fmt.image_from_array(sl, now, update.frame_id), fmt.IMAGE))
 
     # -- runs ---------------------------------------------------------------------------------------
     @property
@@ -305,11 +305,13 @@ class ReconServiceNode(Node):
         if report["partial"]:  # /ct/geometry_corrected carries the correction of the whole scan only
             self.partial_reports.append(report)
         else:
-            msgs = fmt.geometry_pose_arrays(correction.geom, correction.scan.stamps_ns)
+            # in the frame of the scan's /ct/geometry (one frame per bag: docs/bag-format.md)
+            msgs = fmt.geometry_pose_arrays(correction.geom, correction.scan.stamps_ns, correction.scan.frame_id)
             self._to_publish.extend(fmt.serialize(m, fmt.POSE_ARRAY) for m in msgs)
         now = self.get_clock().now().nanoseconds
         for k, sl in mid_slices(correction.volume).items():
-            self.slice_pubs[k].publish(fmt.serialize(fmt.image_from_array(sl, now, fmt.FRAME_WORLD), fmt.IMAGE))
+            self.slice_pubs[k].publish(fmt.serialize(fmt.image_from_array(sl, now, correction.scan.frame_id),
+                                                     fmt.IMAGE))
         self.report = report
         self.report_pub.publish(String(data=json.dumps(clean_json(report), default=json_default)))
         self.state = "done"

@@ -157,6 +157,19 @@ def test_an_unusable_frame_mid_stream_is_dropped_not_a_lasting_error(tmp_path):
     assert res["stamps"] == [frames[5][0], frames[6][0]] and res["views"] == 6 and res["dropped"] == 1
 
 
+def test_the_live_estimates_name_the_frame_of_the_scans_geometry(tmp_path):
+    """Outside test 27 A #1: the live geometry (and slices) named "world" whatever frame the scan's /ct/geometry
+    named; the worker now says which frame its estimates are in."""
+    latched, frames, _ = _frames(tmp_path, 5)
+
+    def in_lab(frame):
+        msg = fmt.deserialize(frame[2], fmt.POSE_ARRAY)
+        msg.header.frame_id = "lab"
+        return frame[0], frame[1], fmt.serialize(msg, fmt.POSE_ARRAY)
+    res = _task(903, latched, [in_lab(f) for f in frames])
+    assert len(res["stamps"]) == 5 and res["frame_id"] == "lab"
+
+
 def test_the_summary_counts_the_dropped_frames_and_keeps_no_error():
     """The worker's count of dropped frames reaches the summary (report.json's live, /diagnostics), with or without
     views in the batch; the batch without views is no error and no update."""

@@ -399,3 +399,22 @@ def test_a_runs_report_names_the_scan_it_corrected_not_the_collection_at_its_end
     assert by_path.start_run()[0]
     assert ros.spin_until(lambda: by_path.done, timeout_s=60.0) and by_path.state == "done", by_path.error
     assert by_path.report["scan_id"] == "first", by_path.report["scan_id"]
+
+
+def test_the_corrected_geometry_names_the_frame_of_the_scans_geometry(ros, tmp_path):
+    """Outside test 27 A #1: /ct/geometry_corrected named "world" whatever the frame of the collected /ct/geometry
+    (a scan in the arms' frame "lab" got its corrected geometry in another frame)."""
+    from robot_ct_ros.bag import write_scan
+    from robot_ct_ros.ct.trajectory import robotic_roi_scan
+
+    n = 12
+    geom = robotic_roi_scan(n_views=n, n_rows=8, n_cols=12, fov_diameter_mm=0.5)
+    frames = np.random.default_rng(0).poisson(500.0, (n, 8, 12)).astype(np.float32)
+    bag = write_scan(tmp_path / "lab", frames, geom, flat=np.full((8, 12), 900.0, np.float32), frame_id="lab")
+    probe = Probe(ros)
+    recon = ros.add(ReconServiceNode(context=ros.context, parameter_overrides=_params(
+        output_dir=str(tmp_path / "recon"), method="none", auto_run=False, evaluate_truth=False)))
+    _feed(recon, bag, "lab_scan")
+    assert recon.n_paired == n and recon.start_run()[0]
+    assert ros.spin_until(lambda: recon.done and len(probe.corrected) == n, timeout_s=60.0), recon.error
+    assert {m.header.frame_id for m in probe.corrected.values()} == {"lab"}
