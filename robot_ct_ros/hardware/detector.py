@@ -36,7 +36,7 @@ from typing import Callable, Protocol
 
 import numpy as np
 
-from robot_ct_ros.bag.format import FRAME_DETECTOR
+from robot_ct_ros.bag.format import FRAME_DETECTOR, FRAME_WORLD
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
 from robot_ct_ros.ct.hand_eye import HandEye, geometry_from_tool_poses
 from robot_ct_ros.ct.simulation import (DetectorModel, Phantom, battery_phantom, carotid_plaque_phantom,
@@ -338,6 +338,8 @@ class DetectorSettings:
     exposure_timeout_s: float = setting(5.0, "pcd/expose answers failure if no frame within this (> exposure_s)",
                                         unit="s", minimum=0.0)
     frame_id: str = setting(FRAME_DETECTOR, "frame_id of the published frames")
+    world_frame: str = setting(FRAME_WORLD, "frame of the true tool poses and of /ct/geometry_true (the arms' "
+                               "base_frame, geometry_publisher's world_frame)")
     publish_true_geometry: bool = setting(True, "simulated detector: the true geometry of each frame is published")
 
     def __post_init__(self):

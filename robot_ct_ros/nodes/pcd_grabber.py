@@ -6,13 +6,13 @@ Topics (contract names from robot_ct_ros.bag.format; relative names follow the n
               /ct/flat_field (Image 32FC1, mean counts per frame without object) and /ct/dead_pixels
               (Image mono8, 1 = unusable: dead, hot, chip gap), on activation, transient-local,
               /ct/geometry_true (geometry_msgs/PoseArray, simulated detector only: the true geometry
-              of each frame, same stamp), /ct/projection_rejected (Image 32FC1: beam-interrupted
+              of each frame, same stamp, frame world_frame), /ct/projection_rejected (Image 32FC1: beam-interrupted
               frames, below), /diagnostics (1 Hz)
   subscribes  source/beam_on (std_msgs/Bool, transient-local): the beam state over each exposure, by
               reception time (below); the simulated detector also scales its flux by it (beam off =
               dark frame; the detector itself knows no interlock), source_arm/true_tool_pose and
               detector_arm/true_tool_pose (geometry_msgs/PoseStamped, simulated arms): the true poses
-              the simulated detector projects with
+              the simulated detector projects with (in world_frame; a pose in another frame is ignored)
   services    pcd/expose (std_srvs/Trigger): expose for exposure_s and publish the frame; answered
               when the frame is out (message: JSON {"stamp_ns", "frame", "exposure_s", "n_rows",
               "n_cols"}) or with success false and the reason (detector timeout: no frame within
@@ -75,7 +75,7 @@ class PcdGrabberNode(LifecycleNode):
         self.sim = declare_settings(self, SimulatedDetectorSettings, prefix="sim_")
         autostart = declare_settings(self, LifecycleSettings).autostart
         self.driver, self.exposure_s, self.exposure_timeout_s = d.driver, d.exposure_s, d.exposure_timeout_s
-        self.frame_id, self.config = d.frame_id, d.config
+        self.frame_id, self.world_frame, self.config = d.frame_id, d.world_frame, d.config
         self.hand_eye = declare_hand_eye(self)
 
         self.frame_pub = self.create_publisher(Image, fmt.node_topic(fmt.TOPIC_PROJECTION), STREAM)
@@ -181,6 +181,10 @@ class PcdGrabberNode(LifecycleNode):
         return self.get_clock().now().nanoseconds
 
     def _on_true_pose(self, role: str, msg: PoseStamped) -> None:
+        if msg.header.frame_id not in ("", self.world_frame):  # as geometry_publisher: another frame is no pose
+            self.get_logger().warn(f"{role} true pose ignored: frame {msg.header.frame_id!r} is not world_frame "
+                                   f"{self.world_frame!r}", throttle_duration_sec=5.0)
+            return
         try:
             self.true_poses.update(role, stamp_to_ns(msg.header.stamp), pose_to_matrix_mm(msg.pose))
         except ValueError as exc:
@@ -230,7 +234,8 @@ class PcdGrabberNode(LifecycleNode):
         self.frames_published += 1
         geom = frame.info.get("geometry")
         if self.detector_settings.publish_true_geometry and geom is not None:
-            msg = fmt.view_pose_array(geom.source_mm[0], geom.detector_mm[0], geom.u[0], geom.v[0], stamp)
+            msg = fmt.view_pose_array(geom.source_mm[0], geom.detector_mm[0], geom.u[0], geom.v[0], stamp,
+                                      self.world_frame)
             self.true_geom_pub.publish(fmt.serialize(msg, fmt.POSE_ARRAY))
 
     # -- health -------------------------------------------------------------------------------

@@ -150,7 +150,8 @@ def test_settings_are_the_grabber_parameters_and_refuse_bad_values():
     # names and defaults of the pcd_grabber's parameters (config/pcd_grabber.yaml)
     assert ros_defaults(DetectorSettings) == {"driver": "simulated", "n_rows": 272, "n_cols": 636, "binning": 2,
                                               "raw_pixel_m": 55e-6, "exposure_s": 0.1, "exposure_timeout_s": 5.0,
-                                              "frame_id": "pcd_detector", "publish_true_geometry": True}
+                                              "frame_id": "pcd_detector", "world_frame": "world",
+                                              "publish_true_geometry": True}
     sim = ros_defaults(SimulatedDetectorSettings)
     assert sim["phantom"] == "carotid" and sim["phantom_center_m"] == [0.4, 0.0, 0.3]
     assert sim["region_center_m"] is None and sim["mount_error.detector_rotvec_rad"] == [0.0, 0.0, 0.0]

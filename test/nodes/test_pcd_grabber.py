@@ -54,11 +54,11 @@ class Probe:
         self.pose = {r: n.create_publisher(PoseStamped, f"{r}_arm/true_tool_pose", 10) for r in ("source", "detector")}
         self.expose = n.create_client(Trigger, "pcd/expose")
 
-    def publish_poses(self, ros, S, D):
+    def publish_poses(self, ros, S, D, frame="world"):
         for role, T in (("source", S), ("detector", D)):
             assert ros.wait_for_subscribers(self.pose[role])
             msg = PoseStamped()
-            msg.header.frame_id = "world"
+            msg.header.frame_id = frame
             msg.header.stamp = self.node.get_clock().now().to_msg()
             matrix_mm_to_pose(T, msg.pose)
             self.pose[role].publish(msg)
@@ -110,6 +110,24 @@ def test_frame_on_request_with_true_geometry_and_latched_maps(ros):
     assert answer.success
     assert ros.spin_until(lambda: len(probe.frames) == 2)
     assert np.all(fmt.array_from_image(probe.frames[-1]) == 0.0) and node.last_beam_fraction == 0.0
+
+
+def test_the_true_geometry_is_in_the_world_frame_of_the_graph(ros):
+    """Outside test 27 A #1: /ct/geometry_true always named "world", while the arms (base_frame) and the geometry
+    publisher (world_frame) worked in "lab"; world_frame says the frame, and true poses in another are ignored."""
+    node = _grabber(ros, world_frame="lab")
+    probe = Probe(ros)
+    S, D = tool_goals_from_geometry(tiny_geometry(), HandEye())
+    probe.publish_poses(ros, S[1], D[1], frame="world")
+    ros.spin_for(0.3)
+    assert len(node.true_poses) == 0  # not the graph's frame: unknown poses, no frame (as geometry_publisher)
+    probe.publish_poses(ros, S[1], D[1], frame="lab")
+    assert ros.spin_until(lambda: len(node.true_poses) == 2)
+    probe.set_beam(ros, node, True)
+    answer = ros.call(probe.expose, Trigger.Request())
+    assert answer.success, answer.message
+    assert ros.spin_until(lambda: probe.true_geoms)
+    assert probe.true_geoms[-1].header.frame_id == "lab"
 
 
 def test_requests_never_block_the_executor(ros):
