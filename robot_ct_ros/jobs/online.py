@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 from robot_ct_ros.parameters import setting, validate
 
-__all__ = ["RunPlanner", "ServiceSettings"]
+__all__ = ["RunPlanner", "JobGridSettings", "ServiceSettings"]
 
 
 class RunPlanner:
@@ -61,27 +61,16 @@ class RunPlanner:
 
 
 @dataclass(frozen=True)
-class ServiceSettings:
-    """The recon_service's own parameters (the calibration's are CalibrationSettings)."""
+class JobGridSettings:
+    """What a correction a node runs reconstructs on and reports, the same for the recon_service and replay: the
+    grid (the command line's ``--voxel-mm`` and ``--shape``) and the error against a simulated scan's true
+    geometry."""
 
     voxel_size_m: float = setting(0.0, "voxel size (0: scan_info's, else pitch / magnification)", unit="m",
                                   minimum=0.0, maximum=0.01)
-    output_dir: str = setting("recon_out", "folder of the correction's outputs")
-    auto_run: bool = setting(True, "correct when scan/status says the scan is done")
-    every_n_views: int = setting(0, "also correct every N frames during the scan (0: off)", minimum=0)
-    stream: bool = setting(False, "streaming correction: estimate each view as it arrives against a running "
-                           "volume, in a worker process, and publish it on /ct/geometry_live (the whole-scan run "
-                           "still follows)")
-    stream_warmup_views: int = setting(8, "streaming: views back-projected into the first volume before any is "
-                                       "estimated", minimum=1)
-    stream_nice: int = setting(10, "streaming: niceness increment of the worker process (0: the node's priority)",
-                               minimum=0, maximum=19)
-    stream_threads: int = setting(1, "streaming: numba threads of the worker process (1 leaves the other cores to the "
-                                  "scan; 0: numba's default, every core)", minimum=0, maximum=1024)
-    bag_path: str = setting("", "correct this bag instead of the collected topics (empty: the topics)")
-    evaluate_truth: bool = setting(True, "simulated scans: error against /ct/geometry_true in the report")
     roi_shape: tuple = setting((0, 0, 0), "reconstruction grid nx, ny, nz (zeros: scan_info's ROI or the field of "
                                "view)", unit="voxels", minimum=0)
+    evaluate_truth: bool = setting(True, "simulated scans: error against /ct/geometry_true in the report")
 
     def __post_init__(self):
         validate(self)
@@ -98,3 +87,22 @@ class ServiceSettings:
     def voxel_mm(self):
         """``voxel_size_m`` in mm, or None for the scan's default."""
         return self.voxel_size_m * 1e3 if self.voxel_size_m > 0 else None
+
+
+@dataclass(frozen=True)
+class ServiceSettings(JobGridSettings):
+    """The recon_service's own parameters (the calibration's are CalibrationSettings; the grid's JobGridSettings)."""
+
+    output_dir: str = setting("recon_out", "folder of the correction's outputs")
+    auto_run: bool = setting(True, "correct when scan/status says the scan is done")
+    every_n_views: int = setting(0, "also correct every N frames during the scan (0: off)", minimum=0)
+    stream: bool = setting(False, "streaming correction: estimate each view as it arrives against a running "
+                           "volume, in a worker process, and publish it on /ct/geometry_live (the whole-scan run "
+                           "still follows)")
+    stream_warmup_views: int = setting(8, "streaming: views back-projected into the first volume before any is "
+                                       "estimated", minimum=1)
+    stream_nice: int = setting(10, "streaming: niceness increment of the worker process (0: the node's priority)",
+                               minimum=0, maximum=19)
+    stream_threads: int = setting(1, "streaming: numba threads of the worker process (1 leaves the other cores to the "
+                                  "scan; 0: numba's default, every core)", minimum=0, maximum=1024)
+    bag_path: str = setting("", "correct this bag instead of the collected topics (empty: the topics)")

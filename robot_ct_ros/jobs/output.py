@@ -22,11 +22,9 @@ the files, the line integrals, their mask and the filtered projections; the cali
 padded estimation volumes (FDK, SIRT) and reprojections; the comparison keeps every method's volume."""
 
 GRID_OPTIONS = {"command line": ("--shape {},{},{}", "--voxel-mm {:.4g}", 1.0),
-                "ROS parameters": ("roi_shape:=[{},{},{}]", "voxel_size_m:={:.4g}", 1e-3),
-                "scan_info": ("a ROI of {} x {} x {} voxels in the bag's scan_info", "voxels of {:.4g} mm", 1.0)}
-"""How a user sets the grid, by where the job was started (the command line, recon_service's parameters,
-or the bag itself for replay): (shape, voxel size, voxel unit per mm), the hints of :func:`check_memory`'s
-refusal."""
+                "ROS parameters": ("roi_shape:=[{},{},{}]", "voxel_size_m:={:.4g}", 1e-3)}
+"""How a user sets the grid, by where the job was started (the command line, or the recon_service's and
+replay's parameters): (shape, voxel size, voxel unit per mm), the hints of :func:`check_memory`'s refusal."""
 
 
 def prepare_out(out, *, must_not_exist: bool = False, what: str = "--out") -> Path:

@@ -32,8 +32,9 @@ from robot_ct_ros.bag import format as fmt
 from robot_ct_ros.bag.reader import read_raw_messages
 from robot_ct_ros.ct.calibration import CalibrationSettings
 from robot_ct_ros.bag.format import ScanBagError
+from robot_ct_ros.jobs.online import JobGridSettings
 from robot_ct_ros.nodes.common import LATCHED, STREAM, declare_settings, run_settings_node, writable_dir
-from robot_ct_ros.parameters import setting, validate
+from robot_ct_ros.parameters import setting
 from robot_ct_ros.nodes.recorder import message_class
 
 
@@ -64,8 +65,9 @@ def _offline_methods():
 
 
 @dataclass(frozen=True)
-class ReplaySettings:
-    """What replay republishes and computes (its own parameters; the calibration's are CalibrationSettings)."""
+class ReplaySettings(JobGridSettings):
+    """What replay republishes and computes (its own parameters; the calibration's are CalibrationSettings, the
+    grid's and the report's JobGridSettings, as the recon_service's)."""
 
     bag_path: str = setting("", "scan bag directory or .mcap file (required)")
     rate_hz: float = setting(10.0, "frames per second when republishing; <= 0: do not republish", unit="Hz")
@@ -78,7 +80,7 @@ class ReplaySettings:
                                           "if the job failed); off: keep serving ~/report until SIGINT")
 
     def __post_init__(self):
-        validate(self)
+        super().__post_init__()
         if not self.bag_path:
             raise ValueError("bag_path is required")
 
@@ -165,8 +167,10 @@ class ReplayNode(Node):
 
         log = self.get_logger()
         try:
-            report = calibrate_bag(self.bag_path, self.output_dir, self.settings, say=lambda s: log.info(s),
-                                   options="scan_info").report
+            rs = self.replay_settings
+            report = calibrate_bag(self.bag_path, self.output_dir, self.settings, voxel_mm=rs.voxel_mm,
+                                   shape_xyz=rs.shape_xyz, evaluate_truth=rs.evaluate_truth,
+                                   say=lambda s: log.info(s), options="ROS parameters").report
         except Exception as exc:  # noqa: BLE001 - reported, the node keeps running
             error = f"{type(exc).__name__}: {exc}"
             log.error(f"offline calibration failed: {error}")

@@ -67,6 +67,21 @@ def test_replay_runs_the_offline_job(ros, tmp_path):
     assert read_scan(out / "scan_corrected").geom_corrected.allclose(geom, atol=1e-9)
 
 
+def test_replay_reconstructs_on_the_grid_its_parameters_give(ros, tmp_path):
+    """replay had no grid parameters (only the bag's default grid), where the recon_service and the command line
+    have them: voxel_size_m and roi_shape now come from the same settings class as the recon_service's."""
+    bag, geom, frames, stamps = _bag(tmp_path)
+    out = tmp_path / "out"
+    node = ros.add(ReplayNode(context=ros.context, parameter_overrides=_params(
+        bag_path=str(bag), rate_hz=0.0, method="none", output_dir=str(out), voxel_size_m=0.00005,
+        roi_shape=[6, 5, 4])))
+    assert ros.spin_until(lambda: node.done, timeout_s=60.0)
+    assert node.error is None, node.error
+    assert np.load(out / "volume.npy").shape == (4, 5, 6)
+    grid = json.loads((out / "volume_grid.json").read_text())
+    assert np.allclose(grid["voxel_size_mm"], 0.05), grid
+
+
 def test_frame_groups_end_with_a_projection():
     from robot_ct_ros.bag import RawMessage
 
