@@ -185,8 +185,9 @@ def _slices(volume, grid: VolumeGrid, center_mm, half_mm):
     sel = [s if s.size else np.arange(len(ax[a])) for a, s in enumerate(sel)]
     axial = vol[idx[2]][np.ix_(sel[1], sel[0])]
     sagittal = vol[:, :, idx[0]][np.ix_(sel[2], sel[1])]
-    ext_ax = (ax[0][sel[0][0]], ax[0][sel[0][-1]], ax[1][sel[1][-1]], ax[1][sel[1][0]])
-    ext_sag = (ax[1][sel[1][0]], ax[1][sel[1][-1]], ax[2][sel[2][-1]], ax[2][sel[2][0]])
+    h = 0.5 * np.asarray(grid.voxel_size_mm, float)  # extents run over the voxels' edges (one voxel: not empty)
+    ext_ax = (ax[0][sel[0][0]] - h[0], ax[0][sel[0][-1]] + h[0], ax[1][sel[1][-1]] + h[1], ax[1][sel[1][0]] - h[1])
+    ext_sag = (ax[1][sel[1][0]] - h[1], ax[1][sel[1][-1]] + h[1], ax[2][sel[2][-1]] + h[2], ax[2][sel[2][0]] - h[2])
     return axial, sagittal, ext_ax, ext_sag
 
 
