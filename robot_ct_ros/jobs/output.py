@@ -16,10 +16,13 @@ __all__ = ["say", "fdk_warnings", "refuse_out_in_bag", "refuse_other_job", "json
            "write_volume", "write_ome_tiff", "prepare_out", "available_memory_bytes", "check_memory", "MEMORY_FACTORS",
            "GRID_OPTIONS"]
 
-MEMORY_FACTORS = {"reconstruct": (2.0, 3.0), "calibrate": (8.0, 8.0), "report": (10.0, 8.0)}
+MEMORY_FACTORS = {"reconstruct": (2.0, 3.0), "calibrate": (16.0, 8.0), "report": (22.0, 8.0)}
 """Rough peak memory of each job, as (volumes, projection stacks): FDK holds its volume and its copy for
 the files, the line integrals, their mask and the filtered projections; the calibration also holds its
-padded estimation volumes (FDK, SIRT) and reprojections; the comparison keeps every method's volume."""
+padded estimation volumes (FDK, SIRT) and reprojections; the comparison also keeps every method's volume and
+its figures, :data:`REPORT_VOLUMES_PER_METHOD` more per method. The factors are peaks measured (resident memory
+on grids inside the field of view, by an outside check), rounded up: smaller ones passed grids that did not fit."""
+REPORT_VOLUMES_PER_METHOD = 2.0
 
 GRID_OPTIONS = {"command line": ("--shape {},{},{}", "--voxel-mm {:.4g}", 1.0),
                 "ROS parameters": ("roi_shape:=[{},{},{}]", "voxel_size_m:={:.4g}", 1e-3)}
@@ -84,14 +87,16 @@ def _gib(n: float) -> str:
 
 
 def check_memory(grid, n_views: int, det_shape, job: str, available: int | None = None, *,
-                 options: str = "command line") -> int:
+                 options: str = "command line", methods: int = 1) -> int:
     """Refuse, before anything is allocated, a job whose grid and projections cannot fit in memory.
 
     Returns the estimate in bytes. Raises ValueError naming the estimate, what is available, and
     the largest grid (same aspect) or the voxel size that would fit, written as the settings of
-    ``options`` (a key of :data:`GRID_OPTIONS`).
+    ``options`` (a key of :data:`GRID_OPTIONS`). ``methods``: the report's number of methods compared.
     """
     kv, kp = MEMORY_FACTORS[job]
+    if job == "report":
+        kv += REPORT_VOLUMES_PER_METHOD * max(0, int(methods) - 1)
     nz, ny, nx = (int(v) for v in grid.shape_zyx)
     vol = 4.0 * nx * ny * nz
     proj = 4.0 * int(n_views) * int(det_shape[0]) * int(det_shape[1])

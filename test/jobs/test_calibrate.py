@@ -66,8 +66,7 @@ def test_a_grid_too_large_for_memory_is_refused_before_the_work_in_the_starter_s
 
     bag = _bag(tmp_path / "z", np.eye(3))
     monkeypatch.setattr(output, "available_memory_bytes", lambda: 64 * 2 ** 20)
-    for options, hints in (("ROS parameters", ("roi_shape:=[", "voxel_size_m:=")),
-                           ("scan_info", ("in the bag's scan_info", "voxels of")),
+    for options, hints in (("ROS parameters", ("roi_shape:=[", "voxel_size_m:=")),  # recon_service and replay
                            ("command line", ("--shape ", "--voxel-mm "))):
         with pytest.raises(ValueError, match="not enough memory") as err:
             calibrate_bag(bag, tmp_path / "out", CalibrationSettings(iterations=1), shape_xyz=(400, 400, 400),
