@@ -16,7 +16,7 @@ __all__ = ["say", "fdk_warnings", "refuse_out_in_bag", "refuse_other_job", "json
            "write_volume", "write_ome_tiff", "prepare_out", "available_memory_bytes", "check_memory", "MEMORY_FACTORS",
            "GRID_OPTIONS"]
 
-MEMORY_FACTORS = {"reconstruct": (2.0, 3.0), "calibrate": (16.0, 8.0), "report": (22.0, 8.0)}
+MEMORY_FACTORS = {"reconstruct": (2.0, 3.0), "calibrate": (16.0, 8.0), "report": (26.0, 8.0)}
 """Rough peak memory of each job, as (volumes, projection stacks): FDK holds its volume and its copy for
 the files, the line integrals, their mask and the filtered projections; the calibration also holds its
 padded estimation volumes (FDK, SIRT) and reprojections; the comparison also keeps every method's volume and
