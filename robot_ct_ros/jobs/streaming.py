@@ -25,7 +25,7 @@ from multiprocessing import get_context
 
 import numpy as np
 
-from robot_ct_ros.bag.format import FRAME_WORLD
+from robot_ct_ros.bag.format import FRAME_WORLD, TOPIC_SCAN_INFO
 
 __all__ = ["StreamingCorrector", "LiveUpdate", "mid_slices"]
 
@@ -144,6 +144,8 @@ def _stream_task(scan: int, latched, frames: list, options: dict) -> dict:
         st.clear()
         st.update(scan=scan, latched=latched, buffer=[], estimator=None, next_id=0, seen=set(), stamp_of={},
                   dropped=0, drop_reason="")
+    elif latched is not None:  # the scan's latched messages, more of them than before
+        st["latched"] = latched
     fresh = [f for f in frames if int(f[0]) not in st["seen"]]
     notes = []
     if len(fresh) < len(frames):
@@ -268,9 +270,12 @@ class StreamingCorrector:
             _wait_futures([self._future], timeout=timeout_s)
         return self._future is None or self._future.done()
 
-    def poll(self) -> list:
+    def poll(self, latched: dict | None = None) -> list:
         """Collect the finished batch (a list of at most one :class:`LiveUpdate`) and hand the frames
-        queued since to the worker. Never blocks."""
+        queued since to the worker. Never blocks. ``latched``: the scan's latched messages as held now, where
+        some may have come after the last frame (frames wait for /ct/scan_info)."""
+        if latched is not None and self._queue:
+            self._latched = dict(latched)
         out = []
         if self._future is not None and self._future.done():
             fut, self._future = self._future, None
@@ -297,11 +302,13 @@ class StreamingCorrector:
                 out.append(LiveUpdate(res["scan"], stamps, res["geom"], np.asarray(res["ncc"], float),
                                       float(res["mean_ncc"]), int(res["views"]), res["slices"], lat,
                                       float(res["worker_s"]), str(res.get("frame_id", FRAME_WORLD))))
-        if self._future is None and self._queue:
+        # frames wait for the scan's /ct/scan_info (a frame may come first): decoded without it, every frame of the
+        # scan failed; the latched messages go again whenever one more has arrived (a late flat field)
+        if self._future is None and self._queue and TOPIC_SCAN_INFO in (self._latched or {}):
             frames, self._queue = self._queue, []
-            latched = None
-            if self._latched_sent != self.scan:
-                latched, self._latched_sent = self._latched, self.scan
+            latched, sent = None, (self.scan, tuple(sorted(self._latched)))
+            if self._latched_sent != sent:
+                latched, self._latched_sent = self._latched, sent
             try:
                 self._future = self._pool.submit(_stream_task, self.scan, latched, frames, self.options)
             except RuntimeError as exc:  # the worker died (BrokenProcessPool) or the pool is shut down

@@ -165,7 +165,7 @@ class ReconServiceNode(Node):
         stream = self.stream
         try:
             dropped = stream.dropped
-            for update in stream.poll():
+            for update in stream.poll(self.scan.latched):
                 self._publish_live(update)
             if stream.dropped > dropped:
                 self.get_logger().warning(f"live: {stream.dropped} frame(s) of this scan dropped so far, not "

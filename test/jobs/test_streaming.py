@@ -57,6 +57,40 @@ def test_frames_stream_through_a_niced_worker_and_come_back_with_their_geometry(
         stream.close()
 
 
+def test_frames_that_come_before_the_scan_info_wait_for_it(tmp_path):
+    """An outside check: with three frames sent before /ct/scan_info, the worker decoded them without it ("no
+    /ct/scan_info message") and every later batch failed the same way: nothing live for the whole scan. Frames now
+    wait for the scan_info, and a latched message that comes later (the flat field) reaches the worker too."""
+    n = 6
+    bag = simulate_bag(tmp_path / "scan", phantom="mouse", views=n, rows=12, cols=16, sigma_mm=0.05, sigma_deg=0.05,
+                       seed=2, progress=False, say=lambda s: None)
+    messages = read_raw_messages(bag).messages
+    latched_msgs = [m for m in messages if m.topic in fmt.LATCHED_TOPICS]
+    collector = ScanCollector()
+    stream = StreamingCorrector(CalibrationSettings(method="ncc-lle-exact"), warmup_views=3, nice=5)
+    try:
+        updates, fed = [], 0
+        for m in messages:
+            if m.topic in (fmt.TOPIC_PROJECTION, fmt.TOPIC_GEOMETRY):
+                collector.add_frame_message(m.topic, m.data)
+            for stamp, image, geometry in collector.take_new_pairs():
+                stream.add_frame(stamp, image, geometry, collector.latched)
+                fed += 1
+                if fed == 3:  # the latched messages only now, the flat field last
+                    for lm in sorted(latched_msgs, key=lambda x: x.topic == fmt.TOPIC_FLAT_FIELD):
+                        collector.add_latched(lm.topic, lm.data)
+                        updates += stream.poll(collector.latched)
+            updates += stream.poll(collector.latched)
+        deadline = time.monotonic() + 120.0
+        while stream.busy and time.monotonic() < deadline:
+            stream.wait(timeout_s=max(0.0, deadline - time.monotonic()))
+            updates += stream.poll(collector.latched)
+        assert not stream.error, stream.error
+        assert sum(len(u.stamps_ns) for u in updates) == n and stream.summary()["frames_dropped"] == 0
+    finally:
+        stream.close()
+
+
 def test_the_collector_hands_each_pair_over_once_and_forgets_them_with_a_new_scan(tmp_path):
     bag = simulate_bag(tmp_path / "scan", phantom="mouse", views=4, rows=8, cols=12, progress=False, say=lambda s: None)
     msgs = read_raw_messages(bag).messages

@@ -299,10 +299,10 @@ def test_a_failure_of_the_live_path_is_reported_and_never_leaves_the_timer(ros, 
     geom = robotic_roi_scan(n_views=3, n_rows=8, n_cols=12, fov_diameter_mm=0.6)
     bad = LiveUpdate(recon.stream.scan, np.array([1, 2], np.int64), geom, np.zeros(3), float("nan"), 3, {},
                      np.zeros(2), 0.0)
-    recon.stream.poll = lambda: [bad]
+    recon.stream.poll = lambda latched=None: [bad]
     recon._tick()
     assert recon.stream.error.startswith("live: ValueError"), recon.stream.error
-    recon.stream.poll = lambda: []
+    recon.stream.poll = lambda latched=None: []
 
     def live_error():
         values = [{v.key: v.value for v in s.values} for s in diags if s.name.endswith("reconstruction")]

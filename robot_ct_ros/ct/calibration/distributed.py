@@ -28,7 +28,7 @@ import numpy as np
 from robot_ct_ros.ct.calibration.masks import roi_support_mask, summarise_views
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
 
-__all__ = ["InProcess", "DaskExecutor", "DaskUnavailable", "SchedulerUnreachable", "executor_for", "check_scheduler",
+__all__ = ["InProcess", "DaskExecutor", "DaskUnavailable", "SchedulerUnreachable", "ClusterLost", "executor_for", "check_scheduler",
            "connect_timeout_s", "view_blocks", "slab_bounds", "join_infos", "transfer_bytes", "LOCAL"]
 
 LOCAL = "local"
@@ -42,6 +42,11 @@ class DaskUnavailable(ValueError):
 class SchedulerUnreachable(ValueError):
     """A scheduler address that does not answer as a Dask scheduler (nothing listens, another service such as an
     HTTP server or the dashboard's port, a worker's address) or not within Dask's connect timeout."""
+
+
+class ClusterLost(ValueError):
+    """The Dask cluster lost what a run had sent it (a worker or the scheduler stopped mid-run): the data
+    scattered to it cannot be recovered, and the run stops; nothing of it is written."""
 
 
 def connect_timeout_s() -> float:
@@ -88,6 +93,19 @@ class InProcess:
     """Estimation and FDK in this process (numba threads): the default, no cluster, no dask."""
 
     description = "in-process"
+
+    def _gather(self, futures, what: str):
+        """The tasks' results; :class:`ClusterLost` where the cluster lost them (a worker or the scheduler gone: the
+        futures cancelled, the connection closed), not Dask's traceback. An error raised inside a task is raised as
+        it is."""
+        from concurrent.futures import CancelledError
+
+        try:
+            return self.client.gather(futures)
+        except (CancelledError, OSError) as exc:  # FutureCancelledError, CommClosedError among them
+            reason = " ".join(str(exc).split()) or type(exc).__name__
+            raise ClusterLost(f"the Dask cluster lost {what} mid-run ({reason}): a worker or the scheduler stopped, and "
+                              f"the data sent to it are gone; run again ({self.description})") from exc
 
     def estimate(self, estimate, measured, nominal: ConeGeometry, params, volume, grid: VolumeGrid, config,
                  valid_mask):
@@ -267,6 +285,19 @@ class DaskExecutor:
             self._cache.update({k: (array, f) for k, f in zip(missing, futures)})
         return [self._cache[k][1] for k in keys]
 
+    def _gather(self, futures, what: str):
+        """The tasks' results; :class:`ClusterLost` where the cluster lost them (a worker or the scheduler gone: the
+        futures cancelled, the connection closed), not Dask's traceback. An error raised inside a task is raised as
+        it is."""
+        from concurrent.futures import CancelledError
+
+        try:
+            return self.client.gather(futures)
+        except (CancelledError, OSError) as exc:  # FutureCancelledError, CommClosedError among them
+            reason = " ".join(str(exc).split()) or type(exc).__name__
+            raise ClusterLost(f"the Dask cluster lost {what} mid-run ({reason}): a worker or the scheduler stopped, and "
+                              f"the data sent to it are gone; run again ({self.description})") from exc
+
     def estimate(self, estimate, measured, nominal: ConeGeometry, params, volume, grid: VolumeGrid, config,
                  valid_mask):
         """``estimate`` over blocks of views as tasks; the same parameters and info as one call."""
@@ -284,7 +315,7 @@ class DaskExecutor:
                                       vol_f, grid, config, mk, None if support is None else support[a:b],
                                       np.arange(a, b), self.threads, pure=False)
                    for (a, b), m, mk in zip(blocks, meas_f, mask_f)]
-        results = self.client.gather(futures)
+        results = self._gather(futures, "the views' estimation")
         self.client.cancel([vol_f])
         out = np.concatenate([p for p, _ in results], axis=0)
         return out, join_infos([i for _, i in results], blocks)
@@ -303,7 +334,7 @@ class DaskExecutor:
         slabs = slab_bounds(grid.shape_zyx[0], self.blocks_per_worker * self.n_threads())
         futures = [self.client.submit(_backproject_slab, q_f, g_f, grid.slab(a, b), self.threads, pure=False)
                    for a, b in slabs]
-        vol = np.concatenate(self.client.gather(futures), axis=0)
+        vol = np.concatenate(self._gather(futures, "the back-projection"), axis=0)
         self.client.cancel([q_f, g_f])
         warn_if_empty(vol, q, geom)
         return vol

@@ -223,3 +223,20 @@ def test_fdk_on_the_cluster_says_as_fdk_does_when_it_puts_nothing_into_the_grid(
     for run in (fdk, cluster.fdk):
         with pytest.warns(FDKWarning, match="put nothing into the grid"):
             assert not run(measured, nominal, far, valid_mask=mask).any()
+
+
+def test_tasks_the_cluster_lost_are_one_clear_error_and_a_task_s_own_error_is_itself(cluster):
+    """A worker or the scheduler lost mid-run ended calibrate with 40 lines of Dask traceback ending in
+    FutureCancelledError (an outside check); it is ClusterLost now, a one-line refusal on the command line. An error
+    raised inside a task is not a lost cluster."""
+    import time
+
+    from robot_ct_ros.ct.calibration.distributed import ClusterLost
+
+    lost = cluster.client.submit(time.sleep, 30, pure=False)
+    cluster.client.cancel([lost])
+    with pytest.raises(ClusterLost, match="lost the test's tasks mid-run"):
+        cluster._gather([lost], "the test's tasks")
+    with pytest.raises(ValueError, match="invalid literal") as err:  # int("x") in a worker
+        cluster._gather([cluster.client.submit(int, "x", pure=False)], "the test's tasks")
+    assert not isinstance(err.value, ClusterLost)
