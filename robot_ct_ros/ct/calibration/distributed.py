@@ -94,19 +94,6 @@ class InProcess:
 
     description = "in-process"
 
-    def _gather(self, futures, what: str):
-        """The tasks' results; :class:`ClusterLost` where the cluster lost them (a worker or the scheduler gone: the
-        futures cancelled, the connection closed), not Dask's traceback. An error raised inside a task is raised as
-        it is."""
-        from concurrent.futures import CancelledError
-
-        try:
-            return self.client.gather(futures)
-        except (CancelledError, OSError) as exc:  # FutureCancelledError, CommClosedError among them
-            reason = " ".join(str(exc).split()) or type(exc).__name__
-            raise ClusterLost(f"the Dask cluster lost {what} mid-run ({reason}): a worker or the scheduler stopped, and "
-                              f"the data sent to it are gone; run again ({self.description})") from exc
-
     def estimate(self, estimate, measured, nominal: ConeGeometry, params, volume, grid: VolumeGrid, config,
                  valid_mask):
         """``estimate(measured, nominal, params, volume, grid, config, valid_mask)`` (a registry estimator)."""
