@@ -364,6 +364,8 @@ def declare_settings(node, cls, *, prefix: str = "", exclude=(), **defaults):
                             "value that stands for unset): a parameter without a value empties GetParameters")
         if s.kind is float or (s.kind is tuple and s.item_kind is float):
             whole_numbers_as_doubles(node, name, "double" if s.kind is float else "double_array")
+        if s.kind is str and s.choices:
+            yaml_booleans_as_words(node, name, s.choices)
         try:
             if default is None:  # an optional list with no ROS stand-in: unset is the empty array
                 param = declare_optional_array(node, name, _unset_parameter_type(s), desc)
@@ -426,6 +428,23 @@ def whole_numbers_as_doubles(node, name: str, kind: str) -> None:
         node._parameter_overrides[name] = Parameter(name, T.DOUBLE, float(override.value))
     elif kind == "double_array" and override.type_ == T.INTEGER_ARRAY:
         node._parameter_overrides[name] = Parameter(name, T.DOUBLE_ARRAY, [float(v) for v in override.value])
+
+
+def yaml_booleans_as_words(node, name: str, choices) -> None:
+    """Let ``-p exterior:=off`` set a string parameter whose choices include ``off`` (or ``on``): ROS reads a
+    value by YAML's rules, where ``off``, ``on``, ``yes`` and ``no`` are booleans, and rclpy refused the boolean for
+    a string parameter. A boolean override becomes the choice it was written as (``on`` for true, ``off`` for
+    false), where that is a choice; anything else is left for the declaration to refuse. Call before declaring
+    ``name`` (rclpy's ``Node._parameter_overrides``, as :func:`whole_numbers_as_doubles`)."""
+    from rclpy.parameter import Parameter
+
+    choices = tuple(choices() if callable(choices) else choices)
+    override = node._parameter_overrides.get(name)
+    if override is None or override.type_ != Parameter.Type.BOOL:
+        return
+    word = "on" if override.value else "off"
+    if word in choices:
+        node._parameter_overrides[name] = Parameter(name, Parameter.Type.STRING, word)
 
 
 def _unset_parameter_type(spec):

@@ -70,3 +70,22 @@ def test_every_parameter_of_every_node_comes_back_in_one_get_parameters_call(ros
         assert len(got.values) == len(names), (name, len(got.values), len(names))
         unset = [n for n, v in zip(names, got.values) if v.type == ParameterType.PARAMETER_NOT_SET]
         assert not unset, (name, unset)
+
+
+def test_on_and_off_set_a_string_choice_though_yaml_reads_them_as_booleans(ros):
+    """An outside check: `-p exterior:=off` and `-p fov_support:=on` were refused as booleans (YAML reads off and on
+    so); they set the choice they name now. A boolean where no such choice exists is still refused."""
+    import pytest
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+
+    from robot_ct_ros.ct.calibration import CalibrationSettings
+    from robot_ct_ros.nodes.common import declare_settings
+
+    node = ros.add(Node("choices", context=ros.context, parameter_overrides=[
+        Parameter("exterior", value=False), Parameter("fov_support", value=True)]))
+    settings = declare_settings(node, CalibrationSettings)
+    assert (settings.exterior, settings.fov_support) == ("off", "on")
+    other = ros.add(Node("choices_bad", context=ros.context, parameter_overrides=[Parameter("method", value=True)]))
+    with pytest.raises(ValueError, match="method"):
+        declare_settings(other, CalibrationSettings)
