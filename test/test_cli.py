@@ -261,6 +261,9 @@ def test_a_grid_too_large_for_memory_is_refused_with_what_would_fit(tmp_path, ca
     assert main(["reconstruct", str(small_bag), "--out", str(tmp_path / "r"), "--shape", "5000,5000,5000"]) == 2
     err = _one_line_error(capsys, "not enough memory", "5000 x 5000 x 5000", "would fit", "--shape")
     fit = [int(x) for x in err.split("--shape ")[1].split()[0].split(",")]
+    assert "--voxel-mm" not in err  # with --shape given, a voxel size alone fits nothing (an outside check)
+    assert main(["reconstruct", str(small_bag), "--out", str(tmp_path / "v"), "--voxel-mm", "0.00001"]) == 2
+    _one_line_error(capsys, "not enough memory", "would fit", "--shape", "or the same field of view with --voxel-mm")
     monkeypatch.setattr(output, "available_memory_bytes", lambda: 64 * 2 ** 20)  # a small machine: 64 MiB
     for command, extra in (("reconstruct", []), ("calibrate", ["--method", "ncc-lle"]), ("report", [])):
         assert main([command, str(small_bag), "--out", str(tmp_path / command), "--shape", "400,400,400",

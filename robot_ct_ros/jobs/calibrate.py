@@ -322,7 +322,7 @@ def calibrate_bag(bag, out, settings: CalibrationSettings | None = None, *, voxe
         say(f"note: {unit_note}")
     method = (settings or CalibrationSettings()).method
     check_memory(grid, scan.n_views, scan.geom.det_shape, "reconstruct" if method == "none" else "calibrate",
-                 options=options)
+                 options=options, shape_given=shape_xyz is not None)
     correction = correct_scan(scan, settings, grid, evaluate_truth=evaluate_truth, say=say)
     if unit_note:  # kept in the report with the calibration's own notes
         correction.report["notes"] = [unit_note] + correction.report["notes"]

@@ -87,12 +87,13 @@ def _gib(n: float) -> str:
 
 
 def check_memory(grid, n_views: int, det_shape, job: str, available: int | None = None, *,
-                 options: str = "command line", methods: int = 1) -> int:
+                 options: str = "command line", methods: int = 1, shape_given: bool = False) -> int:
     """Refuse, before anything is allocated, a job whose grid and projections cannot fit in memory.
 
     Returns the estimate in bytes. Raises ValueError naming the estimate, what is available, and
     the largest grid (same aspect) or the voxel size that would fit, written as the settings of
     ``options`` (a key of :data:`GRID_OPTIONS`). ``methods``: the report's number of methods compared.
+    ``shape_given``: the grid's shape was set, so a voxel size alone would not change it (no such hint).
     """
     kv, kp = MEMORY_FACTORS[job]
     if job == "report":
@@ -112,10 +113,10 @@ def check_memory(grid, n_views: int, det_shape, job: str, available: int | None 
     fit = [max(1, int(n * scale)) for n in (nx, ny, nz)]
     voxel = [float(v) / scale for v in grid.voxel_size_mm]
     shape_hint, voxel_hint, per_mm = GRID_OPTIONS[options]
+    voxel_text = "" if shape_given else f", or the same field of view with {voxel_hint.format(max(voxel) * per_mm)}"
     raise ValueError(f"not enough memory: a {nx} x {ny} x {nz} grid needs about {_gib(need)} for {job} "
                      f"({_gib(vol)} per volume), {_gib(avail)} are available; at most about "
-                     f"{shape_hint.format(*fit)} would fit, or the same field of view with "
-                     f"{voxel_hint.format(max(voxel) * per_mm)}")
+                     f"{shape_hint.format(*fit)} would fit{voxel_text}")
 
 
 @contextmanager

@@ -56,7 +56,7 @@ def reconstruct_bag(bag, out, *, geometry: str = "auto", voxel_mm=None, shape_xy
     if unit_note:
         say(f"note: {unit_note}")
         notes.append(unit_note)
-    check_memory(grid, scan.n_views, geom.det_shape, "reconstruct")
+    check_memory(grid, scan.n_views, geom.det_shape, "reconstruct", shape_given=shape_xyz is not None)
     li, mask = scan.to_line_integrals()
     say(f"{scan.n_views} views, detector {geom.n_rows}x{geom.n_cols}; FDK on {grid.shape_zyx[::-1]} voxels of "
         f"{grid.voxel_size_mm[0] * 1000:.1f} um ({'corrected' if use_corrected else 'nominal'} geometry)")

@@ -65,7 +65,8 @@ def report_bag(bag, out, methods=REPORT_METHODS, settings: CalibrationSettings |
     if unit_note:
         say(f"note: {unit_note}")
         job_notes.append(unit_note)
-    check_memory(grid, scan.n_views, scan.geom.det_shape, "report", methods=len(methods))
+    check_memory(grid, scan.n_views, scan.geom.det_shape, "report", methods=len(methods),
+                 shape_given=shape_xyz is not None)
     li, mask = scan.to_line_integrals()
     times = drift_times(scan) if settings.drift_order is not None else None
     say(f"{scan.n_views} views, detector {scan.geom.n_rows}x{scan.geom.n_cols}, grid {grid.shape_zyx[::-1]} of "

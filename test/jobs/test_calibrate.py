@@ -69,7 +69,7 @@ def test_a_grid_too_large_for_memory_is_refused_before_the_work_in_the_starter_s
     for options, hints in (("ROS parameters", ("roi_shape:=[", "voxel_size_m:=")),  # recon_service and replay
                            ("command line", ("--shape ", "--voxel-mm "))):
         with pytest.raises(ValueError, match="not enough memory") as err:
-            calibrate_bag(bag, tmp_path / "out", CalibrationSettings(iterations=1), shape_xyz=(400, 400, 400),
+            calibrate_bag(bag, tmp_path / "out", CalibrationSettings(iterations=1), voxel_mm=0.001,
                           options=options, say=lambda s: None)
         assert all(h in str(err.value) for h in hints), str(err.value)
     assert not (tmp_path / "out" / "report.json").exists()

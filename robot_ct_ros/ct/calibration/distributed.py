@@ -41,7 +41,8 @@ class DaskUnavailable(ValueError):
 
 class SchedulerUnreachable(ValueError):
     """A scheduler address that does not answer as a Dask scheduler (nothing listens, another service such as an
-    HTTP server or the dashboard's port, a worker's address) or not within Dask's connect timeout."""
+    HTTP server or the dashboard's port, a worker's address) or not within Dask's connect timeout, or a scheduler
+    that no worker joins within that timeout."""
 
 
 class ClusterLost(ValueError):
@@ -253,6 +254,13 @@ class DaskExecutor:
             timeout_s = connect_timeout_s()
             check_scheduler(distributed, scheduler, timeout_s)
             self.client = distributed.Client(scheduler, timeout=timeout_s)
+            if not self.client.nthreads():  # a scheduler with no worker: the first task waited, then "No valid workers"
+                try:
+                    self.client.wait_for_workers(1, timeout=timeout_s)
+                except (TimeoutError, OSError):
+                    self.client.close()
+                    raise SchedulerUnreachable(f"the Dask scheduler at {scheduler} has no workers (none joined within "
+                                               f"{timeout_s:g} s): start some, e.g. dask worker {scheduler}") from None
         self.blocks_per_worker = max(1, int(blocks_per_worker))
         self._cache = {}  # (id(array), start, stop) -> (array, future): the measured views of a level
         self.description = f"dask ({scheduler}, {self.n_threads()} worker thread(s))"

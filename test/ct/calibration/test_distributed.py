@@ -213,6 +213,18 @@ def test_a_scheduler_address_connects_and_a_worker_address_is_refused():
             DaskExecutor(worker)
 
 
+def test_a_scheduler_no_worker_joins_is_named_so():
+    """An outside check: a scheduler without workers ended the run after the connect timeout with "cannot access: No
+    valid workers found", naming neither the scheduler nor the workers."""
+    import dask
+    import distributed
+
+    with distributed.LocalCluster(n_workers=0, processes=False, protocol="tcp://", dashboard_address=":0") as lc:
+        with dask.config.set({"distributed.comm.timeouts.connect": "1s"}):
+            with pytest.raises(SchedulerUnreachable, match="has no workers .*dask worker tcp://"):
+                DaskExecutor(lc.scheduler_address)
+
+
 def test_fdk_on_the_cluster_says_as_fdk_does_when_it_puts_nothing_into_the_grid(cluster):
     """A grid beyond every view's cone: fdk warns, and the cluster's fdk did not (the same calibration said less on
     Dask than in process)."""
