@@ -343,6 +343,7 @@ def declare_settings(node, cls, *, prefix: str = "", exclude=(), **defaults):
         if not s.ros or s.name in exclude:
             continue
         name = prefix + s.ros_name
+        _refuse_core_unit_name(node, prefix, s)
         unit = f" [{s.ros_unit}]" if s.ros_unit else ""
         extra = f" ({s.to_ros(None) if s.ros_none is not None else ''} = off)" if s.ros_none is not None else ""
         if s.default is None and s.ros_none is None:
@@ -380,6 +381,31 @@ def declare_settings(node, cls, *, prefix: str = "", exclude=(), **defaults):
         return from_ros_values(cls, values)
     except ValueError as exc:
         raise ValueError(f"{node.get_name()} parameters: {exc}") from None
+
+
+def _refuse_core_unit_name(node, prefix: str, spec) -> None:
+    """Refuse a value given under a setting's command-line name, or its ROS name with the command line's unit, where
+    ROS takes it in other units (``exterior_voxel_mm`` for ``exterior_voxel_m``, ``prior_sigma_translation_mm`` for
+    ``prior_sigma_translation_m``): ignored with a warning, it ran with the default, and the
+    warning's "did you mean" invited the value in mm under the name in metres."""
+    if spec.ros_name == spec.name or spec.ros_scale == 1.0:
+        return
+    names = {spec.name}  # the core name, and the ROS name with the core's unit (prior_sigma_translation_mm)
+    if spec.ros_unit and spec.unit and spec.ros_name.endswith("_" + spec.ros_unit):
+        names.add(spec.ros_name[:-len(spec.ros_unit)] + spec.unit)
+    given = [prefix + n for n in sorted(names) if prefix + n in node._parameter_overrides]
+    if not given:
+        return
+    core = given[0]
+    value = node._parameter_overrides[core].value
+    try:
+        converted = spec.to_ros(tuple(value) if spec.kind is tuple else float(value))
+        example = f" ({value} {spec.unit} is {prefix + spec.ros_name}:={converted:g})" if spec.kind is float else \
+            f" ({list(value)} {spec.unit} is {prefix + spec.ros_name}:={[round(x, 12) for x in converted]})"
+    except (TypeError, ValueError):
+        example = ""
+    raise ValueError(f"parameter {core}: that is a value in {spec.unit}, the command line's unit; on ROS give "
+                     f"{prefix + spec.ros_name}, in {spec.ros_unit}{example}")
 
 
 READ_AT_START = " Read when the node starts (read-only while it runs)."

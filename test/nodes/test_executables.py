@@ -124,7 +124,7 @@ def test_a_parameter_the_node_does_not_have_is_named_with_the_closest_one():
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_DOMAIN_ID=str(150 + os.getpid() % 50),
                PYTHONPATH=str(REPO))
     proc = subprocess.Popen([sys.executable, "-m", "robot_ct_ros.nodes.recon_service", "--ros-args", "-p",
-                             "itterations:=5", "-p", "prior_sigma_translation_mm:=0.1"],
+                             "itterations:=5", "-p", "prior_sigma_translatoin_m:=0.0001"],
                             stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True, env=env)
     import select
 
@@ -138,4 +138,4 @@ def test_a_parameter_the_node_does_not_have_is_named_with_the_closest_one():
         proc.wait(timeout=30)
     warning = next(line for line in lines if "does not have" in line)
     assert "itterations (did you mean iterations?)" in warning, warning
-    assert "prior_sigma_translation_mm (did you mean prior_sigma_translation_m?)" in warning, warning
+    assert "prior_sigma_translatoin_m (did you mean prior_sigma_translation_m?)" in warning, warning

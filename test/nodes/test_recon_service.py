@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 from geometry_msgs.msg import PoseArray
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import Image
@@ -206,6 +207,23 @@ def test_the_exterior_grids_lengths_are_parameters_in_metres(ros, tmp_path):
         output_dir=str(tmp_path / "a"), auto_run=False, exterior_voxel_m=0.001, exterior_half_width_m=0.03)))
     assert node.settings.exterior_voxel_mm == 1.0 and node.settings.exterior_half_width_mm == 30.0
     assert node.get_parameter("exterior_voxel_m").value == 0.001 and not node.has_parameter("exterior_voxel_mm")
+
+
+@pytest.mark.parametrize("given, ros_name, example", [
+    ({"exterior_voxel_mm": 0.5}, "exterior_voxel_m", "exterior_voxel_m:=0.0005"),
+    ({"prior_sigma_translation_mm": 0.1}, "prior_sigma_translation_m", "prior_sigma_translation_m:=0.0001"),
+    ({"prior_translation_mm": 0.1}, "prior_sigma_translation_m", "prior_sigma_translation_m:=0.0001"),
+    ({"prior_sigma_rotation_deg": 0.1}, "prior_sigma_rotation_rad", "prior_sigma_rotation_rad:=0.00174533"),
+])
+def test_a_value_given_in_the_command_lines_unit_is_refused_naming_the_ros_parameter(ros, tmp_path, given,
+                                                                                     ros_name, example):
+    """The command line's name in mm was ignored with a warning whose "did you mean" named the ROS parameter in m:
+    the scan ran with the default, and the hint invited the value in mm under the name in metres."""
+    with pytest.raises(ValueError) as err:
+        ReconServiceNode("recon_mm_name", context=ros.context, parameter_overrides=_params(
+            output_dir=str(tmp_path / "a"), auto_run=False, **given))
+    text = str(err.value)
+    assert f"parameter {next(iter(given))}" in text and f"give {ros_name}, in " in text and example in text, text
 
 
 def test_drift_order_parameter_is_off_by_default_and_passes_a_degree(ros, tmp_path):
