@@ -21,7 +21,10 @@ docs/distributed.md.
 
 from __future__ import annotations
 
+import contextlib
 import os
+import signal
+import threading
 
 import numpy as np
 
@@ -123,6 +126,21 @@ def executor_for(settings) -> "InProcess | DaskExecutor":
     if not settings.scheduler:
         return InProcess()
     return DaskExecutor(settings.scheduler, workers=settings.dask_workers, threads=settings.dask_threads)
+
+
+@contextlib.contextmanager
+def _workers_ignore_sigint():
+    """Start the local cluster's processes with SIGINT ignored (Python then installs no KeyboardInterrupt handler in
+    them), so that Ctrl-C, which the terminal sends to every process of the group, reaches only this one: it closes
+    the cluster in order. Each worker printed its own traceback first, and the cluster's atexit hook another."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def _import_distributed():
@@ -246,7 +264,8 @@ class DaskExecutor:
             # dask's nannies fix glibc's MALLOC_TRIM_THRESHOLD_ in their workers, which also fixes the mmap
             # threshold: every large temporary array is then mapped and page-faulted anew, and the estimation
             # runs slower in such a worker than in a plain process; the workers keep glibc's adaptive default
-            with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}):
+            with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}), \
+                    _workers_ignore_sigint():
                 self._cluster = distributed.LocalCluster(n_workers=int(workers), threads_per_worker=1,
                                                          processes=True, dashboard_address=":0", env=env)
             self.client = distributed.Client(self._cluster)

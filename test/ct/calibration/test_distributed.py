@@ -252,3 +252,14 @@ def test_tasks_the_cluster_lost_are_one_clear_error_and_a_task_s_own_error_is_it
     with pytest.raises(ValueError, match="invalid literal") as err:  # int("x") in a worker
         cluster._gather([cluster.client.submit(int, "x", pure=False)], "the test's tasks")
     assert not isinstance(err.value, ClusterLost)
+
+
+def test_the_local_clusters_processes_leave_ctrl_c_to_this_one(cluster):
+    """Ctrl-C reaches every process of the terminal's group: each worker printed its own KeyboardInterrupt traceback
+    (and the cluster's atexit hook another) before the one line. They start with SIGINT ignored; this process keeps
+    its handler and closes the cluster in order."""
+    import signal
+
+    dispositions = cluster.client.run(signal.getsignal, signal.SIGINT)
+    assert dispositions and all(d == signal.SIG_IGN for d in dispositions.values()), dispositions
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
