@@ -33,8 +33,8 @@ test: $(STAMP) $(CLI)
 	$(PY) -m pytest
 
 bench: $(STAMP)
-	$(PY) bench/bench_projector.py
-	$(PY) bench/bench_fdk.py
+	$(PY) bench/bench_projector.py --rtk-back --out docs/results
+	$(PY) bench/bench_fdk.py --out docs/results
 
 bench-calibration: $(STAMP)
 	$(PY) bench/bench_calibration.py --repeats 3 --out docs/results

@@ -7,7 +7,8 @@ projector on the same inputs (only RTK's ``Update()`` is timed, not the image co
 then our ``back_project`` (and RTK's Joseph back-projector with ``--rtk-back``). Prints wall
 and process CPU times, throughput (rays/s), the RTK/ours ratio and the relative RMSE between
 the two projection stacks. On a shared machine, CPU time and the alternating order keep the
-comparison fair when other processes take cores.
+comparison fair when other processes take cores. With ``--out`` it also writes what it printed to
+``projector.json`` and ``projector.md`` there (``make bench``: docs/results).
 
     .venv/bin/python bench/bench_projector.py --size 128 --views 90
 """
@@ -15,9 +16,12 @@ comparison fair when other processes take cores.
 from __future__ import annotations
 
 import argparse
+import json
 import os
+import platform
 import sys
 import time
+from pathlib import Path
 
 import numba
 import numpy as np
@@ -79,6 +83,7 @@ def main(argv=None):
     ap.add_argument("--repeat", type=int, default=1, help="timed repetitions of each projector (default 1)")
     ap.add_argument("--no-rtk", action="store_true", help="skip RTK")
     ap.add_argument("--rtk-back", action="store_true", help="also time RTK's Joseph back-projector")
+    ap.add_argument("--out", help="folder for projector.json and projector.md (default: print only)")
     args = ap.parse_args(argv)
 
     n = args.size
@@ -126,7 +131,12 @@ def main(argv=None):
             w_rtk.append(w)
             c_rtk.append(c)
     print(f"ours  forward: {fmt(w_fp, c_fp)}  -> {n_rays / min(w_fp) / 1e6:.2f} M rays/s")
+    record = {"views": geom.n_views, "size": n, "voxel_mm": voxel_mm, "pitch_mm": pitch_mm, "rays": n_rays,
+              "repeat": args.repeat, "numba_threads": numba.get_num_threads(),
+              "machine": f"{platform.machine()}, {os.cpu_count()} cores",
+              "ours_forward_wall_s": w_fp, "ours_forward_cpu_s": c_fp}
     if fp is not None:
+        record.update(rtk_forward_wall_s=w_rtk, rtk_forward_cpu_s=c_rtk)
         print(f"RTK   forward: {fmt(w_rtk, c_rtk)}  -> {n_rays / min(w_rtk) / 1e6:.2f} M rays/s")
         print(f"speed-up RTK/ours (forward): {min(w_rtk) / min(w_fp):.2f}x wall, "
               f"{min(c_rtk) / min(c_fp):.2f}x CPU time")
@@ -134,6 +144,7 @@ def main(argv=None):
         rel = np.sqrt(np.mean((ours.astype(np.float64) - ref) ** 2) / np.mean(ref.astype(np.float64) ** 2))
         print(f"relative RMSE ours vs RTK: {rel:.2e}  (max |diff| {np.abs(ours - ref).max():.2e}, "
               f"max {ref.max():.3f})")
+        record["forward_relative_rmse"] = float(rel)
 
     w_bp, c_bp = [], []
     for _ in range(args.repeat):
@@ -141,6 +152,7 @@ def main(argv=None):
         w_bp.append(w)
         c_bp.append(c)
     print(f"ours  back:    {fmt(w_bp, c_bp)}  -> {n_rays / min(w_bp) / 1e6:.2f} M rays/s")
+    record.update(ours_back_wall_s=w_bp, ours_back_cpu_s=c_bp)
     if fp is not None and args.rtk_back:
         bp = rtk.JosephBackProjectionImageFilter[img_type, img_type].New()
         bp.SetInput(0, rtk_bridge.volume_to_itk(np.zeros(grid.shape_zyx, np.float32), grid))
@@ -154,6 +166,39 @@ def main(argv=None):
         print(f"RTK   back:    {w:.2f} s wall ({c:.2f} s CPU)  -> {n_rays / w / 1e6:.2f} M rays/s; "
               f"speed-up RTK/ours (back): {w / min(w_bp):.2f}x wall; "
               f"relative RMSE inside the outer 2 voxels {rel_bp:.2e}")
+        record.update(rtk_back_wall_s=[w], rtk_back_cpu_s=[c], back_relative_rmse=float(rel_bp))
+    if args.out:
+        write(Path(args.out), record)
+
+
+def write(out: Path, r: dict) -> None:
+    """projector.json (every timing) and projector.md (the best of each, rays per second, RTK / ours)."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "projector.json").write_text(json.dumps(r, indent=1) + "\n")
+    rows = []
+    for kind in ("forward", "back"):
+        ours_w, ours_c = min(r[f"ours_{kind}_wall_s"]), min(r[f"ours_{kind}_cpu_s"])
+        rtk = f"rtk_{kind}_wall_s" in r
+        rtk_w = min(r[f"rtk_{kind}_wall_s"]) if rtk else None
+        rtk_c = min(r[f"rtk_{kind}_cpu_s"]) if rtk else None
+        rel = r.get(f"{kind}_relative_rmse")
+        rows.append(f"| {kind} | {ours_w:.2f} | {ours_c:.2f} | {r['rays'] / ours_w / 1e6:.2f} | "
+                    + (f"{rtk_w:.2f} | {rtk_c:.2f} | {r['rays'] / rtk_w / 1e6:.2f} | {rtk_w / ours_w:.2f} | "
+                       f"{rtk_c / ours_c:.2f} | {rel:.2e} |" if rtk else "- | - | - | - | - | - |"))
+    (out / "projector.md").write_text("\n".join([
+        "# Joseph projector beside RTK's (bench/bench_projector.py)", "",
+        f"{r['size']}^3 volume of {r['voxel_mm']:.4f} mm voxels, {r['views']} views of {r['size']} x {r['size']} "
+        f"pixels of {r['pitch_mm']:.4f} mm ({r['rays'] / 1e6:.2f} M rays), a circular orbit at the design's "
+        "magnification with independent 9-DOF errors per view; our numba kernels and RTK's "
+        "JosephForwardProjectionImageFilter / JosephBackProjectionImageFilter on the same inputs in one process, "
+        "alternating (only RTK's Update() timed). Best of "
+        f"{r['repeat']} run(s) (RTK's back-projection once). This machine: {r['machine']}, numba threads "
+        f"{r['numba_threads']}, shared with other jobs. *relative RMSE*: ours against RTK's output (the "
+        "back-projection inside the outer 2 voxels, which RTK clips).", "",
+        "| projection | ours wall (s) | ours CPU (s) | ours M rays/s | RTK wall (s) | RTK CPU (s) | RTK M rays/s | "
+        "RTK / ours wall | RTK / ours CPU | relative RMSE |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |", *rows, ""]))
+    print(f"wrote {out / 'projector.md'} and projector.json")
 
 
 if __name__ == "__main__":
