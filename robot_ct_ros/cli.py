@@ -461,8 +461,20 @@ class Terminated(KeyboardInterrupt):
     """SIGTERM (``kill``, ``timeout``), raised in the main thread so that a command cleans up as after Ctrl-C."""
 
 
+_stop_signal: list = []
+"""The stop signals (SIGINT, SIGTERM) this command received: the exception a signal raises inside a C extension
+comes out as that extension's error (rclpy's take_message: "RuntimeError: Unable to convert call argument"), and
+is then reported as the stop it was."""
+
+
 def _raise_terminated(signum, frame):
+    _stop_signal.append(signum)
     raise Terminated()
+
+
+def _raise_interrupted(signum, frame):
+    _stop_signal.append(signum)
+    raise KeyboardInterrupt()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -470,12 +482,18 @@ def main(argv: list[str] | None = None) -> int:
     import threading
 
     on_main = threading.current_thread() is threading.main_thread()
+    _stop_signal.clear()
     previous = signal.signal(signal.SIGTERM, _raise_terminated) if on_main else None
+    # Ctrl-C as Python's default handler takes it, recorded; an ignored SIGINT (a background job) stays ignored
+    previous_int = (signal.signal(signal.SIGINT, _raise_interrupted)
+                    if on_main and signal.getsignal(signal.SIGINT) is signal.default_int_handler else None)
     try:
         return _main(argv)
     finally:
         if on_main:
             signal.signal(signal.SIGTERM, previous)
+            if previous_int is not None:
+                signal.signal(signal.SIGINT, previous_int)
 
 
 def _main(argv: list[str] | None = None) -> int:
@@ -532,7 +550,12 @@ def _failed(command: str | None, out: Path | None = None) -> int:
     prog = "robot-ct" if command is None else f"robot-ct {command}"
     from robot_ct_ros.bag import ScanBagError
 
+    import signal
+
     try:
+        if _stop_signal and not isinstance(sys.exc_info()[1], KeyboardInterrupt):
+            # the stop raised inside a C extension, which turned it into its own error
+            raise (Terminated if _stop_signal[0] == signal.SIGTERM else KeyboardInterrupt)() from None
         raise
     except (ScanBagError, ValueError) as exc:
         print(f"{prog}: {exc}", file=sys.stderr)

@@ -501,3 +501,52 @@ def test_report_reads_the_bag_once(tmp_path, small_bag, monkeypatch):
     monkeypatch.setattr(report, "read_scan", counted)
     assert main(["report", str(small_bag), "--methods", "none", "--out", str(tmp_path / "r")]) == 0
     assert len(reads) == 1, reads
+
+
+def test_a_stop_signal_that_a_c_extension_turned_into_its_own_error_ends_as_the_stop(monkeypatch, capsys):
+    """From an outside check: a SIGTERM during `robot-ct demo` raised Terminated inside rclpy's take_message, which
+    came out as "RuntimeError: Unable to convert call argument '0'": a traceback and exit status 1 instead of the
+    documented one line and 143. The command now reports the stop it received."""
+    import signal
+
+    from robot_ct_ros import cli
+
+    for signum, status, words in ((signal.SIGTERM, 143, "terminated (SIGTERM)"), (signal.SIGINT, 130, "interrupted")):
+        def command(args, signum=signum):
+            cli._stop_signal.append(signum)  # what the handler records before it raises
+            raise RuntimeError("Unable to convert call argument '0' to Python object")
+
+        monkeypatch.setitem(cli._main.__globals__, "_cmd_info", command)
+        assert cli.main(["info", "x"]) == status
+        err = capsys.readouterr().err
+        assert err.strip() == f"robot-ct info: {words}", err
+    # without a stop signal the same error is not taken for one
+    monkeypatch.setitem(cli._main.__globals__, "_cmd_info", lambda args: (_ for _ in ()).throw(RuntimeError("x")))
+    with pytest.raises(RuntimeError):
+        cli.main(["info", "x"])
+
+
+def test_the_command_records_the_stop_signals_it_handles():
+    """Both handlers record the signal before raising, and main() restores the handlers it replaced."""
+    import signal
+
+    from robot_ct_ros import cli
+
+    before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    seen = {}
+
+    def command(args):
+        seen["int"], seen["term"] = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+        return 0
+
+    import unittest.mock
+
+    with unittest.mock.patch.dict(cli._main.__globals__, {"_cmd_info": command}):
+        assert cli.main(["info", "x"]) == 0
+    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
+    if before[0] is signal.default_int_handler:
+        assert seen["int"] is cli._raise_interrupted
+    assert seen["term"] is cli._raise_terminated
+    with pytest.raises(KeyboardInterrupt):
+        cli._raise_interrupted(signal.SIGINT, None)
+    assert cli._stop_signal[-1] == signal.SIGINT
