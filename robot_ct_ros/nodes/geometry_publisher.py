@@ -14,12 +14,21 @@ mounts (robot_ct_ros.ct.hand_eye.geometry_from_tool_poses). This is the nominal 
 coordination errors are invisible here (the calibration estimates them from the data). When a pose
 is missing, further than max_pose_age_s from the frame stamp, or not in world_frame, no geometry is
 published for that frame; the skip is logged and counted on /diagnostics (WARN).
-Parameters: max_pose_age_s (s), history_s (s), world_frame (GeometryPublisherSettings), and the
-hand_eye.* parameters (nodes/hand_eye_params.py).
+Late poses: under CPU load a frame can be taken before the tool poses stamped after it, already on
+their way, have been received. A frame is therefore judged only once both arms' histories reach its
+stamp (a pose stamped at or after it has arrived; the nearest pose can then no longer change); until
+then it is held, and retried as poses arrive, for at most wait_for_poses_s. After that wait it is
+judged on what arrived: a pose within max_pose_age_s still gives its geometry, otherwise the frame gets
+"no geometry" as above, naming how stale the poses were and that it waited. wait_for_poses_s = 0 judges
+every frame as it arrives. Order: geometries are published in the order their frames arrived (a held
+frame holds back the frames after it, never longer than its own wait), each with its frame's stamp.
+Parameters: max_pose_age_s (s), history_s (s), wait_for_poses_s (s), world_frame
+(GeometryPublisherSettings), and the hand_eye.* parameters (nodes/hand_eye_params.py).
 """
 
 from __future__ import annotations
 
+import time
 from collections import deque
 from dataclasses import dataclass
 
@@ -47,6 +56,9 @@ class GeometryPublisherSettings:
                                     unit="s", minimum=0.0)
     history_s: float = setting(5.0, "tool-pose history kept to find the pose nearest to a frame stamp", unit="s",
                                minimum=0.0)
+    wait_for_poses_s: float = setting(2.0, "a frame is held this long for the tool poses stamped after it that "
+                                           "have not arrived yet (late under CPU load); then judged on what arrived",
+                                      unit="s", minimum=0.0)
     world_frame: str = setting(fmt.FRAME_WORLD, "frame of the tool poses and of /ct/geometry")
 
     def __post_init__(self):
@@ -58,8 +70,12 @@ class GeometryPublisherNode(Node):
         super().__init__(node_name, **kwargs)
         self.settings = s = declare_settings(self, GeometryPublisherSettings)
         self.max_pose_age_s, history_s, self.world_frame = s.max_pose_age_s, s.history_s, s.world_frame
+        self.wait_for_poses_s = s.wait_for_poses_s
         self.hand_eye = declare_hand_eye(self)
         self._history = {r: deque() for r in ROLES}
+        self._newest = {r: None for r in ROLES}  # the latest stamp received per arm (ns), kept when aged out
+        # frames held until both arms' poses reach past their stamps: (stamp_ns, height, width, held since, until)
+        self._pending = deque()
         self._history_ns = int(history_s * 1e9)
         for role in ROLES:
             self.create_subscription(PoseStamped, f"{role}_arm/tool_pose", lambda m, r=role: self._on_pose(r, m), 50)
@@ -67,6 +83,7 @@ class GeometryPublisherNode(Node):
         self.geometry_pub = self.create_publisher(PoseArray, fmt.node_topic(fmt.TOPIC_GEOMETRY), STREAM)
         self.diag_pub = self.create_publisher(DiagnosticArray, fmt.node_topic(fmt.TOPIC_DIAGNOSTICS), 10)
         self.create_timer(1.0, self._publish_diagnostics)
+        self.create_timer(0.05, self._judge_pending)  # a frame whose poses never come is judged at its deadline
         self.published = 0
         self.skipped = 0
         self.poses_refused = 0
@@ -94,6 +111,14 @@ class GeometryPublisherNode(Node):
         hist.append((t, msg.header.frame_id, msg.pose))
         while hist and hist[0][0] < reference - self._history_ns:
             hist.popleft()
+        if self._newest[role] is None or t > self._newest[role]:
+            self._newest[role] = t
+        if self._pending:
+            self._judge_pending()
+
+    def _reaches(self, stamp_ns: int) -> bool:
+        """Both arms have sent a pose stamped at or after ``stamp_ns``: no later pose can be nearer."""
+        return all(self._newest[r] is not None and self._newest[r] >= stamp_ns for r in ROLES)
 
     def _nearest(self, role: str, stamp_ns: int):
         hist = self._history[role]
@@ -108,7 +133,22 @@ class GeometryPublisherNode(Node):
         return pose, ""
 
     def _on_frame(self, msg: Image) -> None:
-        stamp = stamp_to_ns(msg.header.stamp)
+        now = time.monotonic()
+        self._pending.append((stamp_to_ns(msg.header.stamp), msg.height, msg.width, now, now + self.wait_for_poses_s))
+        self._judge_pending()
+
+    def _judge_pending(self) -> None:
+        """Judge the held frames in arrival order: each once the poses reach past it, or at its deadline."""
+        while self._pending:
+            stamp, height, width, since, until = self._pending[0]
+            now = time.monotonic()
+            reached = self._reaches(stamp)
+            if not reached and now < until:
+                return
+            self._pending.popleft()
+            self._judge(stamp, height, width, waited_s=None if reached else now - since)
+
+    def _judge(self, stamp: int, height: int, width: int, waited_s: float | None = None) -> None:
         poses, problems = {}, []
         for role in ROLES:
             poses[role], problem = self._nearest(role, stamp)
@@ -117,12 +157,17 @@ class GeometryPublisherNode(Node):
         if not problems:
             try:
                 g = geometry_from_tool_poses(pose_to_matrix_mm(poses["source"]), pose_to_matrix_mm(poses["detector"]),
-                                             self.hand_eye, max(1, msg.height), max(1, msg.width), 1.0)
+                                             self.hand_eye, max(1, height), max(1, width), 1.0)
             except ValueError as exc:
                 problems.append(f"unusable tool pose: {exc}")
         if problems:
             self.skipped += 1
             self.last_problem = "; ".join(problems)
+            if waited_s is not None and self.wait_for_poses_s > 0:
+                newest = ", ".join(f"{r} {(stamp - self._newest[r]) * 1e-9:.3f} s before the frame"
+                                   for r in ROLES if self._newest[r] is not None and self._newest[r] < stamp)
+                self.last_problem += (f" (waited {waited_s:.1f} s, wait_for_poses_s {self.wait_for_poses_s} s, for "
+                                      f"tool poses stamped after the frame; newest received: {newest or 'none'})")
             self._last_frame_ok = False
             self._skipped_since_report += 1
             self.get_logger().warn(f"no geometry for the frame stamped {stamp * 1e-9:.6f}: {self.last_problem}")
@@ -146,7 +191,7 @@ class GeometryPublisherNode(Node):
                     if self._history[r] else "none") for r in ROLES}
         publish_diagnostic(self, self.diag_pub, level, "geometry", "hand_eye", message, (
             ("published", self.published), ("skipped", self.skipped), ("last_problem", self.last_problem),
-            ("poses_refused", self.poses_refused),
+            ("poses_refused", self.poses_refused), ("frames_waiting_for_poses", len(self._pending)),
             ("source_pose_age_s", ages["source"]), ("detector_pose_age_s", ages["detector"]),
             ("max_pose_age_s", self.max_pose_age_s)))
 
