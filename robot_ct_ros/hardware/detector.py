@@ -45,7 +45,7 @@ from robot_ct_ros.parameters import setting, validate
 
 __all__ = ["DetectorError", "DetectorTimeout", "DetectorConfig", "Frame", "PhotonCountingDetector", "PHANTOMS",
            "make_phantom", "SimulatedScene", "build_scene", "warm_up_projector", "SimulatedDetector",
-           "DetectorSettings", "SimulatedDetectorSettings", "TruePoses", "make_detector"]
+           "DetectorSettings", "SimulatedDetectorSettings", "TruePoses", "make_detector", "valid_pixel_fraction"]
 
 
 class DetectorError(RuntimeError):
@@ -317,6 +317,18 @@ class SimulatedDetector:
         return counts[0]
 
 
+def valid_pixel_fraction(flat: np.ndarray, bad: np.ndarray, counts: np.ndarray | None = None) -> float:
+    """The fraction of pixels a reconstruction can use, as ``robot-ct info`` counts it (bag/reader.py): not in the
+    unusable-pixel map ``bad``, a finite flat field > 0 and, given a frame's ``counts``, a finite, non-negative
+    count. Without ``counts``: what the maps alone leave usable."""
+    flat = np.asarray(flat)
+    valid = ~np.asarray(bad, bool) & np.isfinite(flat) & (np.nan_to_num(flat) > 0)
+    if counts is not None:
+        counts = np.asarray(counts)
+        valid &= np.isfinite(counts) & (np.nan_to_num(counts, nan=-1.0) >= 0)
+    return float(valid.mean()) if valid.size else 0.0
+
+
 # ----------------------------------------------------------------------------- settings and construction
 @dataclass(frozen=True)
 class DetectorSettings:
@@ -341,6 +353,9 @@ class DetectorSettings:
     world_frame: str = setting(FRAME_WORLD, "frame of the true tool poses and of /ct/geometry_true (the arms' "
                                "base_frame, geometry_publisher's world_frame)")
     publish_true_geometry: bool = setting(True, "simulated detector: the true geometry of each frame is published")
+    min_valid_pixel_fraction: float = setting(0.5, "a frame (or the dead-pixel map) with fewer valid pixels than "
+                                              "this fraction is warned about (log and /diagnostics WARN)",
+                                              minimum=0.0, maximum=1.0)
 
     def __post_init__(self):
         validate(self)

@@ -38,6 +38,10 @@ sees no detector; inactive, the orchestrator refuses to start from the lifecycle
 /diagnostics. With autostart (default) the node configures and activates itself in its constructor.
 Threads: pcd/expose is served on its own executor thread (nodes/common.ServiceThread) and waits there
 for the acquisition (hardware.exposure.ExposureGate), so the executor spinning this node never waits.
+Data quality: a frame with fewer valid pixels (as robot-ct info counts them:
+hardware.detector.valid_pixel_fraction) than min_valid_pixel_fraction is still published, with a WARN
+in the log and on /diagnostics naming the fraction; a dead-pixel map that alone leaves too few is
+warned about on activation.
 Parameters (config/pcd_grabber.yaml): hardware.detector.DetectorSettings, sim_*:
 hardware.detector.SimulatedDetectorSettings, autostart, and hand_eye.* (nodes/hand_eye_params.py).
 """
@@ -56,7 +60,7 @@ from std_srvs.srv import Trigger
 
 from robot_ct_ros.bag import format as fmt
 from robot_ct_ros.hardware.detector import (DetectorError, DetectorSettings, Frame, SimulatedDetectorSettings,
-                                            TruePoses, make_detector)
+                                            TruePoses, make_detector, valid_pixel_fraction)
 from robot_ct_ros.hardware.exposure import BeamLog, ExposureGate, frame_usable
 from robot_ct_ros.nodes.common import (LATCHED, STREAM, LifecycleSettings, ServiceThread, WorkerFaults,
                                       declare_settings, error_transition, publish_diagnostic,
@@ -76,6 +80,7 @@ class PcdGrabberNode(LifecycleNode):
         autostart = declare_settings(self, LifecycleSettings).autostart
         self.driver, self.exposure_s, self.exposure_timeout_s = d.driver, d.exposure_s, d.exposure_timeout_s
         self.frame_id, self.world_frame, self.config = d.frame_id, d.world_frame, d.config
+        self.min_valid_pixel_fraction = d.min_valid_pixel_fraction
         self.hand_eye = declare_hand_eye(self)
 
         self.frame_pub = self.create_publisher(Image, fmt.node_topic(fmt.TOPIC_PROJECTION), STREAM)
@@ -97,6 +102,10 @@ class PcdGrabberNode(LifecycleNode):
         self.error_transition_pending = False
         self.frames_published = self.frames_rejected = self.failures = 0
         self.last_error, self.last_beam_fraction = "", None
+        self._flat = self._bad = None  # the maps published on activation
+        self.map_valid_fraction = self.last_valid_fraction = None  # valid pixels: of the maps, of the last frame
+        self.frames_low_valid = 0  # frames below min_valid_pixel_fraction
+        self.valid_warning = ""  # the last low-valid-pixel warning, for /diagnostics (WARN) until a good frame
         self.detector = None                          # exists between configure and cleanup
         self._detector_factory = detector_factory or self._make_detector
         self._expose_srv: ServiceThread | None = None  # exists between configure and cleanup
@@ -131,6 +140,14 @@ class PcdGrabberNode(LifecycleNode):
         stamp = self._now_ns()
         self.flat_pub.publish(fmt.serialize(fmt.image_from_array(flat, stamp, self.frame_id), fmt.IMAGE))
         self.dead_pub.publish(fmt.serialize(fmt.mask_image(bad, stamp, self.frame_id), fmt.IMAGE))
+        self._flat, self._bad = flat, bad
+        self.map_valid_fraction = valid_pixel_fraction(flat, bad)
+        self.valid_warning = ""
+        if self.map_valid_fraction < self.min_valid_pixel_fraction:
+            self.valid_warning = (f"the dead-pixel map and flat field leave only {100 * self.map_valid_fraction:.2f} % "
+                                  f"of the pixels valid (min_valid_pixel_fraction "
+                                  f"{100 * self.min_valid_pixel_fraction:g} %): every frame will be mostly invalid")
+            self.get_logger().warn(self.valid_warning)
         self.exposures.activate()
         return TransitionCallbackReturn.SUCCESS
 
@@ -212,7 +229,8 @@ class PcdGrabberNode(LifecycleNode):
             response.success = True
             response.message = json.dumps({"stamp_ns": frame.stamp_ns, "frame": self.frames_published,
                                            "exposure_s": self.exposure_s, "n_rows": self.config.n_rows,
-                                           "n_cols": self.config.n_cols})
+                                           "n_cols": self.config.n_cols,
+                                           "valid_pixel_fraction": self.last_valid_fraction})
         else:
             problem = self._reject_frame(frame, fraction)
             self.last_error = problem  # not a detector fault: not counted in failures
@@ -232,11 +250,28 @@ class PcdGrabberNode(LifecycleNode):
         stamp = frame.stamp_ns
         self.frame_pub.publish(fmt.serialize(fmt.image_from_array(frame.counts, stamp, self.frame_id), fmt.IMAGE))
         self.frames_published += 1
+        self._check_valid_pixels(frame)
         geom = frame.info.get("geometry")
         if self.detector_settings.publish_true_geometry and geom is not None:
             msg = fmt.view_pose_array(geom.source_mm[0], geom.detector_mm[0], geom.u[0], geom.v[0], stamp,
                                       self.world_frame)
             self.true_geom_pub.publish(fmt.serialize(msg, fmt.POSE_ARRAY))
+
+    def _check_valid_pixels(self, frame: Frame) -> None:
+        """Warn (log, /diagnostics) when fewer than min_valid_pixel_fraction of the frame's pixels are valid."""
+        if self._flat is None or self._flat.shape != frame.counts.shape:
+            return
+        fraction = self.last_valid_fraction = valid_pixel_fraction(self._flat, self._bad, frame.counts)
+        if fraction >= self.min_valid_pixel_fraction:
+            if self.map_valid_fraction is not None and self.map_valid_fraction >= self.min_valid_pixel_fraction:
+                self.valid_warning = ""
+            return
+        self.frames_low_valid += 1
+        self.valid_warning = (f"frame {self.frames_published} (stamp {frame.stamp_ns}): only {100 * fraction:.2f} % of "
+                              f"the pixels valid (min_valid_pixel_fraction {100 * self.min_valid_pixel_fraction:g} %; "
+                              f"{self.frames_low_valid} such frame(s)): dead, hot or gap pixels, no flat field, or "
+                              f"non-finite or negative counts")
+        self.get_logger().warn(self.valid_warning)
 
     # -- health -------------------------------------------------------------------------------
     def _publish_diagnostics(self) -> None:
@@ -246,7 +281,7 @@ class PcdGrabberNode(LifecycleNode):
             level = DiagnosticStatus.ERROR if self.last_error.startswith(("detector timeout", "detector not",
                                                                           "configure failed", "fault")) \
                 else DiagnosticStatus.WARN
-        elif not self.exposures.active or not connected:
+        elif not self.exposures.active or not connected or self.valid_warning:
             level = DiagnosticStatus.WARN
         else:
             level = DiagnosticStatus.OK
@@ -255,10 +290,14 @@ class PcdGrabberNode(LifecycleNode):
                   ("failures", self.failures), ("exposure_s", self.exposure_s),
                   ("exposure_timeout_s", self.exposure_timeout_s),
                   ("shape", f"{self.config.n_rows}x{self.config.n_cols}"), ("binning", self.config.binning),
-                  ("busy", self.exposures.pending is not None), ("last_beam_fraction", self.last_beam_fraction)]
+                  ("busy", self.exposures.pending is not None), ("last_beam_fraction", self.last_beam_fraction),
+                  ("valid_pixel_fraction", self.last_valid_fraction), ("map_valid_pixel_fraction",
+                                                                        self.map_valid_fraction),
+                  ("frames_low_valid_pixels", self.frames_low_valid),
+                  ("min_valid_pixel_fraction", self.min_valid_pixel_fraction)]
         if self.driver == "simulated":
             values.append(("phantom", self.sim.phantom))
-        message = self.last_error or ("ready" if self.exposures.active and connected else state)
+        message = self.last_error or self.valid_warning or ("ready" if self.exposures.active and connected else state)
         publish_diagnostic(self, self.diag_pub, level, "detector", f"{self.driver}_pcd", message, values)
 
 def main(argv=None) -> int:

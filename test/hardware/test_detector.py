@@ -151,7 +151,7 @@ def test_settings_are_the_grabber_parameters_and_refuse_bad_values():
     assert ros_defaults(DetectorSettings) == {"driver": "simulated", "n_rows": 272, "n_cols": 636, "binning": 2,
                                               "raw_pixel_m": 55e-6, "exposure_s": 0.1, "exposure_timeout_s": 5.0,
                                               "frame_id": "pcd_detector", "world_frame": "world",
-                                              "publish_true_geometry": True}
+                                              "publish_true_geometry": True, "min_valid_pixel_fraction": 0.5}
     sim = ros_defaults(SimulatedDetectorSettings)
     assert sim["phantom"] == "carotid" and sim["phantom_center_m"] == [0.4, 0.0, 0.3]
     assert sim["region_center_m"] is None and sim["mount_error.detector_rotvec_rad"] == [0.0, 0.0, 0.0]
@@ -216,3 +216,19 @@ def test_make_detector_from_settings():
     with pytest.raises(ValueError, match="not available"):
         make_detector(DetectorSettings(driver="real"), sim, HandEye(), lambda: None, lambda a, b: 1.0,
                       time.monotonic_ns)
+
+
+def test_valid_pixel_fraction_counts_as_robot_ct_info():
+    """Valid: not in the unusable-pixel map, finite flat > 0 and, for a frame, a finite non-negative count."""
+    from robot_ct_ros.hardware.detector import valid_pixel_fraction
+
+    flat = np.ones((2, 4), np.float32)
+    bad = np.zeros((2, 4), bool)
+    assert valid_pixel_fraction(flat, bad) == 1.0
+    bad[0, 0] = True
+    flat[0, 1] = 0.0
+    flat[0, 2] = np.nan
+    assert valid_pixel_fraction(flat, bad) == 5 / 8
+    counts = np.zeros((2, 4), np.float32)  # a dark frame's zeros are valid
+    counts[1, 0], counts[1, 1] = np.nan, -1.0
+    assert valid_pixel_fraction(flat, bad, counts) == 3 / 8

@@ -101,6 +101,7 @@ def test_frame_on_request_with_true_geometry_and_latched_maps(ros):
     np.testing.assert_allclose(d, geom.detector_mm[1], atol=1e-6)
     np.testing.assert_allclose(u, geom.u[1], atol=1e-9)
     assert node.last_beam_fraction == 1.0
+    assert info["valid_pixel_fraction"] > 0.5 and node.frames_low_valid == 0 and not node.valid_warning
     assert ros.spin_until(lambda: probe.level() == DiagnosticStatus.OK)
 
     # the beam is off: the detector still delivers, a dark frame
@@ -313,3 +314,51 @@ def test_a_failing_service_callback_is_answered_and_reported(ros):
     assert not answer.success and "KeyError" in answer.message
     assert ros.spin_until(lambda: node.lifecycle_state == "unconfigured")
     assert ros.spin_until(lambda: probe.level() == DiagnosticStatus.ERROR)
+
+
+def test_a_mostly_dead_detector_is_warned_about(ros):
+    """A detector 98.7 % dead (sim_dead_pixel_fraction 0.9) gave no warning anywhere: the scan ended 'scan complete:
+    6 frames, 6 with geometry'; only robot-ct info showed 'pixels 1.27 % valid' (tester F5)."""
+    node = _grabber(ros, sim_dead_pixel_fraction=0.9)
+    probe = Probe(ros)
+    assert ros.spin_until(lambda: probe.dead)
+    dead = fmt.array_from_image(probe.dead[-1])
+    assert (dead == 0).mean() < 0.5
+
+    def status():
+        found = [s for a in probe.diag for s in a.status if s.name.endswith(": detector")]
+        return found[-1] if found else None
+
+    # on activation: the maps alone leave too few pixels
+    assert ros.spin_until(lambda: status() is not None and "% of the pixels valid" in status().message)
+    assert status().level == DiagnosticStatus.WARN and "dead-pixel map" in status().message
+    S, D = tool_goals_from_geometry(tiny_geometry(), HandEye())
+    probe.publish_poses(ros, S[1], D[1])
+    assert ros.spin_until(lambda: len(node.true_poses) == 2)
+    probe.set_beam(ros, node, True)
+    answer = ros.call(probe.expose, Trigger.Request())
+    assert answer.success, answer.message  # still a frame: the warning does not stop a scan
+    fraction = json.loads(answer.message)["valid_pixel_fraction"]
+    assert fraction == (dead == 0).mean()
+    assert node.frames_low_valid == 1
+    probe.diag.clear()
+    assert ros.spin_until(lambda: status() is not None)
+    st = status()
+    assert st.level == DiagnosticStatus.WARN
+    assert f"frame 1 (stamp {json.loads(answer.message)['stamp_ns']}): only {100 * fraction:.2f} % of the pixels " \
+           "valid (min_valid_pixel_fraction 50 %" in st.message, st.message
+    values = {kv.key: kv.value for kv in st.values}
+    assert float(values["valid_pixel_fraction"]) == fraction and values["frames_low_valid_pixels"] == "1"
+
+
+def test_the_valid_pixel_threshold_is_a_parameter(ros):
+    node = _grabber(ros, sim_dead_pixel_fraction=0.9, min_valid_pixel_fraction=0.0)
+    probe = Probe(ros)
+    S, D = tool_goals_from_geometry(tiny_geometry(), HandEye())
+    probe.publish_poses(ros, S[1], D[1])
+    assert ros.spin_until(lambda: len(node.true_poses) == 2)
+    probe.set_beam(ros, node, True)
+    answer = ros.call(probe.expose, Trigger.Request())
+    assert answer.success, answer.message
+    assert node.frames_low_valid == 0 and not node.valid_warning
+    assert ros.spin_until(lambda: probe.level() == DiagnosticStatus.OK)
