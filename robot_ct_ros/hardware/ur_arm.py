@@ -117,6 +117,7 @@ class URArm:
         self._reader: threading.Thread | None = None
         self._dead_reason: str | None = "not connected"
         self._linked = False  # a connect succeeded on the current child: a failure now is a connection *lost*
+        self._progress = None  # how far the current connect got (ur_worker.TCP_ACCEPTED, RTDE_RECEIVING)
 
     # -- process plumbing -------------------------------------------------------------------
     def _start_child(self) -> None:
@@ -129,7 +130,7 @@ class URArm:
         _Spawner.start(proc)  # from a thread that outlives this one: the child dies with its parent thread
         child_conn.close()
         self._proc, self._conn = proc, parent_conn
-        self._dead_reason, self._linked = None, False
+        self._dead_reason, self._linked, self._progress = None, False, None
         self._reader = threading.Thread(target=self._read_loop, name=f"ur_reader[{self.host}]", daemon=True)
         self._reader.start()
 
@@ -142,6 +143,10 @@ class URArm:
                         raise EOFError
                     continue
                 msg_id, status, payload = conn.recv()
+                if status == "progress":  # a connect's progress note, not its reply
+                    if self._conn is conn:
+                        self._progress = payload
+                    continue
             except (EOFError, OSError):
                 proc.join(0.5)
                 if self._conn is conn:  # not a reader left over from an earlier connection
@@ -189,7 +194,7 @@ class URArm:
         except (OSError, ValueError) as exc:
             self._kill_child(f"connection to controller at {self.host} lost ({exc})")
         if not slot[0].wait(timeout_s):
-            self._kill_child(f"controller at {self.host} did not answer within {timeout_s:.1f} s ({op})")
+            self._kill_child(self._timeout_reason(op, timeout_s))
         status, payload = slot[1], slot[2]
         if status == "ok":
             return payload
@@ -203,6 +208,20 @@ class URArm:
             raise ArmMotionError(message)
         raise ArmError(message)
 
+    def _timeout_reason(self, op: str, timeout_s: float) -> str:
+        """Why a request timed out, as far as it is known: a connect says how far the controller got."""
+        from robot_ct_ros.hardware.ur_worker import RTDE_PORT, RTDE_RECEIVING, TCP_ACCEPTED
+
+        progress = self._progress if op == "connect" else None
+        if progress == TCP_ACCEPTED:
+            return (f"controller at {self.host} accepted the connection (port {RTDE_PORT}) but did not complete the "
+                    f"RTDE handshake within {timeout_s:.1f} s (a controller that does not speak RTDE, or refuses "
+                    f"the protocol version)")
+        if progress == RTDE_RECEIVING:
+            return (f"controller at {self.host} completed the RTDE handshake but the RTDE control interface (control "
+                    f"script, ports 30003 and 29999) did not come up within {timeout_s:.1f} s")
+        return f"controller at {self.host} did not answer within {timeout_s:.1f} s ({op})"
+
     # -- Arm interface ---------------------------------------------------------------------
     def connect(self) -> None:
         if self.is_connected:
@@ -211,13 +230,14 @@ class URArm:
         self._start_child()
         try:
             self.controller_info = self._request(
-                "connect", {"frequency": self.frequency_hz, "verbose": self.verbose},
+                "connect", {"frequency": self.frequency_hz, "verbose": self.verbose,
+                            "timeout_s": self.connect_timeout_s},
                 timeout_s=self.connect_timeout_s) or {}
             self._linked = True
         except ArmError as exc:
             self._shutdown_child()
             message = str(exc)
-            if "did not answer" not in message:
+            if not message.startswith(f"controller at {self.host} "):  # else it names the controller already
                 message = f"cannot connect to controller at {self.host}: {message}"
             raise ArmConnectionError(message) from exc
 

@@ -3,7 +3,9 @@
 Started by the parent with the multiprocessing ``spawn`` context; talks over one duplex pipe.
 Requests are ``(id, op, args)``; replies ``(id, status, payload)`` with status ``"ok"`` (payload:
 the result) or ``"error"`` (payload: ``(kind, message)``, kind one of ``"connection"``,
-``"motion"``, ``"other"``). Moves run on their own thread (the ur-rtde bindings release the GIL
+``"motion"``, ``"other"``). While connecting, the worker also sends progress notes
+``(id, "progress", stage)`` (stage :data:`TCP_ACCEPTED`, then :data:`RTDE_RECEIVING`) so that the
+parent, timing out, can say how far the controller got. Moves run on their own thread (the ur-rtde bindings release the GIL
 there), so state reads keep being answered during a move. The parent enforces every timeout and
 kills this process when the controller stops answering; nothing here needs to be interruptible.
 """
@@ -12,12 +14,16 @@ from __future__ import annotations
 
 import os
 import signal
+import socket
 import sys
 import threading
 
-__all__ = ["STATE_VARIABLES", "worker_main"]
+__all__ = ["STATE_VARIABLES", "RTDE_PORT", "TCP_ACCEPTED", "RTDE_RECEIVING", "worker_main"]
 
 STATE_VARIABLES = ["timestamp", "actual_q", "actual_TCP_pose", "robot_mode", "safety_mode", "runtime_state"]
+RTDE_PORT = 30004
+TCP_ACCEPTED = "tcp_accepted"      # the controller accepted a TCP connection on the RTDE port
+RTDE_RECEIVING = "rtde_receiving"  # the RTDE receive interface is up (handshake done); the control one is next
 
 
 class _Worker:
@@ -36,14 +42,28 @@ class _Worker:
             except (OSError, ValueError, BrokenPipeError):
                 pass
 
-    def connect(self, options: dict) -> dict:
+    def tcp_accepts(self, timeout_s: float) -> bool:
+        """Whether the controller accepts a TCP connection on the RTDE port (closed at once). ur-rtde's
+        constructors, stuck on a peer that accepts but never completes the RTDE handshake, hold the GIL,
+        so this is the only way to tell the parent that much before they run."""
+        try:
+            socket.create_connection((self.host, RTDE_PORT), timeout=timeout_s).close()
+            return True
+        except OSError:
+            return False
+
+    def connect(self, options: dict, msg_id=None) -> dict:
         import rtde_control
         import rtde_receive
 
         freq = float(options.get("frequency", -1.0))
+        if msg_id is not None and self.tcp_accepts(float(options.get("timeout_s", 10.0))):
+            self.reply(msg_id, "progress", TCP_ACCEPTED)
         # Receive first: its constructor is the one that blocks on a silent peer (the parent
         # times out and kills us); the control interface then uploads its script.
         self.receive = rtde_receive.RTDEReceiveInterface(self.host, freq, STATE_VARIABLES)
+        if msg_id is not None:
+            self.reply(msg_id, "progress", RTDE_RECEIVING)
         flags = rtde_control.RTDEControlInterface.FLAG_UPLOAD_SCRIPT
         if options.get("verbose"):
             flags |= rtde_control.RTDEControlInterface.FLAG_VERBOSE
@@ -130,7 +150,7 @@ class _Worker:
                 return
             try:
                 if op == "connect":
-                    self.reply(msg_id, "ok", self.connect(*args))
+                    self.reply(msg_id, "ok", self.connect(*args, msg_id=msg_id))
                 elif op in ("moveL", "moveJ"):
                     threading.Thread(target=self.move, args=(msg_id, op, args), daemon=True).start()
                 elif op == "state":

@@ -112,14 +112,105 @@ def test_controller_lost_mid_scan_raises_and_does_not_hang():
 
 
 def test_silent_controller_times_out_with_a_clear_error():
+    """It accepts the TCP connection and never sends a byte: said as such, not as 'did not answer'."""
     emu = load_emulator().URControllerEmulator(silent=True).start()
     arm = URArm(emu.host, connect_timeout_s=2.0)
     try:
-        with pytest.raises(ArmConnectionError, match=rf"controller at {emu.host} did not answer within 2\.0 s"):
+        with pytest.raises(ArmConnectionError, match=rf"controller at {emu.host} accepted the connection \(port "
+                           rf"30004\) but did not complete the RTDE handshake within 2\.0 s") as err:
             bounded(arm.connect, 20.0)
+        assert "did not answer" not in str(err.value)
         assert not arm.is_connected and arm._proc is None  # the stuck child was killed
     finally:
         emu.stop()
+
+
+class _NotRtde:
+    """A TCP server on the RTDE port that is no UR controller: ``garbage`` answers every connection and request
+    with random bytes; ``badver`` speaks RTDE but refuses every protocol version (tester F6)."""
+
+    def __init__(self, mode: str):
+        import socket
+
+        self.mode, self.host = mode, load_emulator().free_loopback_host()
+        self.listener = socket.create_server((self.host, 30004))
+        self.listener.settimeout(0.2)
+        self.running, self.conns = True, []
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self):
+        while self.running:
+            try:
+                conn, _ = self.listener.accept()
+            except OSError:
+                continue
+            self.conns.append(conn)
+            threading.Thread(target=self._serve, args=(conn,), daemon=True).start()
+
+    def _serve(self, conn):
+        import os
+        import struct
+
+        try:
+            if self.mode == "garbage":
+                conn.sendall(os.urandom(64))
+            while self.running:
+                data = conn.recv(4096)
+                if not data:
+                    return
+                if self.mode == "garbage":
+                    conn.sendall(os.urandom(32))
+                elif data[2:3] == bytes([86]):  # RTDE_REQUEST_PROTOCOL_VERSION: not accepted
+                    conn.sendall(struct.pack(">HBB", 4, 86, 0))
+        except OSError:
+            pass
+
+    def stop(self):
+        self.running = False
+        self.listener.close()
+        for c in self.conns:
+            c.close()
+
+
+@pytest.mark.parametrize("mode", ["garbage", "badver"])
+def test_a_controller_that_does_not_speak_rtde_is_said_to_have_accepted_the_connection(mode):
+    """ur-rtde hangs on a peer that sends garbage or refuses the protocol version; the timeout said "did not
+    answer", though the controller had accepted the connection (tester F6)."""
+    server = _NotRtde(mode)
+    arm = URArm(server.host, connect_timeout_s=3.0)
+    try:
+        with pytest.raises(ArmConnectionError) as err:
+            bounded(arm.connect, 30.0)
+        message = str(err.value)
+        assert message.startswith(f"controller at {server.host} accepted the connection"), message
+        assert ("did not complete the RTDE handshake within 3.0 s (a controller that does not speak RTDE, or "
+                "refuses the protocol version)") in message, message
+        assert "did not answer" not in message and not arm.is_connected and arm._proc is None
+    finally:
+        server.stop()
+
+
+def test_a_controller_that_never_accepts_did_not_answer():
+    """Nothing answers (the SYNs go unanswered: a listener whose accept queue is full): still 'did not answer'."""
+    import socket
+
+    host = load_emulator().free_loopback_host()
+    listener = socket.create_server((host, 30004), backlog=0)
+    fill = []
+    try:
+        for _ in range(3):  # fill the accept queue; later connection attempts hang in the TCP handshake
+            c = socket.socket()
+            c.setblocking(False)
+            c.connect_ex((host, 30004))
+            fill.append(c)
+        arm = URArm(host, connect_timeout_s=2.0)
+        with pytest.raises(ArmConnectionError, match=rf"^controller at {host} did not answer within 2\.0 s"):
+            bounded(arm.connect, 20.0)
+        assert not arm.is_connected and arm._proc is None
+    finally:
+        for c in fill:
+            c.close()
+        listener.close()
 
 
 def test_nothing_listening_is_a_connection_error():
