@@ -12,10 +12,16 @@ aborted; ``view`` is the 0-based index of the view in progress, ``frames`` the f
 
 Safety: the beam is requested only after both arms reported in position (an in_position false and
 then true after the goal was sent, with the measured pose at the goal) and stayed so through the
-settle time, only for the exposure, and switched off as soon as the detector answers. Any fault
+settle time, and only after the detector was seen alive (pcd/expose offered, and the node that offers
+it answering a lifecycle get_state as "active", where the owner can ask: a SIGKILLed node stays in
+the graph for the DDS lease, about 20 s); only for the exposure: it is switched off as soon as the
+detector answers, and at the latest ``exposure_s + beam_off_margin_s`` after the pcd/expose request,
+answered or not. The detector's answer is then awaited with the beam off, up to the protocol's
+``exposure_timeout_s`` plus ``service_timeout_s`` from the request; an answer later than
+``exposure_s + readout_warn_s`` is warned about as a slow read-out. Any fault
 aborts: an arm leaving position or falling silent, an arm driver reporting ERROR, a move not done
 within move_timeout_s, the interlock refusing the beam, the beam dropping during an exposure or
-showing up outside one, the detector failing or timing out, a frame not arriving or of the wrong
+showing up outside one, the detector failing, timing out or gone, a frame not arriving or of the wrong
 size, an e-stop (seen on the estop topic or latched at the source). No scan starts while the source's
 e-stop is latched: the arms do not move. Abort = beam off requested, disarmed, state "aborted" with the reason. Frames
 already taken stay published; a beam-interrupted frame is never one of them (the pcd_grabber
@@ -49,6 +55,9 @@ DEVICE_DIAGNOSTICS = ("detector", "x-ray source")
 """/diagnostics status names (suffixes) of pcd_grabber and source_control, whose
 ``lifecycle_state`` value must be "active" for a scan to start."""
 DEVICE_REPORT_MAX_AGE_S = 3.0  # they report at 1 Hz; an older report is not evidence either way
+ARM_CAUSE_WINDOW_S = 5.0
+"""An arm driver ERROR this long after an abort for that arm leaving its position names the cause
+(a lost controller drops in_position first; "connection lost" follows, up to call_timeout_s later)."""
 
 
 def _answered_stamp(future) -> int | None:
@@ -72,7 +81,12 @@ class ScanSequencerSettings:
                                       minimum=0.0)
     goal_tolerance_rad: float = setting(0.01, "the same for the orientation", unit="rad", minimum=0.0)
     service_timeout_s: float = setting(2.0, "source/set_beam must answer within this", unit="s", minimum=0.0)
-    frame_timeout_s: float = setting(2.0, "the frame must appear within this after the exposure", unit="s",
+    beam_off_margin_s: float = setting(0.2, "the beam goes off this long after the exposure time has passed "
+                                       "since the pcd/expose request, whether the detector answered or not",
+                                       unit="s", minimum=0.0)
+    readout_warn_s: float = setting(0.5, "a detector answer later than exposure_s + this after the request "
+                                    "is warned about as a slow read-out", unit="s", minimum=0.0)
+    frame_timeout_s: float = setting(2.0, "the frame must appear within this after pcd/expose answered", unit="s",
                                      minimum=0.0)
     pairing_timeout_s: float = setting(1.0, "at the end, wait this long for the last geometries", unit="s",
                                        minimum=0.0)
@@ -98,6 +112,11 @@ class ScanPorts(Protocol):
         """Ask the detector for one exposure; returns a future."""
     def beam_service_ready(self) -> bool: ...
     def expose_service_ready(self) -> bool: ...
+    def call_detector_check(self):
+        """Ask the node that offers pcd/expose whether it is alive and active; a future whose result has
+        ``success`` (active) and ``message`` (what it is), or None where that cannot be asked."""
+    def detector_node(self) -> str:
+        """The name of the node that offers pcd/expose, "" when not known."""
     def armed_subscribers(self) -> int: ...
     def goal_subscribers(self, role: str) -> int: ...
 
@@ -156,6 +175,13 @@ class ScanSequencer:
         self._beam_confirmed = False
         self._expected_stamp: int | None = None
         self._late_expose = None  # the pcd/expose call in flight when a scan aborted
+        self._expose = None  # the pcd/expose call of the view in progress, until it is answered
+        self._t_expose = 0.0  # when it was sent
+        self._check = None  # the detector check before the beam, while in flight
+        self._t_check = 0.0
+        self.slow_readouts = 0  # this scan's detector answers later than exposure_s + readout_warn_s
+        self._slowest_readout = 0.0
+        self._arm_abort: tuple[str, float] | None = None  # (role, when): the last abort for an arm leaving position
         self.last_abort_reason = ""
         if settings.protocol_file:
             try:
@@ -214,6 +240,7 @@ class ScanSequencer:
                 self._saw_false[role] = True
             elif self.state in IN_POSITION_REQUIRED:
                 self.abort(f"{role} arm left its position during view {self.view} ({self.state})")
+                self._arm_abort = (role, self._now())
 
     def on_tool_pose(self, role: str, T: np.ndarray) -> None:
         """The measured TCP pose of ``role`` (4 x 4, mm, world frame)."""
@@ -255,10 +282,29 @@ class ScanSequencer:
             if device is not None and state is not None:
                 self.device_state[device] = (self._now(), state)
         if not self.running:
+            self._name_arm_cause(reports)
             return
         for name, is_error, message, _ in reports:
             if is_error and name.endswith((": source arm", ": detector arm")):
                 self.abort(f"arm driver error: {name}: {message}")
+                return
+
+    def _name_arm_cause(self, reports) -> None:
+        """After an abort for an arm leaving its position: that arm's driver ERROR (connection lost, a
+        protective stop) that follows within ARM_CAUSE_WINDOW_S is the cause; the abort reason names it."""
+        if self._arm_abort is None or self.state != "aborted":
+            return
+        role, t = self._arm_abort
+        if self._now() - t > ARM_CAUSE_WINDOW_S:
+            self._arm_abort = None
+            return
+        for name, is_error, message, _ in reports:
+            if is_error and name.endswith(f": {role} arm"):
+                self._arm_abort = None
+                reason = f"{self.last_abort_reason}: arm driver error: {name}: {message}"
+                self.last_abort_reason = reason
+                self.ports.log("error", f"scan aborted at view {self.view}: {reason}")
+                self._set_state("aborted", reason)
                 return
 
     def on_frame(self, stamp_ns: int, shape: tuple[int, int]) -> None:
@@ -309,6 +355,8 @@ class ScanSequencer:
         self.view, self.frames, self._expected_stamp, self._late_expose = 0, 0, None, None
         self.frame_stamps, self._seen_frames, self._seen_geometries = [], {}, set()
         self.last_abort_reason = ""
+        self._expose, self._check, self._arm_abort = None, None, None
+        self.slow_readouts, self._slowest_readout = 0, 0.0
         ports.publish_scan_info(self.protocol.scan_info(geom, self.scan_id))
         ports.publish_armed(True)
         self._beam_expect, self._beam_confirmed = False, True
@@ -329,11 +377,12 @@ class ScanSequencer:
             return
         self.safe_off()
         stamp = self._expected_stamp if self.state in ("beam_off", "waiting_frame") else None
-        if self.state == "exposing" and self._future is not None:
-            if self._future.done():
-                stamp = _answered_stamp(self._future)  # answered, not yet taken in by a tick
+        if self._expose is not None:  # exposing, or the beam already off and the answer still awaited
+            if self._expose.done():
+                stamp = _answered_stamp(self._expose)  # answered, not yet taken in by a tick
             else:
-                self._late_expose = self._future  # an answer after the abort still names a frame the bag keeps
+                self._late_expose = self._expose  # an answer after the abort still names a frame the bag keeps
+        self._expose, self._check = None, None
         if stamp is not None and stamp not in self.frame_stamps:
             # the detector took this view's frame and published it (the bag keeps it): count it
             self.frames += 1
@@ -421,7 +470,7 @@ class ScanSequencer:
             elif elapsed > p.move_timeout_s:
                 self.abort(f"view {self.view}: arms not in position within {p.move_timeout_s:.3g} s")
         elif self.state == "settling":
-            if elapsed >= p.settle_s:
+            if elapsed >= p.settle_s and self._detector_alive(s):
                 self._future = self._request_beam(True)
                 self._set_state("beam_on", f"{step}: beam on")
         elif self.state == "beam_on":
@@ -435,7 +484,8 @@ class ScanSequencer:
                     self.abort(refusal)
                     return
             if self._beam_confirmed:
-                self._future = self.ports.call_expose()
+                self._expected_stamp = None
+                self._expose, self._t_expose = self.ports.call_expose(), now
                 self._set_state("exposing", f"{step}: exposing")
             elif elapsed > s.service_timeout_s:
                 self.abort("beam switched on but source/beam_on never said so")
@@ -450,6 +500,10 @@ class ScanSequencer:
                 return
             self._set_state("waiting_frame")
         elif self.state == "waiting_frame":
+            if self._expose is not None:  # the beam went off before the detector answered
+                if self._take_expose_answer(p, s, step):
+                    self._set_state("waiting_frame", f"{step}: beam off, waiting for the frame")
+                return
             self._tick_waiting_frame(p, s, elapsed)
         elif self.state == "finishing":
             paired = sum(st in self._seen_geometries for st in self.frame_stamps)
@@ -457,27 +511,94 @@ class ScanSequencer:
                 self.ports.publish_armed(False)
                 self._beam_expect = None
                 msg = f"scan complete: {self.frames} frames, {paired} with geometry"
-                self.ports.log("info", msg)
+                if self.slow_readouts:
+                    msg += (f"; {self.slow_readouts} slow detector read-outs (pcd/expose answered up to "
+                            f"{self._slowest_readout:.2f} s after the request, for {p.exposure_s:.3g} s exposures)")
+                self.ports.log("warn" if self.slow_readouts else "info", msg)
                 self._set_state("done", msg)
 
+    def _detector_name(self) -> str:
+        return f"the detector node ({self.ports.detector_node() or 'pcd_grabber'})"
+
+    def _detector_alive(self, s: ScanSequencerSettings) -> bool:
+        """Before the beam: pcd/expose is offered and the node offering it answers as active (where it
+        can be asked). False while the check is in flight; aborts (no beam) when the detector is gone."""
+        if not self.ports.expose_service_ready():
+            self.abort(f"{self._detector_name()} is gone: pcd/expose is no longer offered; the beam was not "
+                       "switched on")
+            return False
+        if self._check is None:
+            self._check, self._t_check = self.ports.call_detector_check(), self._now()
+            if self._check is None:
+                return True  # nothing more to ask
+        if not self._check.done():
+            if self._now() - self._t_check > s.service_timeout_s:
+                self.abort(f"{self._detector_name()} does not answer within {s.service_timeout_s:.3g} s: gone or "
+                           "hung; the beam was not switched on")
+            return False
+        check, self._check = self._check, None
+        try:
+            answer = check.result()
+        except Exception as exc:  # noqa: BLE001 - report any failure of the call
+            self.abort(f"{self._detector_name()} could not be asked for its state ({exc}); the beam was not "
+                       "switched on")
+            return False
+        if not answer.success:
+            self.abort(f"{self._detector_name()}: {answer.message}; the beam was not switched on")
+            return False
+        return True
+
     def _tick_exposing(self, p: ScanProtocol, s: ScanSequencerSettings, step: str) -> None:
-        answer = self._check_future(p.exposure_timeout_s + s.service_timeout_s, "pcd/expose")
-        if answer is None or answer is False:
-            return
+        if not self._expose.done() and self._now() - self._t_expose >= p.exposure_s + s.beam_off_margin_s:
+            # the exposure time has passed: the beam goes off whether or not the detector answered
+            self._future = self._request_beam(False)
+            self._set_state("beam_off", f"{step}: beam off (exposure over), waiting for the detector's answer")
+        elif self._take_expose_answer(p, s, step):
+            self._future = self._request_beam(False)
+            self._set_state("beam_off", f"{step}: beam off")
+
+    def _take_expose_answer(self, p: ScanProtocol, s: ScanSequencerSettings, step: str) -> bool:
+        """The pcd/expose answer of this view, if there is one: True once taken (``_expected_stamp`` set);
+        False while waiting, or after an abort (failure, no stamp, timeout, detector gone)."""
+        waited = self._now() - self._t_expose
+        limit = p.exposure_timeout_s + s.service_timeout_s
+        if not self._expose.done():
+            if waited > limit:
+                gone = "" if self.ports.expose_service_ready() else "; pcd/expose is no longer offered"
+                self.abort(f"pcd/expose: no answer within {limit:.3g} s of the request: {self._detector_name()} is "
+                           f"hung or gone{gone}")
+            elif not self.ports.expose_service_ready():
+                self.abort(f"{self._detector_name()} is gone: pcd/expose is no longer offered, view {self.view}'s "
+                           "exposure is not answered")
+            return False
+        future, self._expose = self._expose, None
+        try:
+            answer = future.result()
+        except Exception as exc:  # noqa: BLE001 - report any failure of the call
+            self.abort(f"pcd/expose failed: {exc}")
+            return False
         if not answer.success:
             self.abort(f"detector: {answer.message}")
-            return
+            return False
         try:
             info = json.loads(answer.message)
             self._expected_stamp = int(info["stamp_ns"])
         except (ValueError, KeyError, TypeError):
             self.abort(f"detector answer without a frame stamp: {answer.message!r}")
-            return
+            return False
         exposure = info.get("exposure_s")
         if isinstance(exposure, (int, float)) and abs(exposure - p.exposure_s) > 1e-9 and self.frames == 0:
             self.ports.log("warn", f"the detector exposes {exposure} s, the protocol says {p.exposure_s} s")
-        self._future = self._request_beam(False)
-        self._set_state("beam_off", f"{step}: beam off")
+        if waited > p.exposure_s + s.readout_warn_s:
+            self.slow_readouts += 1
+            self._slowest_readout = max(self._slowest_readout, waited)
+            if self.slow_readouts == 1:
+                self.ports.log("warn", f"{step}: slow detector read-out: pcd/expose answered {waited:.2f} s after "
+                                       f"the request, for a {p.exposure_s:.3g} s exposure (more than readout_warn_s "
+                                       f"{s.readout_warn_s:.3g} s over it); the beam went off "
+                                       f"{s.beam_off_margin_s:.3g} s after the exposure time, the frame is awaited "
+                                       "with the beam off (the scan's total is given at its end)")
+        return True
 
     def _tick_waiting_frame(self, p: ScanProtocol, s: ScanSequencerSettings, elapsed: float) -> None:
         shape = self._seen_frames.get(self._expected_stamp)

@@ -14,7 +14,10 @@ Topics and services (relative names follow the node namespace; /ct/* from robot_
               running one aborts), /diagnostics (arm driver ERROR aborts; a detector or x-ray source
               lifecycle node reported not active refuses the start), /ct/projection (frame check),
               /ct/geometry (pairing count)
-  clients     source/set_beam (std_srvs/SetBool), pcd/expose (std_srvs/Trigger)
+  clients     source/set_beam (std_srvs/SetBool), pcd/expose (std_srvs/Trigger), <detector node>/get_state
+              (lifecycle_msgs/GetState) of the node that offers pcd/expose, asked before each beam-on: a
+              detector node that does not answer (killed: it stays in the graph for the DDS lease) or is
+              not active gets no beam
   services    scan/start (std_srvs/Trigger): load the protocol, check the graph, start; answers at once
               scan/abort (std_srvs/Trigger): abort now (beam off, disarm)
 The sequence (states, safety rules, what aborts) is robot_ct_ros.hardware.scan_sequencer.ScanSequencer,
@@ -32,7 +35,11 @@ from __future__ import annotations
 import json
 import time
 
+from types import SimpleNamespace
+
 from rclpy.node import Node
+from rclpy.task import Future
+from lifecycle_msgs.srv import GetState
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseArray, PoseStamped
 from sensor_msgs.msg import Image
@@ -73,6 +80,7 @@ class ScanOrchestratorNode(Node):
         self.diag_pub = self.create_publisher(DiagnosticArray, fmt.node_topic(fmt.TOPIC_DIAGNOSTICS), 10)
         self.set_beam = self.create_client(SetBool, "source/set_beam")
         self.expose = self.create_client(Trigger, "pcd/expose")
+        self._detector: tuple[str, object] | None = None  # (node name, its get_state client)
         self.scan = ScanSequencer(s, self.hand_eye, self, time.monotonic)
 
         for r in ROLES:
@@ -147,6 +155,54 @@ class ScanOrchestratorNode(Node):
 
     def expose_service_ready(self) -> bool:
         return self.expose.service_is_ready()
+
+    def _find_detector(self) -> tuple[str, object] | None:
+        """(fully qualified name, get_state client) of the lifecycle node that offers pcd/expose: the node
+        itself, or the owner of the helper node a ServiceThread serves it from (``_<owner>_pcd_expose``)."""
+        if self._detector is not None and self._detector[1].service_is_ready():
+            return self._detector
+        self._detector = None
+        service = self.resolve_service_name("pcd/expose")
+        suffix = "".join(c if c.isalnum() else "_" for c in "pcd/expose").strip("_")
+
+        def services(name, ns):
+            try:
+                return {n for n, _ in self.get_service_names_and_types_by_node(name, ns)}
+            except Exception:  # noqa: BLE001 - the node left the graph meanwhile
+                return set()
+
+        nodes = self.get_node_names_and_namespaces()
+        for name, ns in nodes:
+            if service not in services(name, ns):
+                continue
+            for candidate in [name] + [n for n, n_ns in nodes if n_ns == ns and name == f"_{n}_{suffix}"]:
+                fqn = (ns.rstrip("/") + "/" + candidate) if ns != "/" else "/" + candidate
+                if fqn + "/get_state" in services(candidate, ns):
+                    self._detector = (fqn, self.create_client(GetState, fqn + "/get_state"))
+                    return self._detector
+        return None
+
+    def call_detector_check(self):
+        detector = self._find_detector()
+        if detector is None:
+            return None
+        name, client = detector
+        answer = Future()
+
+        def done(call):
+            try:
+                label = call.result().current_state.label
+            except Exception as exc:  # noqa: BLE001 - the call failed: the sequencer reports it
+                answer.set_exception(exc)
+                return
+            answer.set_result(SimpleNamespace(success=label == "active",
+                                              message=f"{name} is {label}, not active" if label != "active"
+                                              else f"{name} is active"))
+        client.call_async(GetState.Request()).add_done_callback(done)
+        return answer
+
+    def detector_node(self) -> str:
+        return self._detector[0] if self._detector is not None else ""
 
     def armed_subscribers(self) -> int:
         return self.armed_pub.get_subscription_count()

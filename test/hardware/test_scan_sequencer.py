@@ -36,6 +36,9 @@ class Ports:
         self.logs, self.goals, self.armed, self.status, self.info = [], [], [], [], []
         self.beam_calls, self.expose_calls = [], []
         self.ready = True
+        self.expose_ready = True
+        self.check_detector = False  # a detector node that can be asked for its lifecycle state
+        self.check_calls = []
 
     def log(self, level, message):
         self.logs.append((level, message))
@@ -64,7 +67,16 @@ class Ports:
         return self.ready
 
     def expose_service_ready(self):
-        return self.ready
+        return self.ready and self.expose_ready
+
+    def call_detector_check(self):
+        if not self.check_detector:
+            return None
+        self.check_calls.append(Future())
+        return self.check_calls[-1]
+
+    def detector_node(self):
+        return "/pcd_grabber" if self.check_detector else ""
 
     def armed_subscribers(self):
         return 1 if self.ready else 0
@@ -394,3 +406,122 @@ def test_an_abort_while_the_exposure_is_answered_counts_the_frame_the_detector_p
     rig.ports.expose_calls[-1].set(False, "beam interrupted: on for 40% of the exposure")
     rig.advance()
     assert rig.seq.frames == 1 and rig.seq.frame_stamps == [11]
+
+
+def test_the_beam_goes_off_when_the_exposure_time_has_passed_not_when_the_detector_answers(tmp_path):
+    """Outside tester, F1: the beam stayed on until pcd/expose answered (3 s on a detector timeout, 2.7 s per view
+    on a slow read-out, no warning). Now it goes off exposure_s + beam_off_margin_s after the request, the answer
+    is awaited with the beam off, and a slow read-out is warned about (once, and counted at the end)."""
+    rig = _to_exposing(_started(tmp_path))
+    s, p = rig.seq, rig.ports
+    rig.advance(0.1, 3)  # 0.3 s > exposure 0.02 s + margin 0.2 s, no answer yet
+    assert s.state == "beam_off" and p.beam_calls[-1][0] is False and not p.expose_calls[-1].done()
+    s.on_beam(False)
+    p.beam_calls[-1][1].set(True, "beam off")
+    rig.report_arms(True)
+    rig.advance()
+    assert s.state == "waiting_frame" and "waiting for the detector" in s.message
+    for _ in range(20):  # read-out takes 2.2 s more: the beam stays off, nothing aborts
+        rig.report_arms(True)
+        rig.advance(0.1)
+    assert s.state == "waiting_frame" and [on for on, _ in p.beam_calls] == [True, False]
+    p.expose_calls[-1].set(True, json.dumps({"stamp_ns": 5, "exposure_s": 0.02}))
+    rig.advance()
+    warnings = [m for level, m in p.logs if level == "warn"]
+    assert len(warnings) == 1 and "slow detector read-out" in warnings[0] and "view 1/2" in warnings[0]
+    s.on_frame(5, (6, 8))
+    rig.advance()
+    assert s.state == "moving" and s.frames == 1 and s.view == 1
+    rig.run_view(6)  # a quick answer: beam off at the answer, as before
+    s.on_geometry(5)
+    s.on_geometry(6)
+    rig.advance()
+    assert s.state == "done" and "1 slow detector read-outs" in s.message
+    assert p.logs[-1][0] == "warn"
+
+
+def test_a_detector_that_never_answers_times_out_with_the_beam_off(tmp_path):
+    rig = _to_exposing(_started(tmp_path))
+    s, p = rig.seq, rig.ports
+    rig.advance(0.25)
+    assert s.state == "beam_off"
+    s.on_beam(False)
+    p.beam_calls[-1][1].set(True)
+    for _ in range(26):  # up to exposure_timeout_s 1 + service_timeout_s 2 from the request
+        rig.report_arms(True)
+        rig.advance(0.1)
+    assert s.state == "waiting_frame" and [on for on, _ in p.beam_calls] == [True, False]
+    for _ in range(2):
+        rig.report_arms(True)
+        rig.advance(0.1)
+    _aborted(rig, "pcd/expose: no answer within 3 s", "hung or gone")
+    assert s.frames == 0
+
+
+def test_a_gone_detector_gets_no_beam(tmp_path):
+    """Outside tester, F1: a killed pcd_grabber: the beam went on 137 ms later and stayed on 5 s, and the abort
+    said only "pcd/expose: no answer within 5 s". Now, before the beam: pcd/expose must be offered, and the node
+    offering it must answer get_state as active; else the scan aborts naming the detector node, with no beam."""
+    def settled(**ports):
+        rig = _started(tmp_path)
+        for k, v in ports.items():
+            setattr(rig.ports, k, v)
+        rig.arrive()
+        rig.advance(0.03, 3)
+        return rig
+
+    rig = settled(expose_ready=False)
+    _aborted(rig, "detector node (pcd_grabber) is gone", "pcd/expose is no longer offered", "not switched on")
+    assert [on for on, _ in rig.ports.beam_calls] == [False]
+    # still in the graph (a SIGKILLed node stays for the DDS lease) but not answering
+    rig = settled(check_detector=True)
+    assert rig.seq.state == "settling" and len(rig.ports.check_calls) == 1 and not rig.ports.beam_calls
+    for _ in range(21):
+        rig.report_arms(True)
+        rig.advance(0.1)
+    _aborted(rig, "detector node (/pcd_grabber) does not answer", "gone or hung", "not switched on")
+    assert [on for on, _ in rig.ports.beam_calls] == [False]
+    rig = settled(check_detector=True)
+    rig.ports.check_calls[-1].set(False, "/pcd_grabber is inactive, not active")
+    rig.advance()
+    _aborted(rig, "/pcd_grabber is inactive", "not switched on")
+    assert [on for on, _ in rig.ports.beam_calls] == [False]
+    rig = settled(check_detector=True)
+    rig.ports.check_calls[-1].set(True, "/pcd_grabber is active")
+    rig.advance()
+    assert rig.seq.state == "beam_on" and rig.ports.beam_calls[-1][0] is True
+    # the detector going away during the exposure: aborted at once, naming it
+    rig.ports.beam_calls[-1][1].set(True)
+    rig.seq.on_beam(True)
+    rig.advance()
+    assert rig.seq.state == "exposing"
+    rig.ports.expose_ready = False
+    rig.advance()
+    _aborted(rig, "detector node (/pcd_grabber) is gone")
+
+
+def test_an_arm_controller_lost_during_the_exposure_is_named(tmp_path):
+    """Outside tester, F3: a UR controller lost during an exposure was reported "source arm left its position
+    during view 2 (exposing)"; only /diagnostics said "connection lost". The arm driver drops in_position first (the
+    beam goes off at once, as before) and reports the ERROR right after: the abort reason now names it."""
+    rig = _exposing(tmp_path)
+    s = rig.seq
+    s.on_in_position("source", False)
+    _aborted(rig, "source arm left its position during view 1 (exposing)")
+    s.on_diagnostics([("/detector_arm_driver: detector arm", True, "robot not ready: PROTECTIVE_STOP", "active")])
+    assert "PROTECTIVE_STOP" not in s.message  # the other arm: not the cause
+    rig.t += 2.0  # a frozen controller: "connection lost" after call_timeout_s
+    s.on_diagnostics([("/source_arm_driver: source arm", True,
+                       "connection lost: connection to controller at 10.0.0.2 lost (RTDE disconnected)", "unconfigured")])
+    _aborted(rig, "source arm left its position during view 1 (exposing)", "arm driver error",
+             "connection lost", "RTDE disconnected")
+    assert rig.ports.status[-1]["message"] == s.message and s.health()[1][-1] == ("last_abort_reason", s.message)
+    assert rig.ports.logs[-1][0] == "error" and "RTDE disconnected" in rig.ports.logs[-1][1]
+    # named once; a report long after the abort is not its cause
+    s.on_diagnostics([("/source_arm_driver: source arm", True, "fault: something else", "unconfigured")])
+    assert "something else" not in s.message
+    rig = _exposing(tmp_path)
+    rig.seq.on_in_position("source", False)
+    rig.t += 10.0
+    rig.seq.on_diagnostics([("/source_arm_driver: source arm", True, "connection lost: late", "unconfigured")])
+    assert "late" not in rig.seq.message

@@ -51,7 +51,9 @@ class AcquisitionGraph:
     def __init__(self, ros, tmp_path, grabber=None, arms=None):
         self.ros = ros
         path = tmp_path / "protocol.yaml"
-        path.write_text(yaml.safe_dump({"scan_protocol": PROTOCOL}))
+        # the protocol's exposure is the detector's (the orchestrator switches the beam off after the protocol's)
+        protocol = dict(PROTOCOL, exposure_s=(grabber or {}).get("exposure_s", PROTOCOL["exposure_s"]))
+        path.write_text(yaml.safe_dump({"scan_protocol": protocol}))
         self.protocol = ScanProtocol.from_yaml(path)
         # the shipped hand-eye file, as a launch would pass it
         he_args = ["--ros-args", "--params-file", str(CONFIG / "hand_eye.yaml")]

@@ -238,7 +238,7 @@ def test_beam_refused_aborts(ros, tmp_path):
 
 
 def test_beam_lost_during_exposure_aborts(ros, tmp_path):
-    g = Graph(ros, tmp_path)
+    g = Graph(ros, tmp_path, beam_off_margin_s=30.0)  # the beam stays on while the detector holds the exposure
     g.detector.plan = {1: "hold"}
     g.start()
     assert ros.spin_until(lambda: g.detector.held is not None)
@@ -280,3 +280,65 @@ def test_bad_parameters_are_refused_with_a_clear_error(ros):
             ScanOrchestratorNode(context=ros.context, parameter_overrides=_params(**params))
         message = str(err.value)
         assert "\n" not in message and all(w in message for w in words), message
+
+
+def test_the_beam_goes_off_before_a_slow_detector_answers(ros, tmp_path):
+    """Outside tester, F1: the beam stayed on until pcd/expose answered (a slow read-out: 2.7 s per view). Now it
+    goes off exposure_s + beam_off_margin_s after the request; the frame is awaited with the beam off, the scan
+    goes on, and the slow read-out is named in a warning."""
+    g = Graph(ros, tmp_path)
+    g.detector.plan = {1: "hold"}
+    warnings = []
+    orig = g.orch.log
+    g.orch.log = lambda level, message: (warnings.append(message) if level == "warn" else None, orig(level, message))
+    g.start()
+    assert ros.spin_until(lambda: g.detector.held is not None)
+    # held by the detector (the read-out): the beam goes off without its answer
+    assert ros.spin_until(lambda: g.beam_log == [True, False] * 2 and not g.source.interlock.beam_on)
+    assert g.detector.held is not None and g.orch.state in ("beam_off", "waiting_frame")
+    assert ros.spin_until(lambda: g.orch.state == "waiting_frame")
+    ros.spin_for(0.6)  # past exposure_s + readout_warn_s
+    assert g.orch.state == "waiting_frame" and not g.source.interlock.beam_on
+    stamp = g.probe.get_clock().now().nanoseconds
+    msg = Image(height=6, width=8, encoding="32FC1", step=32, data=bytes(192))
+    msg.header.stamp, msg.header.frame_id = ns_to_stamp(stamp), "pcd_detector"
+    g.detector.pub.publish(msg)
+    g.detector.release(True, json.dumps({"stamp_ns": stamp}))
+    g.wait_end()
+    assert g.orch.state == "done" and g.orch.frames == 4, g.orch.message
+    assert g.beam_log == [True, False] * 4
+    assert any("slow detector read-out" in w for w in warnings), warnings
+    assert "1 slow detector read-outs" in g.orch.message
+
+
+def test_a_detector_node_that_does_not_answer_or_is_not_active_gets_no_beam(ros, tmp_path):
+    """Outside tester, F1: a killed pcd_grabber still seemed to offer pcd/expose (the DDS lease), and the beam went
+    on. Before each beam-on the orchestrator asks the node that offers pcd/expose for its lifecycle state: one
+    that does not answer (here: never spun, as a killed process) or is not active gets no beam."""
+    from rclpy.lifecycle import LifecycleNode
+
+    g = Graph(ros, tmp_path, service_timeout_s=0.5)
+    g.detector.srv.close()
+    dead = LifecycleNode("pcd_grabber", context=ros.context)  # in the graph, never spun: answers nothing
+    dead.create_service(Trigger, "pcd/expose", lambda q, r: r)
+    assert ros.spin_until(lambda: g.orch.expose.service_is_ready())
+    g.start()
+    g.wait_end()
+    assert g.orch.state == "aborted" and "/pcd_grabber" in g.orch.message, g.orch.message
+    assert "does not answer" in g.orch.message and "not switched on" in g.orch.message
+    assert g.beam_log == [] and not g.detector.requests and ros.spin_until(g.safe)
+
+
+
+def test_a_detector_node_that_is_not_active_gets_no_beam(ros, tmp_path):
+    from rclpy.lifecycle import LifecycleNode
+
+    g = Graph(ros, tmp_path)
+    g.detector.srv.close()
+    idle = ros.add(LifecycleNode("other_pcd", context=ros.context))  # answers, but unconfigured
+    idle.create_service(Trigger, "pcd/expose", lambda q, r: r)
+    assert ros.spin_until(lambda: g.orch.expose.service_is_ready() and g.orch.call_detector_check() is not None)
+    g.start()
+    g.wait_end()
+    assert g.orch.state == "aborted" and "/other_pcd is unconfigured, not active" in g.orch.message, g.orch.message
+    assert g.beam_log == []
