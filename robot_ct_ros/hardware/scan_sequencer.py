@@ -88,8 +88,9 @@ class ScanSequencerSettings:
                                     "is warned about as a slow read-out", unit="s", minimum=0.0)
     frame_timeout_s: float = setting(2.0, "the frame must appear within this after pcd/expose answered", unit="s",
                                      minimum=0.0)
-    pairing_timeout_s: float = setting(1.0, "at the end, wait this long for the last geometries", unit="s",
-                                       minimum=0.0)
+    pairing_timeout_s: float = setting(3.0, "at the end, wait this long for the last geometries (longer than "
+                                       "geometry_publisher's wait_for_poses_s, 2 s, which may hold the last frame)",
+                                       unit="s", minimum=0.0)
     world_frame: str = setting(fmt.FRAME_WORLD, "frame of the goals and of the accepted tool poses")
 
     def __post_init__(self):
