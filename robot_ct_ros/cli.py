@@ -87,8 +87,8 @@ def _pair(what: str, positive: bool):
         if len(parts) == 1:
             parts *= 2
         if len(parts) != 2 or not all(np.isfinite(parts)) or (positive and min(parts) <= 0):
-            raise argparse.ArgumentTypeError(f"{what} is ROW,COL in mm{', positive' if positive else ''} "
-                                             f"(e.g. 0.2,0.2), got {text!r}")
+            raise argparse.ArgumentTypeError(f"{what} is ROW,COL in mm{', positive' if positive else ''}, or one "
+                                             f"value for both (e.g. 0.2,0.2 or 0.2), got {text!r}")
         return tuple(parts)
     return parse
 
@@ -386,10 +386,12 @@ def build_parser() -> argparse.ArgumentParser:
         if name == "rtk":
             q.add_argument("--geometry", required=True, metavar="G.xml", help="RTK's geometry XML")
             q.add_argument("--pitch-mm", type=_pair("--pitch-mm", True), required=True, metavar="ROW,COL",
-                           help="detector pixel pitch between rows and between columns (mm); RTK's XML holds none")
+                           help="detector pixel pitch between rows and between columns (mm; one value is taken "
+                                "for both); RTK's XML holds none")
             q.add_argument("--origin-mm", type=_pair("--origin-mm", False), default=None, metavar="ROW,COL",
                            help="RTK projection stack origin, physical position of pixel (0, 0) (mm; default "
-                                "centred: -(n-1)/2 * pitch); rows first, so RTK's origin (x, y, 0) is y,x here")
+                                "centred: -(n-1)/2 * pitch; one value is taken for both); rows first, so RTK's "
+                                "origin (x, y, 0) is y,x here")
         else:
             q.add_argument("--vectors", required=True, metavar="V", help="ASTRA vectors, .npy or text")
             q.add_argument("--layout", choices=_import_layouts(), default="views-first",

@@ -79,7 +79,9 @@ def _load(path, what: str) -> np.ndarray:
 
             log = logging.getLogger("tifffile")
             level = log.level
-            log.setLevel(logging.ERROR)  # its warnings about a damaged file would precede our one-line error
+            # its warnings and errors about a damaged file (logged at ERROR: "invalid page offset") would precede our
+            # one-line error, which says what it read
+            log.setLevel(logging.CRITICAL + 1)
             try:
                 arr = tifffile.imread(path)
             finally:
@@ -291,7 +293,8 @@ def check_view_count(n_usable: int, n_frames: int, source) -> None:
         raise ValueError(f"{source} holds {held}; a scan needs at least {MIN_VIEWS} (no reader would accept the bag)")
 
 
-def _write(out, proj, geom: ConeGeometry, *, counts: bool, flat, dark, notes: dict, say) -> Path:
+def _write(out, proj, geom: ConeGeometry, *, counts: bool, flat, dark, notes: dict, say, source) -> Path:
+    """The bag at ``out``; ``source``: the projections' path, as the refusals name it."""
     from robot_ct_ros.bag import scan_info_for, write_scan
 
     shape = geom.det_shape
@@ -318,7 +321,7 @@ def _write(out, proj, geom: ConeGeometry, *, counts: bool, flat, dark, notes: di
     if not counts:  # line integrals: a frame with no finite value is no view either
         usable = np.isfinite(frames)
     empty = int((~usable.any(axis=(1, 2))).sum())
-    check_view_count(geom.n_views - empty, geom.n_views, notes["projections"])
+    check_view_count(geom.n_views - empty, geom.n_views, source)
     info = scan_info_for(geom, projection_units=units, notes=notes)
     write_scan(out, frames, geom, info=info, flat=flat_frame)
     bad = int(np.isnan(frames).sum()) if counts else 0
@@ -444,7 +447,8 @@ def import_rtk(projections, geometry_xml, out, *, pitch_mm, origin_mm=None, coun
     notes = {"generator": "robot-ct import rtk", "projections": Path(projections).name,
              "geometry": f"{Path(geometry_xml).name} (RTK ThreeDCircularProjectionGeometry, rotation about y)",
              "rtk_projection_origin_mm": None if origin_mm is None else [float(x) for x in origin_mm][::-1]}
-    return _write(out, proj, geom, counts=counts, flat=flat, dark=dark, notes=notes, say=say)
+    return _write(out, proj, geom, counts=counts, flat=flat, dark=dark, notes=notes, say=say,
+                  source=projections)
 
 
 def import_astra(projections, vectors, out, *, layout: str = "views-first", row_pitch_mm=None, counts: bool = False,
@@ -464,4 +468,5 @@ def import_astra(projections, vectors, out, *, layout: str = "views-first", row_
     check_plausible(geom, vectors, say)
     notes = {"generator": "robot-ct import astra", "projections": Path(projections).name, "layout": layout,
              "geometry": f"{Path(vectors).name} (ASTRA {'cone_vec' if vec.shape[1] == 12 else 'fanflat_vec'})"}
-    return _write(out, proj, geom, counts=counts, flat=flat, dark=dark, notes=notes, say=say)
+    return _write(out, proj, geom, counts=counts, flat=flat, dark=dark, notes=notes, say=say,
+                  source=projections)

@@ -359,3 +359,27 @@ def test_counts_or_sign_flipped_line_integrals_are_warned(tmp_path, capsys):
             assert "warning: " in out and words in out, out
             assert len(warnings) == 1 and words in warnings[0], warnings
             np.testing.assert_array_equal(read_scan(tmp_path / name).counts, proj.astype(np.float32))
+
+
+def test_a_cut_tiff_and_an_all_nan_stack_are_one_line_errors_with_the_full_path(tmp_path, capsys, caplog):
+    """A TIFF cut short printed tifffile's own 'invalid page offset' log line (logged at ERROR, which the
+    silenced level let through) before the one-line error; an all-NaN stack's refusal named the file
+    without its folder, while every other refusal gives the path as given."""
+    g = _geometry()
+    proj = _proj((g.n_views,) + g.det_shape)
+    np.savetxt(tmp_path / "v.txt", g.to_astra_vec())
+    tifffile.imwrite(tmp_path / "p.tif", proj)  # one page per view
+    data = (tmp_path / "p.tif").read_bytes()
+    (tmp_path / "cut.tif").write_bytes(data[: len(data) * 2 // 3])
+    np.save(tmp_path / "nan.npy", np.full_like(proj, np.nan))
+
+    def run(proj_name):
+        return main(["import", "astra", "--projections", str(tmp_path / proj_name), "--vectors",
+                     str(tmp_path / "v.txt"), "--out", str(tmp_path / "bag")])
+
+    assert run("cut.tif") == 2
+    _one_line_error(capsys, str(tmp_path / "cut.tif"), "cannot read projections")
+    assert not [r for r in caplog.records if r.name == "tifffile"], [r.getMessage() for r in caplog.records]
+    assert run("nan.npy") == 2
+    _one_line_error(capsys, f"{tmp_path / 'nan.npy'} holds 0 of its 8 frames with a usable pixel")
+    assert not (tmp_path / "bag").exists()

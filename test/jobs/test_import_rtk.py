@@ -94,7 +94,7 @@ def test_rtk_import_errors_are_one_line(tmp_path, capsys, monkeypatch):
     _one_line_error(capsys, "give millimetres")
     with pytest.raises(SystemExit):  # argparse's usage and one error line
         run("--geometry", str(xml), "--pitch-mm", "0.5,0.5,0.5")
-    assert "--pitch-mm is ROW,COL in mm" in capsys.readouterr().err.splitlines()[-1]
+    assert "--pitch-mm is ROW,COL in mm, positive, or one value for both" in capsys.readouterr().err.splitlines()[-1]
     assert run("--geometry", str(tmp_path / "none.xml"), "--pitch-mm", "0.5") == 2
     _one_line_error(capsys, "cannot access", "none.xml")
     (tmp_path / "bad.xml").write_text("<?xml version=\"1.0\"?><nothing/>")
@@ -237,3 +237,18 @@ def test_a_truncated_xml_and_a_corrupt_tiff_are_named_as_such(tmp_path, capsys, 
     _one_line_error(capsys, "bad.tif", "cannot read projections", "no readable image")
     assert not [r for r in caplog.records if r.name == "tifffile"]  # its warning went to stderr before our line
     assert not (tmp_path / "bag").exists()
+
+
+def test_one_pitch_value_is_both_pitches_and_help_says_so(tmp_path, capsys):
+    """--pitch-mm 1 was taken as 1,1 without a word in --help, while 1,1,1 was refused as 'ROW,COL'."""
+    pytest.importorskip("itk")
+    xml = _write_xml([[600.0, 900.0, 45.0 * i, 0, 0, 0, 0, 0, 0] for i in range(8)], tmp_path / "g.xml")
+    np.save(tmp_path / "p.npy", np.ones((8, 12, 20), np.float32))
+    assert main(["import", "rtk", "--projections", str(tmp_path / "p.npy"), "--geometry", str(xml),
+                 "--pitch-mm", "0.5", "--out", str(tmp_path / "bag")]) == 0
+    geom = read_scan(tmp_path / "bag").geom
+    assert (geom.row_pitch_mm, geom.col_pitch_mm) == (0.5, 0.5)
+    with pytest.raises(SystemExit):
+        main(["import", "rtk", "--help"])
+    helptext = " ".join(capsys.readouterr().out.split())
+    assert "between rows and between columns (mm; one value is taken for both)" in helptext
