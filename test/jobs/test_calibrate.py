@@ -116,6 +116,9 @@ def test_a_one_row_bag_reconstructs_and_calibrates(tmp_path):
     truth = correction.report["truth"]
     before, after = truth["reprojection_error_nominal_px"]["mean"], truth["reprojection_error_corrected_px"]["mean"]
     assert before > 0.8 and after < 0.4 * before, (before, after)
+    # report.json says that the scan was calibrated as a fan beam (it had no word of it)
+    notes = json.loads((tmp_path / "calib" / "report.json").read_text())["notes"]
+    assert any(n.startswith("one-row detector (fan beam): only the 5 parameters") for n in notes), notes
     held = [PARAM_NAMES.index(p) for p in PARAM_NAMES if p not in FAN_BEAM_PARAMS]
     assert np.abs(correction.result.params[:, held]).max() < 1e-9
     assert read_scan(correction.report["corrected_bag"]).geom_corrected.det_shape == (1, 64)

@@ -28,7 +28,7 @@ from robot_ct_ros.ct.calibration.volume import (EXTERIOR_ABOVE, TRUNCATED_ABOVE,
                                                 projection_consistency, reconstruct_for_estimation,
                                                 truncation_level)
 from robot_ct_ros.ct.field_of_view import field_of_view_mask
-from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid, observable_params
+from robot_ct_ros.ct.geometry import PARAM_NAMES, ConeGeometry, VolumeGrid, observable_params
 from robot_ct_ros.ct.metrics import remove_gauge, roi_points
 
 __all__ = ["calibrate", "settings_with"]
@@ -219,6 +219,32 @@ def _unused_settings(method, settings) -> str:
                                                           "exterior_subsets", "exterior_reach_guess"])):
         notes.append(f"{', '.join(given)} did not apply: exterior is off")
     return "; ".join(notes)
+
+
+def _ncc_gain_note(iteration: int, before: float, after: float, threshold: float) -> str:
+    """The note on an iteration that ``stop_ncc_gain`` undid: the estimation model's projection NCC went from
+    ``before`` to ``after``, which rose by less than ``threshold`` or fell."""
+    gain = after - before
+    change = (f"raised the estimation model's projection NCC by {gain:.2e} only" if gain > 0 else
+              "left the estimation model's projection NCC unchanged" if gain == 0 else
+              f"lowered the estimation model's projection NCC by {-gain:.2e}")
+    return (f"stop_ncc_gain: iteration {iteration} {change} ({before:.5f} -> {after:.5f}; stop_ncc_gain asks a rise "
+            f"of {threshold:g} at least) and was undone; the geometry of iteration {iteration - 1} stays")
+
+
+def fan_beam_note(nominal: ConeGeometry) -> str:
+    """The note for a one-row detector (a fan beam, docs/calibration.md §5b): which parameters the calibration
+    estimates, which stay nominal and why; empty for a detector of two or more rows."""
+    held = ~observable_params(nominal)
+    if not held.any():
+        return ""
+    free = [n for n, h in zip(PARAM_NAMES, held) if not h]
+    kept = [n for n, h in zip(PARAM_NAMES, held) if h]
+    return (f"one-row detector (fan beam): only the {len(free)} parameters that move its rays within the fan plane "
+            f"were estimated ({', '.join(free)}: the source's in-plane position, the detector's shift along the row "
+            f"and distance, its rotation within the plane); {', '.join(kept)} stay nominal: s_v, d_v and r_w move the "
+            "rays off the one slice the row sees, which a one-row scan cannot tell from the object changing along the "
+            "axis, and r_u turns the detector about its own row, moving none of its pixels (docs/calibration.md §5b)")
 
 
 def _skipped_view_notes(skipped: dict, estimated: dict, n_views: int) -> list:
@@ -446,11 +472,10 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
             # the model explains the data hardly better than before: the iteration moved the views along
             # geometries the data cannot tell apart (docs/calibration.md §7). Checked before the next coarse
             # volume is built, which an undone iteration would not use
-            say(f"iteration {it + 1}/{n_iter}: the model's projection NCC rose by {gain:.2e} < stop_ncc_gain "
+            undone_note = _ncc_gain_note(it + 1, history[-1].projection_ncc, corr, settings.stop_ncc_gain)
+            say(f"iteration {it + 1}/{n_iter}: the model's projection NCC changed by {gain:+.2e} "
+                f"({history[-1].projection_ncc:.5f} -> {corr:.5f}), less than stop_ncc_gain "
                 f"{settings.stop_ncc_gain:g}; undone, stopping")
-            undone_note = (f"stop_ncc_gain: iteration {it + 1} raised the estimation model's projection NCC by "
-                           f"{gain:.2e} only ({history[-1].projection_ncc:.5f} -> {corr:.5f}, less than "
-                           f"{settings.stop_ncc_gain:g}) and was undone; the geometry of iteration {it} stays")
             params = start
             break
         # the next iteration's coarse volume (and the consistency check): not after the last
@@ -490,6 +515,8 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
                     f"of {n_iter} iterations")
             break
     notes = _skipped_view_notes(skipped, estimated, nominal.n_views)
+    if held.any():  # a fan beam: what was estimated, what stays nominal
+        notes.insert(0, fan_beam_note(nominal))
     if exterior:
         notes.append("the object outside the ROI was modelled (exterior model)")
     notes += exterior_notes

@@ -92,6 +92,19 @@ def test_one_row_scan_calibrates_the_in_plane_parameters_and_holds_the_others(fa
     assert after < 0.3 * before, (before, after)
     assert np.all(result.params[:, HELD] == 0.0)  # what a fan beam cannot see stays nominal
     assert result.volume.shape == grid.shape_zyx and np.isfinite(result.volume).all()
+    # and the result says so (neither the command line nor report.json did): what was estimated, what stays, why
+    fan_notes = [n for n in result.notes if n.startswith("one-row detector (fan beam)")]
+    assert len(fan_notes) == 1, result.notes
+    assert "(s_u, s_w, d_u, d_w, r_v" in fan_notes[0] and "s_v, d_v, r_u, r_w stay nominal" in fan_notes[0]
+    assert "docs/calibration.md §5b" in fan_notes[0]
+
+
+def test_only_a_one_row_detector_gets_the_fan_beam_note():
+    from robot_ct_ros.ct.calibration.loop import fan_beam_note
+
+    nominal = circular_scan(4, 60.0, 150.0, 1, 8, 1.0, 1.0)
+    assert fan_beam_note(nominal).startswith("one-row detector (fan beam): only the 5 parameters")
+    assert fan_beam_note(nominal.with_detector(2, 8)) == ""
 
 
 @pytest.mark.parametrize("method", METHODS)

@@ -174,6 +174,19 @@ def test_stop_ncc_gain_undoes_an_iteration_that_hardly_raises_the_model_ncc():
         calibrate(measured, nominal, grid, stop_ncc_gain=-1.0)
 
 
+def test_the_stop_ncc_gain_note_says_lowered_for_a_fall():
+    """An undone iteration whose NCC fell was 'raised ... by -5.87e-04 only'."""
+    from robot_ct_ros.ct.calibration.loop import _ncc_gain_note
+
+    fell = _ncc_gain_note(8, 0.91234, 0.91234 - 5.87e-4, 1e-4)
+    assert fell.startswith("stop_ncc_gain: iteration 8 lowered the estimation model's projection NCC by 5.87e-04 "
+                           "(0.91234 -> 0.91175; stop_ncc_gain asks a rise of 0.0001 at least) and was undone"), fell
+    assert "raised" not in fell and "-5.87" not in fell and fell.endswith("the geometry of iteration 7 stays")
+    rose = _ncc_gain_note(2, 0.9, 0.90005, 1e-4)
+    assert "raised the estimation model's projection NCC by 5.00e-05 only (0.90000 -> 0.90005" in rose
+    assert "unchanged" in _ncc_gain_note(2, 0.9, 0.9, 1e-4)
+
+
 def test_fit_drift_keeps_polynomials_and_outvotes_single_views():
     from robot_ct_ros.ct.calibration import fit_drift
 
