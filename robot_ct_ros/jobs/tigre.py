@@ -19,8 +19,8 @@ yaw, [2] as roll), ``nDetector = (nV, nU)``, ``dDetector = (dV, dU)``, ``sDetect
 Mapping (exact; :func:`to_tigre`, inverse :func:`from_tigre`): TIGRE's image frame is our world
 frame shifted by ``center_mm`` (the bag's ROI centre; TIGRE's x, y, z are our world axes, so a
 TIGRE volume is axis-aligned in our world), and ``offOrigin = 0``. pU is our column; TIGRE's
-kernels write pixel (pU, pV) at detector row ``nV - 1 - pV`` (``idx = pU * nV + y``), which is
-our row, so increasing pV runs along -v. Per view: R's x axis points from the centre to the
+kernels write pixel (pU, pV) at detector row ``nV - 1 - pV``, which is our row, so increasing pV
+runs along -v. Per view: R's x axis points from the centre to the
 source (``DSO = |s - center|``), its y axis is u made orthogonal to it; then ``DSD = DSO - x_d``
 and ``(offU, offV) = (y_d, z_d)`` for the detector centre ``(x_d, y_d, z_d) = R^T (d - center)``,
 and ``Q = R^T [w, u, v]``. A circular scan whose detector faces the source with its principal
@@ -33,10 +33,19 @@ assuming the volume lies between source and detector).
 
 Not checked by running TIGRE (none installed here): everything above is read from TIGRE's source
 (``computeDeltas``, ``rollPitchYaw``, ``eulerZYZ``, ``_types.pxd``) and tested against a
-transcription of it. In the kernels read, pixel (pU, y) sits at buffer index ``pU * nV + y``
-while the Python wrapper (``_Ax.pyx``) presents each view's buffer as (nV, nU): whether TIGRE's
-Python projection array equals our ``proj[view, row, col]`` or its transpose is unverified, so
-check one projection of a known object before feeding our projections to TIGRE.
+transcription of it. The projection array's layout is read from the source too, not run: in
+``Common/CUDA/Siddon_projection.cu`` (``kernelPixelDetector``), the branch built for Python (not
+``IS_FOR_MATLAB_TIGRE``) writes pixel (u, v) of a view at buffer index ``v * nU + u`` and places it
+at ``pixelV = nV - 1 - v``, and the Python wrapper (``_Ax.pyx``) presents each view's buffer as
+(nV, nU). So TIGRE's Python projection array is our ``proj[view, row, col]`` as it is: no
+transpose, no flip of the rows (the MATLAB build's ``u * nV + v`` is the transpose, which
+MATLAB's column-major arrays undo). An outside check (tester's ``chk_tigre_py.py``) put the exported
+parameters through a transcription of TIGRE's ``computeDeltas_Siddon`` with our row r at buffer row r
+(``pixelV = nV - 1 - r``) and compared the pixel and source positions with those of the same geometry
+exported as ASTRA vectors: they agree to 1e-13 mm (the other mapping, ``pixelV = r``, is 47 mm off).
+Still unverified, for want of TIGRE: the other projector (``ray_interpolated_projection.cu``) and the
+back-projectors were not read for the same layout, and no projection of a known object was compared;
+check one before feeding our projections to TIGRE.
 """
 
 from __future__ import annotations
