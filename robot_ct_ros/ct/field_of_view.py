@@ -8,6 +8,7 @@ Conventions (world mm, ``volume[k, j, i] = (z, y, x)``, projection matrices) are
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from numba import njit, prange
@@ -16,7 +17,7 @@ from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
 from robot_ct_ros.ct.reconstruction import estimate_scan_axis
 from robot_ct_ros.ct.scan_weights import rows_run_across_axis
 
-__all__ = ["field_of_view_mask"]
+__all__ = ["field_of_view_mask", "cone_reach", "ConeReach"]
 
 
 @njit(parallel=True, cache=True)
@@ -106,3 +107,119 @@ def field_of_view_mask(geom: ConeGeometry, grid: VolumeGrid, *, max_evaluations:
         return np.ones(grid.shape_zyx, dtype=bool)
     kk, jj, ii = (np.arange(n) // b for n, b in zip((nz, ny, nx), (bz, by, bx)))
     return cov.astype(bool)[kk[:, None, None], jj[None, :, None], ii[None, None, :]]
+
+
+@njit(parallel=True, cache=True)
+def _reach_kernel(pm, depth_sign, ii, jj, kk, origin, steps, n_cols, n_rows, out):
+    """``out[a, b, c]``: 1 where the voxel (ii[c], jj[b], kk[a]) projects onto some view's detector (within its
+    columns and its rows, half a pixel beyond the outer pixel centres), else 0."""
+    na, nb, nc = kk.shape[0], jj.shape[0], ii.shape[0]
+    for flat in prange(na * nb * nc):
+        a = flat // (nb * nc)
+        b = (flat // nc) % nb
+        c = flat % nc
+        i, j, k = ii[c], jj[b], kk[a]
+        x = origin[0] + i * steps[0, 0] + j * steps[1, 0] + k * steps[2, 0]
+        y = origin[1] + i * steps[0, 1] + j * steps[1, 1] + k * steps[2, 1]
+        z = origin[2] + i * steps[0, 2] + j * steps[1, 2] + k * steps[2, 2]
+        hit = 0
+        for v in range(pm.shape[0]):
+            lam = pm[v, 2, 0] * x + pm[v, 2, 1] * y + pm[v, 2, 2] * z + pm[v, 2, 3]
+            if lam * depth_sign[v] <= 0.0:
+                continue
+            col = (pm[v, 0, 0] * x + pm[v, 0, 1] * y + pm[v, 0, 2] * z + pm[v, 0, 3]) / lam
+            if col < -0.5 or col > n_cols - 0.5:
+                continue
+            row = (pm[v, 1, 0] * x + pm[v, 1, 1] * y + pm[v, 1, 2] * z + pm[v, 1, 3]) / lam
+            if row < -0.5 or row > n_rows - 0.5:
+                continue
+            hit = 1
+            break
+        out[a, b, c] = hit
+
+
+AXIS_NAMES = ("x", "y", "z")
+
+
+@dataclass(frozen=True)
+class ConeReach:
+    """Which part of a grid some view's cone reaches (:func:`cone_reach`).
+
+    ``mask``: bool ``grid.shape_zyx``, True where some view's detector sees the voxel; ``axis``: the grid axis
+    (0, 1, 2: x, y, z) closest to the scan axis, along which ``slices`` (bool, one per slice) says which slices
+    hold such a voxel; ``shape_xyz``: the grid's shape."""
+
+    mask: np.ndarray
+    axis: int
+    slices: np.ndarray
+    shape_xyz: tuple
+
+    @property
+    def outside_fraction(self) -> float:
+        """The share of the grid's voxels that no view's detector sees (beyond every cone: FDK puts 0 there)."""
+        return 1.0 - float(self.mask.mean())
+
+    @property
+    def n_reached(self) -> int:
+        return int(self.slices.sum())
+
+    def mostly_outside(self) -> bool:
+        """More than half of the grid's slices along the scan axis, or of its voxels, lie beyond every view's cone,
+        while some lie within one (where none does, FDK warns that it put nothing into the grid)."""
+        n = len(self.slices)
+        return 0 < self.n_reached and (self.n_reached < 0.5 * n or self.outside_fraction > 0.5)
+
+    def fitting_shape_xyz(self) -> tuple:
+        """The grid's shape with as many slices along the axis as the cones reach."""
+        shape = list(self.shape_xyz)
+        shape[self.axis] = self.n_reached
+        return tuple(shape)
+
+    def note(self, shape_option: str = "--shape {},{},{}") -> str:
+        """The note for a grid :meth:`mostly_outside` the cones; ``shape_option`` formats the fitting shape (x, y,
+        z) as the user sets it. Empty where the grid is not mostly outside."""
+        if not self.mostly_outside():
+            return ""
+        reached = np.flatnonzero(self.slices)
+        first, last = int(reached[0]), int(reached[-1])
+        span = f"slice {first}" if first == last else f"slices {first}-{last}"
+        where = "" if last - first + 1 == len(reached) else ", not all contiguous"
+        return (f"most of the grid lies beyond every view's cone: the rays reach {len(reached)} of its "
+                f"{len(self.slices)} slices along {AXIS_NAMES[self.axis]}, the axis nearest the scan axis "
+                f"({span}{where}; {100 * self.outside_fraction:.0f} % of the voxels lie where no view's detector "
+                f"sees them, and FDK puts 0 there); a grid that fits the cones: {shape_option.format(*self.fitting_shape_xyz())}"
+                f"{'' if first + last == len(self.slices) - 1 else ' (off-centre in this grid: move its centre too)'}")
+
+
+def cone_reach(geom: ConeGeometry, grid: VolumeGrid, *, max_evaluations: float = 1e8) -> ConeReach:
+    """The voxels of ``grid`` that some view's detector sees (:class:`ConeReach`): those inside one view's cone
+    at least. Unlike :func:`field_of_view_mask` it checks the detector's rows too (the cone's top and bottom), and
+    any view is enough. Every slice along the grid axis nearest the scan axis is tested; across it, to bound the cost
+    (voxels x views within ``max_evaluations``), a regular subset of the voxels, each standing for its neighbours."""
+    nz, ny, nx = grid.shape_zyx
+    shape_xyz = (nx, ny, nz)
+    axis_dir = estimate_scan_axis(geom)
+    D = grid.direction_matrix
+    axis = int(np.argmax(np.abs(D.T @ axis_dir)))
+    budget = max(max_evaluations / max(geom.n_views, 1), 1.0)
+    across = [a for a in range(3) if a != axis]
+    stride = 1
+    while shape_xyz[axis] * math.ceil(shape_xyz[across[0]] / stride) * math.ceil(shape_xyz[across[1]] / stride) \
+            > budget and stride < max(shape_xyz):
+        stride += 1
+    idx = []
+    for a in range(3):
+        n = shape_xyz[a]
+        step = 1 if a == axis else stride
+        idx.append(np.minimum(np.arange(n // step + (n % step > 0)) * step + (step - 1) // 2, n - 1).astype(np.int64))
+    pm = geom.projection_matrices()
+    depth_sign = np.sign(np.einsum("ij,ij->i", geom.detector_mm - geom.source_mm, geom.w))
+    steps = np.ascontiguousarray((D * np.asarray(grid.voxel_size_mm)).T)  # rows: world step per voxel along x, y, z
+    origin = grid.index_to_world(np.zeros(3))
+    out = np.zeros((len(idx[2]), len(idx[1]), len(idx[0])), dtype=np.uint8)
+    _reach_kernel(pm, depth_sign, idx[0], idx[1], idx[2], origin, steps, int(geom.n_cols), int(geom.n_rows), out)
+    # each voxel takes the answer of the sampled voxel of its block
+    kk, jj, ii = (np.arange(n) // (1 if a == axis else stride) for a, n in ((2, nz), (1, ny), (0, nx)))
+    mask = out.astype(bool)[kk[:, None, None], jj[None, :, None], ii[None, None, :]]
+    other = tuple(2 - a for a in across)  # the zyx array axes across the scan axis
+    return ConeReach(mask, axis, mask.any(axis=other), shape_xyz)

@@ -52,6 +52,17 @@ def scan_grid(scan: ScanData, voxel_mm=None, shape_xyz=None) -> VolumeGrid:
     return scan.default_grid(voxel_size_mm=voxel_mm, shape_zyx=None if shape_xyz is None else tuple(shape_xyz)[::-1])
 
 
+def cone_note(geom: ConeGeometry, grid: VolumeGrid, options: str = "command line"):
+    """(:class:`~robot_ct_ros.ct.field_of_view.ConeReach` of ``grid``, its note): the note, where most of the grid
+    lies beyond every view's cone, says how many slices the rays reach and suggests a shape that fits, as
+    ``options`` (a key of jobs.output.GRID_OPTIONS) sets it; empty otherwise."""
+    from robot_ct_ros.ct.field_of_view import cone_reach
+    from robot_ct_ros.jobs.output import GRID_OPTIONS
+
+    reach = cone_reach(geom, grid)
+    return reach, reach.note(GRID_OPTIONS[options][0])
+
+
 MIN_VOXELS_PER_AXIS = 8
 """A grid sized by the scan with fewer voxels than this along an axis its detector resolves (at least as many
 pixels) has voxels in the wrong unit, most likely (:func:`voxel_size_note`)."""
@@ -323,9 +334,13 @@ def calibrate_bag(bag, out, settings: CalibrationSettings | None = None, *, voxe
     method = (settings or CalibrationSettings()).method
     check_memory(grid, scan.n_views, scan.geom.det_shape, "reconstruct" if method == "none" else "calibrate",
                  options=options, shape_given=shape_xyz is not None)
+    _, beyond = cone_note(scan.geom, grid, options)  # a grid taller than the cone: mostly zeros
+    if beyond:
+        say(f"note: {beyond}")
     correction = correct_scan(scan, settings, grid, evaluate_truth=evaluate_truth, say=say)
-    if unit_note:  # kept in the report with the calibration's own notes
-        correction.report["notes"] = [unit_note] + correction.report["notes"]
+    job_notes = [n for n in (unit_note, beyond) if n]
+    if job_notes:  # kept in the report with the calibration's own notes
+        correction.report["notes"] = job_notes + correction.report["notes"]
     report = write_correction(correction, out, markdown=markdown, say=say)
     return Correction(correction.scan, correction.grid, correction.result, report)
 

@@ -9,7 +9,7 @@ import numpy as np
 
 from robot_ct_ros.bag.reader import read_scan
 from robot_ct_ros.bag.format import ScanBagError
-from robot_ct_ros.jobs.calibrate import base_report, geometry_error, scan_grid, voxel_size_note
+from robot_ct_ros.jobs.calibrate import base_report, cone_note, geometry_error, scan_grid, voxel_size_note
 from robot_ct_ros.jobs.output import say as _say
 from robot_ct_ros.jobs.output import (check_memory, fdk_warnings, refuse_other_job, refuse_out_in_bag, start_output,
                                       write_json, write_volume)
@@ -23,8 +23,15 @@ GEOMETRIES = ("auto", "nominal", "corrected")
 def reconstruct_bag(bag, out, *, geometry: str = "auto", voxel_mm=None, shape_xyz=None, say=_say) -> dict:
     """FDK of a scan bag; writes ``volume.npy``, ``volume.tif``, ``volume_grid.json`` and
     ``report.json`` into ``out`` and returns the report. What it warns about (FDK's approximations,
-    a grid mostly outside the field of view, voxels in the wrong unit) is said and kept in the
-    report's ``notes``.
+    a grid mostly outside the field of view or beyond every view's cone, voxels in the wrong unit) is
+    said and kept in the report's ``notes``.
+
+    ``outside_field_of_view_fraction``: the share of the grid's voxels outside the field of view, that
+    is those the measured rays do not reach from every direction about the scan axis
+    (:func:`~robot_ct_ros.ct.field_of_view.field_of_view_mask`, which looks across the axis only) or
+    that no view's detector sees at all (beyond the cone's top and bottom:
+    :func:`~robot_ct_ros.ct.field_of_view.cone_reach`). ``beyond_cone``: the latter alone, and the
+    slices along the grid axis nearest the scan axis that the rays reach.
 
     Raises
     ------
@@ -63,16 +70,24 @@ def reconstruct_bag(bag, out, *, geometry: str = "auto", voxel_mm=None, shape_xy
     with fdk_warnings(say) as approximate:
         vol = fdk(li, geom, grid, valid_mask=mask)
     out = start_output(out)  # report.json is written last: without it, the folder holds an unfinished run
-    # across the axis only: the cone's top and bottom are not the field of view's business
-    outside = 1.0 - float(np.mean(field_of_view_mask(geom, grid)))
-    if outside > 0.3:  # beyond a square grid's corners (21 %): FDK puts streaks there, not the object
-        notes.append(f"{100 * outside:.0f} % of the grid lies outside the field of view (voxels that the measured "
-                     "rays do not reach from every direction); FDK's values there are streaks, not the object")
+    complete = field_of_view_mask(geom, grid)  # across the axis only: the cone's top and bottom are not its business
+    across = 1.0 - float(np.mean(complete))
+    reach, beyond = cone_note(geom, grid)  # ... but they are the report's: a grid taller than the cone
+    outside = 1.0 - float(np.mean(complete & reach.mask))
+    if across > 0.3:  # beyond a square grid's corners (21 %): FDK puts streaks there, not the object
+        notes.append(f"{100 * across:.0f} % of the grid lies outside the field of view across the scan axis (voxels "
+                     "that the measured rays do not reach from every direction); FDK's values there are streaks, "
+                     "not the object")
         say(f"note: {notes[-1]}")
+    if beyond:  # FDK puts zeros there
+        notes.append(beyond)
+        say(f"note: {beyond}")
     files = write_volume(vol, grid, out)
     report = base_report(scan, grid)
     report.update({"job": "reconstruct", "geometry": "corrected" if use_corrected else "nominal",
                    "geometry_error": geometry_error(scan, geom, grid), "outside_field_of_view_fraction": outside,
+                   "beyond_cone": {"fraction": reach.outside_fraction, "axis": "xyz"[reach.axis],
+                                   "slices_reached": reach.n_reached, "slices": len(reach.slices)},
                    "notes": notes + list(approximate), "files": files, "wall_s": time.perf_counter() - t0})
     write_json(out / "report.json", report)
     say(f"wrote {out}/{', '.join(Path(f).name for f in files)}, report.json ({report['wall_s']:.1f} s)")

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from robot_ct_ros.bag.reader import read_scan
 from robot_ct_ros.ct.calibration import CalibrationSettings, calibrate, get_method
-from robot_ct_ros.jobs.calibrate import drift_times, scan_grid, settings_used, voxel_size_note
+from robot_ct_ros.jobs.calibrate import cone_note, drift_times, scan_grid, settings_used, voxel_size_note
 from robot_ct_ros.jobs.output import check_memory, fdk_warnings, refuse_other_job, refuse_out_in_bag
 from robot_ct_ros.jobs.output import say as _say
 
@@ -67,6 +67,10 @@ def report_bag(bag, out, methods=REPORT_METHODS, settings: CalibrationSettings |
         job_notes.append(unit_note)
     check_memory(grid, scan.n_views, scan.geom.det_shape, "report", methods=len(methods),
                  shape_given=shape_xyz is not None)
+    _, beyond = cone_note(scan.geom, grid)  # a grid taller than the cone: mostly zeros in every volume
+    if beyond:
+        say(f"note: {beyond}")
+        job_notes.append(beyond)
     li, mask = scan.to_line_integrals()
     times = drift_times(scan) if settings.drift_order is not None else None
     say(f"{scan.n_views} views, detector {scan.geom.n_rows}x{scan.geom.n_cols}, grid {grid.shape_zyx[::-1]} of "

@@ -59,3 +59,32 @@ def test_field_of_view_mask_of_a_portrait_detector_is_the_landscape_one():
     mask = field_of_view_mask(landscape, grid)
     assert 0.2 < mask.mean() < 0.5
     np.testing.assert_array_equal(field_of_view_mask(portrait, grid), mask)
+
+
+def test_cone_reach_counts_the_slices_the_cones_reach_and_suggests_a_shape_that_fits():
+    """A 4-row detector, a grid 64 slices tall: the rays reach the middle 4 (the FDK puts 0 in the others), which
+    field_of_view_mask, across the axis only, does not see; a grid those slices tall gets no note, nor one with none
+    reached (FDK warns of that)."""
+    from robot_ct_ros.ct.field_of_view import cone_reach
+
+    geom = circular_scan(24, 60.0, 150.0, 4, 64, 0.5, 0.5)  # 4 rows of 0.5 mm: 0.8 mm tall at the centre (M 2.5)
+    tall = VolumeGrid.centered((64, 48, 48), 0.2)
+    assert field_of_view_mask(geom, tall).all()  # the cone's top and bottom are not its business
+    reach = cone_reach(geom, tall)
+    assert reach.axis == 2 and reach.mostly_outside()
+    np.testing.assert_array_equal(np.flatnonzero(reach.slices), [30, 31, 32, 33])
+    assert reach.outside_fraction == pytest.approx(60 / 64)
+    note = reach.note()
+    assert "the rays reach 4 of its 64 slices along z" in note and "slices 30-33" in note, note
+    assert note.endswith("--shape 48,48,4"), note
+    # the same answer where the budget samples the voxels across the axis
+    coarse = cone_reach(geom, tall, max_evaluations=24 * 64 * 30)
+    np.testing.assert_array_equal(coarse.slices, reach.slices)
+    assert cone_reach(geom, tall.resized((4, 48, 48))).note() == ""
+    assert cone_reach(geom, VolumeGrid.centered((8, 48, 48), 0.2, center_mm=(0, 0, 40))).note() == ""
+    # a grid along y on a scan about y (the grid's z runs across the axis)
+    tilted = VolumeGrid.centered((48, 64, 48), 0.2)
+    rot = Rotation.from_euler("x", 90, degrees=True).as_matrix()
+    about_y = geom.replace(source_mm=geom.source_mm @ rot.T, detector_mm=geom.detector_mm @ rot.T,
+                           u=geom.u @ rot.T, v=geom.v @ rot.T)
+    assert cone_reach(about_y, tilted).axis == 1 and cone_reach(about_y, tilted).n_reached == 4

@@ -71,3 +71,33 @@ def test_a_voxel_that_leaves_one_voxel_across_the_detector_is_noted_whatever_the
     notes = [n for n in report["notes"] if "one voxel across" in n]
     assert len(notes) == 1 and "1 x 1 x 1" in notes[0] and "wrong unit" not in notes[0], report["notes"]
     assert any(notes[0] in line for line in said)
+
+
+def test_a_grid_taller_than_the_cone_is_noted_with_a_shape_that_fits(tmp_path):
+    """robot-ct reconstruct of a 4-row bag on a 64-slice grid gave 4 non-zero slices, notes [] and an
+    outside_field_of_view_fraction of 0 (it looked across the axis only); calibrate said nothing either."""
+    import numpy as np
+
+    from robot_ct_ros.jobs.calibrate import calibrate_bag
+
+    geom = circular_scan(24, 60.0, 150.0, 4, 40, 0.8, 0.8)
+    fine = VolumeGrid.centered((16, 48, 48), 0.3)
+    li = forward_project(voxelize(mouse_phantom(body_width_mm=9.0, length_mm=10.0), fine), fine, geom)
+    thin = write_scan(tmp_path / "thin4", li, geom, projection_units="line_integral")
+    report, said = _run(thin, tmp_path / "r", shape_xyz=(32, 32, 32), voxel_mm=0.2)
+    filled = np.flatnonzero(np.abs(np.load(tmp_path / "r" / "volume.npy")).max(axis=(1, 2)) > 0)
+    cone = [n for n in report["notes"] if n.startswith("most of the grid lies beyond every view's cone")]
+    assert len(cone) == 1, report["notes"]
+    assert f"the rays reach {len(filled)} of its 32 slices along z" in cone[0], (cone, filled)
+    assert f"slices {filled[0]}-{filled[-1]}" in cone[0] and cone[0].endswith(f"--shape 32,32,{len(filled)}")
+    assert any(line == f"note: {cone[0]}" for line in said)
+    assert report["beyond_cone"] == {"fraction": pytest.approx(1 - len(filled) / 32), "axis": "z",
+                                     "slices_reached": len(filled), "slices": 32}
+    assert report["outside_field_of_view_fraction"] >= report["beyond_cone"]["fraction"] > 0.5
+    # the suggested grid fits: no note
+    fits, _ = _run(thin, tmp_path / "f", shape_xyz=(32, 32, len(filled)), voxel_mm=0.2)
+    assert not any("beyond every view's cone" in n for n in fits["notes"]) and "slices_reached" in fits["beyond_cone"]
+    calibrated = calibrate_bag(thin, tmp_path / "c", settings=None, shape_xyz=(32, 32, 32), voxel_mm=0.2,
+                               say=said.append).report
+    assert calibrated["notes"][0] == cone[0]
+    assert json.loads((tmp_path / "c" / "report.json").read_text())["notes"][0] == cone[0]
