@@ -81,10 +81,11 @@ class ScanSequencerSettings:
                                       minimum=0.0)
     goal_tolerance_rad: float = setting(0.01, "the same for the orientation", unit="rad", minimum=0.0)
     service_timeout_s: float = setting(2.0, "source/set_beam must answer within this", unit="s", minimum=0.0)
-    beam_off_margin_s: float = setting(0.2, "the beam goes off this long after the exposure time has passed "
-                                       "since the pcd/expose request, whether the detector answered or not",
-                                       unit="s", minimum=0.0)
-    readout_warn_s: float = setting(0.5, "a detector answer later than exposure_s + this after the request "
+    beam_off_margin_s: float = setting(1.0, "the beam goes off this long after the exposure time has passed "
+                                       "since the pcd/expose request, whether the detector answered or not (it "
+                                       "covers the request's way to the detector on a loaded machine: a margin "
+                                       "too short cuts the exposure)", unit="s", minimum=0.0)
+    readout_warn_s: float = setting(1.0, "a detector answer later than exposure_s + this after the request "
                                     "is warned about as a slow read-out", unit="s", minimum=0.0)
     frame_timeout_s: float = setting(2.0, "the frame must appear within this after pcd/expose answered", unit="s",
                                      minimum=0.0)

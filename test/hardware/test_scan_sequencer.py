@@ -412,7 +412,7 @@ def test_the_beam_goes_off_when_the_exposure_time_has_passed_not_when_the_detect
     """Outside tester, F1: the beam stayed on until pcd/expose answered (3 s on a detector timeout, 2.7 s per view
     on a slow read-out, no warning). Now it goes off exposure_s + beam_off_margin_s after the request, the answer
     is awaited with the beam off, and a slow read-out is warned about (once, and counted at the end)."""
-    rig = _to_exposing(_started(tmp_path))
+    rig = _to_exposing(_started(tmp_path, beam_off_margin_s=0.2, readout_warn_s=0.5))
     s, p = rig.seq, rig.ports
     rig.advance(0.1, 3)  # 0.3 s > exposure 0.02 s + margin 0.2 s, no answer yet
     assert s.state == "beam_off" and p.beam_calls[-1][0] is False and not p.expose_calls[-1].done()
@@ -441,7 +441,7 @@ def test_the_beam_goes_off_when_the_exposure_time_has_passed_not_when_the_detect
 
 
 def test_a_detector_that_never_answers_times_out_with_the_beam_off(tmp_path):
-    rig = _to_exposing(_started(tmp_path))
+    rig = _to_exposing(_started(tmp_path, beam_off_margin_s=0.2))
     s, p = rig.seq, rig.ports
     rig.advance(0.25)
     assert s.state == "beam_off"
