@@ -292,7 +292,7 @@ def _cmd_export(args) -> int:
     from robot_ct_ros.jobs.export import export_geometry
 
     export_geometry(Path(args.bag).expanduser().absolute(), Path(args.out).expanduser().absolute(), args.format,
-                    corrected=args.corrected)
+                    corrected=args.corrected, rtk_frame_choice=args.rtk_frame)
     return 0
 
 
@@ -412,6 +412,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--corrected", default=None, metavar="DIR_OR_REPORT",
                    help="write the corrected geometry of this calibration output (robot-ct calibrate's --out folder, "
                         "its report.json, or a corrected bag) instead of the bag's nominal one")
+    p.add_argument("--rtk-frame", choices=("auto", "scan", "world"), default=None,
+                   help="--format rtk: the frame of the XML. scan: the scan axis is RTK's +y and the orbit's centre "
+                        "its origin, so that RTK's gantry angle follows the views (its FDK needs that); world: the "
+                        "bag's world as it is; auto (default): world where the scan already turns about the world's "
+                        "+-y through the origin, else scan. The frame is printed and written beside the XML "
+                        "(<stem>.rtk_frame.json: the 4x4 world->RTK matrix)")
     p.add_argument("--out", required=True, help="output file")
 
     p = sub.add_parser("info", help="summarise a bag (topics, scan, pairing, damage)")

@@ -11,6 +11,19 @@ paired frame in stamp order (the order of the bag's frames as :func:`read_scan` 
   size: RTK's projection stack must have spacing (col_pitch, row_pitch, 1) mm and origin
   (-(n_cols-1)/2 * col_pitch, -(n_rows-1)/2 * row_pitch, 0) mm (its physical (0, 0) is the
   centre of the pixel grid), and its numpy view is our ``proj[view, row, col]``.
+  RTK's FDK, Parker and displaced-detector weights assume the orbit turns about RTK's y axis
+  through its origin (they work from the gantry angles); a scan about another axis, written as it
+  is, would put the whole rotation into the out-of-plane and in-plane angles with one gantry angle
+  for every view, and RTK's FDK of it is meaningless. So the XML is written in an RTK frame
+  (``--rtk-frame``, :func:`rtk_frame`): ``scan``: the scan axis (:func:`estimate_scan_axis`, the
+  sign along the detector's rows v) turned onto +y by the smallest rotation R, the centre c of the
+  sources' orbit (:func:`estimate_scan_centre`, RTK's isocentre) at the origin,
+  ``x_rtk = R (x_world - c)``; ``world``: the bag's world as it is; ``auto`` (default): ``world``
+  where the scan axis is already within 1 degree of the world's +-y and passes within 2 % of the
+  orbit's radius of the origin, else ``scan``. The frame is printed and written beside the XML as
+  ``<out stem>.rtk_frame.json`` (the 4 x 4 world->RTK and RTK->world matrices and how a volume
+  RTK reconstructs maps back into the world: the same voxels, origin ``R^T o + c``, direction
+  ``R^T D``). ``robot-ct import rtk`` of the XML gives the geometry in that RTK frame.
 * ``astra``: ASTRA's ``cone_vec`` vectors, one row of 12 numbers per view:
   ``(srcX, srcY, srcZ, dX, dY, dZ, uX, uY, uZ, vX, vY, vZ)``: the source, the detector centre, the
   vector from detector pixel (0, 0) to (0, 1) (one column step, ``u * col_pitch``) and from
@@ -41,8 +54,8 @@ from robot_ct_ros.ct.geometry import ConeGeometry
 from robot_ct_ros.jobs.output import refuse_out_in_bag
 from robot_ct_ros.jobs.output import say as _say
 
-__all__ = ["FORMATS", "corrected_geometry", "export_geometry", "write_astra_vectors",
-           "write_rtk_xml"]
+__all__ = ["FORMATS", "RTK_FRAMES", "corrected_geometry", "export_geometry", "rtk_frame", "rtk_frame_path",
+           "write_astra_vectors", "write_rtk_frame", "write_rtk_xml"]
 
 FORMATS = ("rtk", "astra", "tigre")
 SUFFIXES = {"rtk": (".xml",), "astra": (".npy", ".txt"), "tigre": (".npz",)}
@@ -115,6 +128,86 @@ def corrected_geometry(path, nominal_scan=None, *, say=None) -> ConeGeometry:
     return scan.geom_corrected
 
 
+RTK_FRAMES = ("auto", "scan", "world")
+"""``--rtk-frame`` choices (module docstring)."""
+AUTO_WORLD_AXIS_DEG = 1.0
+"""``auto`` keeps the world where the scan axis is within this of the world's +-y ..."""
+AUTO_WORLD_CENTRE_FRACTION = 0.02
+"""... and passes this fraction of the orbit's radius or less from the world's origin."""
+
+
+def _turn_onto_y(a) -> np.ndarray:
+    """The smallest rotation taking the unit vector ``a`` (``a[1] > -1``) onto +y."""
+    a = np.asarray(a, dtype=np.float64)
+    a = a / np.linalg.norm(a)
+    v = np.cross(a, [0.0, 1.0, 0.0])
+    c = float(a[1])
+    vx = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    return np.eye(3) + vx + vx @ vx / (1.0 + c)
+
+
+def rtk_frame(geom: ConeGeometry, frame: str = "auto", fallback_centre_mm=(0.0, 0.0, 0.0)) -> dict:
+    """The RTK frame the XML of ``geom`` is written in (module docstring): a dict with ``frame`` (``scan`` or
+    ``world``, what ``auto`` chose), ``rotation`` R (3 x 3) and ``centre_mm`` c (``x_rtk = R (x_world - c)``),
+    ``world_to_rtk`` and ``rtk_to_world`` (4 x 4), ``axis`` (the scan axis in the world), ``axis_deg`` (its angle
+    to the world's +-y) and ``axis_offset_mm`` (its distance from the world's origin). ``fallback_centre_mm``:
+    the centre where the geometry tells none (a single view)."""
+    from robot_ct_ros.ct.scan_weights import estimate_scan_axis, estimate_scan_centre
+
+    if frame not in RTK_FRAMES:
+        raise ValueError(f"unknown --rtk-frame {frame!r}; one of {', '.join(RTK_FRAMES)}")
+    a = np.asarray(estimate_scan_axis(geom), dtype=np.float64)
+    a = a / np.linalg.norm(a)  # along the rows' v: RTK's in-plane angle about 0
+    if a[1] < -0.5:  # a world about -y (its rows pointing down) keeps its orientation: in-plane about 180 deg
+        a = -a
+    c = estimate_scan_centre(geom, a)
+    c = np.asarray(fallback_centre_mm if c is None else c, dtype=np.float64)
+    axis_deg = float(np.degrees(np.arccos(min(1.0, abs(a[1])))))
+    offset = float(np.linalg.norm(c - np.dot(c, a) * a))  # the world origin's distance from the axis line
+    radius = float(np.median(np.linalg.norm(np.cross(geom.source_mm - c, a), axis=1)))
+    if frame == "auto":
+        frame = ("world" if axis_deg <= AUTO_WORLD_AXIS_DEG and offset <= AUTO_WORLD_CENTRE_FRACTION * radius
+                 else "scan")
+    if frame == "world":
+        R, c = np.eye(3), np.zeros(3)
+    else:
+        R = _turn_onto_y(a)
+    w2r = np.eye(4)
+    w2r[:3, :3], w2r[:3, 3] = R, -R @ c
+    r2w = np.eye(4)
+    r2w[:3, :3], r2w[:3, 3] = R.T, c
+    return {"frame": frame, "rotation": R, "centre_mm": c, "world_to_rtk": w2r, "rtk_to_world": r2w, "axis": a,
+            "axis_deg": axis_deg, "axis_offset_mm": offset}
+
+
+def rtk_frame_path(out) -> Path:
+    """Where the RTK frame of an XML ``out`` is written: ``<stem>.rtk_frame.json`` beside it."""
+    out = Path(out)
+    return out.with_name(out.stem + ".rtk_frame.json")
+
+
+def write_rtk_frame(frame: dict, path, xml, frame_id: str = "world") -> Path:
+    """The RTK frame (:func:`rtk_frame`) of the XML ``xml`` as JSON at ``path``."""
+    doc = {
+        "format": "robot_ct_ros.rtk_frame/1",
+        "xml": Path(xml).name,
+        "frame": frame["frame"],
+        "world_frame_id": frame_id,
+        "units": "mm",
+        "world_to_rtk": frame["world_to_rtk"].tolist(),
+        "rtk_to_world": frame["rtk_to_world"].tolist(),
+        "scan_axis_world": frame["axis"].tolist(),
+        "scan_centre_world_mm": frame["centre_mm"].tolist(),
+        "meaning": "x_rtk = world_to_rtk @ [x_world, 1] (R = its 3 x 3 block, c = scan_centre_world_mm: "
+                   "x_rtk = R (x_world - c)); RTK's y axis is the scan axis, its origin the orbit's centre",
+        "volume_to_world": "a volume RTK reconstructs with origin o and direction D (identity by default) is the "
+                           "same voxels in the world with origin R^T o + c and direction R^T D (rtk_to_world "
+                           "applied to the image's placement; no resampling)",
+    }
+    Path(path).write_text(json.dumps(doc, indent=1) + "\n")
+    return Path(path)
+
+
 def write_rtk_xml(geom: ConeGeometry, path) -> Path:
     """RTK's geometry XML of ``geom`` at ``path`` (needs itk-rtk; module docstring)."""
     try:
@@ -156,15 +249,21 @@ def write_tigre(geom: ConeGeometry, path, center_mm) -> Path:
     return Path(path)
 
 
-def export_geometry(bag, out, fmt: str = "rtk", *, corrected=None, say=_say) -> dict:
+def export_geometry(bag, out, fmt: str = "rtk", *, corrected=None, rtk_frame_choice: str | None = None,
+                    say=_say) -> dict:
     """Write the geometry of the scan bag ``bag`` as ``fmt`` (``rtk``, ``astra`` or ``tigre``) to the file ``out``.
 
     ``corrected``: a calibration output (see :func:`corrected_geometry`) whose corrected geometry
-    is written instead of the bag's nominal one. Returns what was written (paths, detector, the
-    RTK projection stack's origin and spacing).
+    is written instead of the bag's nominal one. ``rtk_frame_choice``: ``auto`` (None), ``scan`` or ``world``,
+    the frame of an RTK XML (module docstring; refused with another format). Returns what was written (paths,
+    detector, the RTK projection stack's origin and spacing, the RTK frame).
     """
     if fmt not in FORMATS:
         raise ValueError(f"unknown format {fmt!r}; one of {', '.join(FORMATS)}")
+    if rtk_frame_choice is not None and fmt != "rtk":
+        raise ValueError(f"--rtk-frame is the frame of an RTK XML; --format {fmt} writes the bag's world frame")
+    if rtk_frame_choice is not None and rtk_frame_choice not in RTK_FRAMES:
+        raise ValueError(f"unknown --rtk-frame {rtk_frame_choice!r}; one of {', '.join(RTK_FRAMES)}")
     out = Path(out)
     if out.is_dir():
         raise ValueError(f"--out {out} is a folder; give a file name")
@@ -184,8 +283,13 @@ def export_geometry(bag, out, fmt: str = "rtk", *, corrected=None, say=_say) -> 
         say(f"warning: {w}")
     geom = scan.geom if corrected is None else corrected_geometry(corrected, scan, say=say)
     which = "nominal" if corrected is None else "corrected"
+    frame = None
     if fmt == "rtk":
-        write_rtk_xml(geom, out)
+        frame = rtk_frame(geom, rtk_frame_choice or "auto", scan.scan_center_mm())
+        frame_json = rtk_frame_path(out)
+        _check_out_spares(frame_json, Path(bag), "the bag")
+        write_rtk_xml(geom.moved(frame["rotation"], -frame["rotation"] @ frame["centre_mm"]), out)
+        write_rtk_frame(frame, frame_json, out, scan.frame_id)
     elif fmt == "tigre":
         try:
             write_tigre(geom, out, scan.scan_center_mm())
@@ -200,6 +304,9 @@ def export_geometry(bag, out, fmt: str = "rtk", *, corrected=None, say=_say) -> 
               "n_rows": geom.n_rows, "n_cols": geom.n_cols, "row_pitch_mm": geom.row_pitch_mm,
               "col_pitch_mm": geom.col_pitch_mm, "rtk_projection_origin_mm": origin,
               "rtk_projection_spacing_mm": spacing}
+    if frame is not None:
+        result.update({"rtk_frame": frame["frame"], "world_to_rtk": frame["world_to_rtk"].tolist(),
+                       "rtk_to_world": frame["rtk_to_world"].tolist(), "rtk_frame_path": str(frame_json)})
     detector = (f"detector {geom.n_rows} x {geom.n_cols} pixels of {geom.row_pitch_mm:g} x {geom.col_pitch_mm:g} mm "
                 "(rows x columns)")
     if fmt == "rtk":
@@ -209,4 +316,24 @@ def export_geometry(bag, out, fmt: str = "rtk", *, corrected=None, say=_say) -> 
                     f"takes rows first: --pitch-mm {geom.row_pitch_mm:g},{geom.col_pitch_mm:g} " \
                     f"--origin-mm={o[1] + 0.0:g},{o[0] + 0.0:g})"
     say(f"wrote {out}: {which} geometry of {geom.n_views} views as {fmt}, {detector}")
+    if frame is not None:
+        say(_frame_line(frame, scan.frame_id, frame_json))
     return result
+
+
+def _frame_line(frame: dict, frame_id: str, path: Path) -> str:
+    """What the export says of the RTK frame it wrote (one line, then the matrix where it is not the identity)."""
+    def vec(x):
+        return "(" + ", ".join(f"{v + 0.0:.6g}" for v in x) + ")"
+
+    a = frame["axis"]
+    if frame["frame"] == "world":
+        return (f"RTK frame: world ({frame_id} as it is; the scan axis {vec(a)} is {frame['axis_deg']:.3g} deg off "
+                f"+-y and passes {frame['axis_offset_mm']:.3g} mm from the origin); identity written to {path.name}")
+    R, c = frame["rotation"], frame["centre_mm"]
+    rows = "; ".join(vec(np.append(r, t)) for r, t in zip(frame["world_to_rtk"][:3, :3], frame["world_to_rtk"][:3, 3]))
+    return (f"RTK frame: scan (RTK's gantry angle follows the views): the scan axis {vec(a)} of {frame_id} is RTK's +y "
+            f"and the orbit's centre {vec(c)} mm its origin, x_rtk = R (x_world - c), world->RTK rows [{rows}]; "
+            f"a volume RTK reconstructs (origin o, direction D) is in the world at origin R^T o + c, direction R^T D; "
+            f"written to {path.name} (--rtk-frame world keeps the world, whose axis is {frame['axis_deg']:.3g} deg "
+            f"off +-y)")

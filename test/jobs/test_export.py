@@ -55,8 +55,17 @@ def _interior_volume(grid, seed=0):
     return vol
 
 
+def _stated_frame(xml):
+    """The geometry of the bag in the RTK frame the export wrote beside ``xml`` (world->RTK, 4 x 4)."""
+    doc = json.loads((xml.parent / (xml.stem + ".rtk_frame.json")).read_text())
+    m = np.array(doc["world_to_rtk"])
+    np.testing.assert_allclose(np.array(doc["rtk_to_world"]) @ m, np.eye(4), atol=1e-12)
+    return doc, m[:3, :3], m[:3, 3]
+
+
+@pytest.mark.parametrize("frame", [None, "world"], ids=["auto", "world"])
 @pytest.mark.parametrize("one_row", [False, True], ids=["cone", "fan"])
-def test_rtk_xml_round_trip_and_rtk_projects_through_it_as_we_do(tmp_path, capsys, one_row):
+def test_rtk_xml_round_trip_and_rtk_projects_through_it_as_we_do(tmp_path, capsys, one_row, frame):
     pytest.importorskip("itk")
     from robot_ct_ros.ct.projector import forward_project
     from robot_ct_ros.ct.rtk_bridge import from_rtk_geometry, rtk_forward_project
@@ -69,11 +78,21 @@ def test_rtk_xml_round_trip_and_rtk_projects_through_it_as_we_do(tmp_path, capsy
         grid = VolumeGrid.centered((16, 24, 24), 0.5)
     src = write_scan(tmp_path / "scan", np.ones((g.n_views,) + g.det_shape, np.float32), g,
                      projection_units="line_integral")
-    nominal = read_scan(src).geom  # as the bag carries it (metres on the wire)
+    world = read_scan(src).geom  # as the bag carries it (metres on the wire)
     xml = tmp_path / "geometry.xml"
-    assert main(["export", str(src), "--format", "rtk", "--out", str(xml)]) == 0
+    assert main(["export", str(src), "--format", "rtk", "--out", str(xml)]
+                + ([] if frame is None else ["--rtk-frame", frame])) == 0
     said = capsys.readouterr().out
     assert "RTK projection stack origin" in said
+    # the scan turns about the world's z: auto writes the scan frame; the geometry round-trips in the stated frame
+    doc, rot, shift = _stated_frame(xml)
+    assert doc["frame"] == (frame or "scan") and f"RTK frame: {doc['frame']}" in said
+    if frame == "world":
+        np.testing.assert_array_equal(rot, np.eye(3))
+        np.testing.assert_array_equal(shift, np.zeros(3))
+    else:
+        np.testing.assert_allclose(rot @ [0.0, 0.0, 1.0], [0.0, 1.0, 0.0], atol=0.02)
+    g = g.moved(rot, shift)
     # the options it prints bring the stack back (the origin was printed x first, and import takes rows first)
     import re
 
@@ -81,6 +100,7 @@ def test_rtk_xml_round_trip_and_rtk_projects_through_it_as_we_do(tmp_path, capsy
     np.save(tmp_path / "p.npy", np.ones((g.n_views,) + g.det_shape, np.float32))
     assert main(["import", "rtk", "--projections", str(tmp_path / "p.npy"), "--geometry", str(xml), "--pitch-mm",
                  pitch, f"--origin-mm={origin}", "--out", str(tmp_path / "back")]) == 0
+    nominal = world.moved(rot, shift)  # in the frame the export states
     assert read_scan(tmp_path / "back").geom.allclose(nominal, atol=1e-9)
     back = from_rtk_geometry(_read_rtk_xml(xml), g.n_rows, g.n_cols, g.row_pitch_mm, g.col_pitch_mm)
     assert back.allclose(nominal, atol=1e-9)
@@ -90,6 +110,89 @@ def test_rtk_xml_round_trip_and_rtk_projects_through_it_as_we_do(tmp_path, capsy
     theirs = rtk_forward_project(vol, grid, back)
     assert ours.max() > 1.0
     np.testing.assert_allclose(theirs, ours, rtol=0, atol=2e-6 * ours.max())
+
+
+def test_rtk_fdk_of_an_exported_z_axis_scan_is_robot_cts_fdk(tmp_path, capsys):
+    """A scan about the world's z went out with RTK's gantry angle the same (270 deg) in every view and the
+    rotation in the out-of-plane / in-plane angles: RTK's FDK of it had a correlation of -0.2 with ours. It is
+    now written in the scan frame (axis +y, orbit centre at the origin); RTK's FDK on the XML and the bag's
+    projections, mapped back through the transform written beside it, is ours on the same voxels."""
+    pytest.importorskip("itk")
+    from robot_ct_ros.ct import rtk_bridge
+    from robot_ct_ros.ct.projector import forward_project
+    from robot_ct_ros.ct.reconstruction import fdk
+
+    itk, rtk = rtk_bridge._rtk()
+    centre = np.array([4.0, -3.0, 2.0])
+    g = circular_scan(60, 60.0, 150.0, 24, 40, 0.8, 0.8, center_mm=centre)  # about z, off the origin
+    grid = VolumeGrid.centered((24, 24, 24), 0.6, centre)
+    zz, yy, xx = np.meshgrid(*[np.arange(24) - 11.5] * 3, indexing="ij")
+    vol = ((xx / 8) ** 2 + ((yy - 2) / 5) ** 2 + ((zz + 1) / 7) ** 2 < 1).astype(np.float32)
+    vol += ((xx + 4) ** 2 + yy ** 2 + (zz - 3) ** 2 < 6).astype(np.float32)
+    proj = forward_project(vol, grid, g)
+    src = write_scan(tmp_path / "scan", proj, g, projection_units="line_integral")
+    xml = tmp_path / "geometry.xml"
+
+    def rtk_vs_ours(*extra):
+        assert main(["export", str(src), "--format", "rtk", "--out", str(xml), *extra]) == 0
+        doc, rot, shift = _stated_frame(xml)
+        rtk_grid = VolumeGrid.centered((32, 32, 32), 0.5, rot @ centre + shift)  # where RTK's user puts it
+        reader = rtk.ThreeDCircularProjectionGeometryXMLFileReader.New()
+        reader.SetFilename(str(xml))
+        reader.GenerateOutputInformation()
+        f = rtk.FDKConeBeamReconstructionFilter[itk.Image[itk.F, 3]].New()
+        f.SetInput(0, rtk_bridge.volume_to_itk(np.zeros(rtk_grid.shape_zyx, np.float32), rtk_grid))
+        f.SetInput(1, rtk_bridge.projections_to_itk(read_scan(src).to_line_integrals()[0], g))
+        f.SetGeometry(reader.GetOutputObject())
+        f.Update()
+        theirs = rtk_bridge.itk_to_volume(f.GetOutput())[0]
+        # the same voxels in the world, as the frame file says: origin R^T o + c, direction R^T D
+        back = np.array(doc["rtk_to_world"])
+        world_grid = VolumeGrid(rtk_grid.shape_zyx, rtk_grid.voxel_size_mm,
+                                tuple(back[:3, :3] @ np.array(rtk_grid.origin_mm) + back[:3, 3]),
+                                tuple((back[:3, :3] @ rtk_grid.direction_matrix).ravel()))
+        ours = fdk(proj, g, world_grid, truncation=None, window="ram-lak")
+        return doc, float(np.corrcoef(theirs.ravel(), ours.ravel())[0, 1])
+
+    doc, corr = rtk_vs_ours()
+    assert doc["frame"] == "scan" and corr > 0.95, corr
+    np.testing.assert_allclose(doc["scan_centre_world_mm"], centre, atol=1e-6)
+    np.testing.assert_allclose(doc["scan_axis_world"], [0.0, 0.0, 1.0], atol=1e-9)
+    assert "RTK frame: scan" in capsys.readouterr().out
+    doc, corr_world = rtk_vs_ours("--rtk-frame", "world")  # the world as it is: RTK's weights go wrong
+    assert doc["frame"] == "world" and corr_world < corr - 0.2, (corr, corr_world)
+
+
+def test_rtk_frame_auto_keeps_a_world_that_already_turns_about_y(tmp_path, capsys):
+    """An RTK-style scan (about +y through the origin) is exported as it is, with the identity written."""
+    g = circular_scan(12, 60.0, 150.0, 12, 20, 0.8, 0.7, axis=(0.0, 1.0, 0.0))
+    src = write_scan(tmp_path / "scan", np.ones((g.n_views,) + g.det_shape, np.float32), g,
+                     projection_units="line_integral")
+    from robot_ct_ros.jobs.export import rtk_frame
+
+    assert rtk_frame(g)["frame"] == "world"
+    assert rtk_frame(g.moved(np.eye(3), [30.0, 0.0, 0.0]))["frame"] == "scan"  # the axis off the origin
+    if not _has_itk():
+        return
+    xml = tmp_path / "g.xml"
+    assert main(["export", str(src), "--format", "rtk", "--out", str(xml)]) == 0
+    assert "RTK frame: world" in capsys.readouterr().out
+    doc, rot, shift = _stated_frame(xml)
+    assert doc["frame"] == "world" and np.array_equal(rot, np.eye(3)) and not shift.any()
+
+
+def _has_itk():
+    try:
+        import itk  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def test_rtk_frame_with_another_format_is_refused(tmp_path, bag, capsys):
+    assert main(["export", str(bag), "--format", "astra", "--out", str(tmp_path / "v.npy"),
+                 "--rtk-frame", "scan"]) == 2
+    _one_line_error(capsys, "--rtk-frame")
 
 
 @pytest.mark.parametrize("suffix", [".npy", ".txt"])

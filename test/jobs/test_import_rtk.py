@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import tifffile
@@ -48,12 +50,16 @@ def test_rtk_xml_round_trip_through_export(tmp_path, capsys):
                  "--pitch-mm", "0.8,0.7", "--out", str(tmp_path / "bag")]) == 0
     scan = read_scan(tmp_path / "bag")
     assert scan.warnings == [] and scan.units == "line_integral"
-    assert scan.geom.allclose(read_scan(src).geom, atol=1e-9)
+    # in the frame the export states beside the XML (this scan turns about the world's z: RTK's frame is the scan's)
+    frame = json.loads((tmp_path / "g.rtk_frame.json").read_text())
+    m = np.array(frame["world_to_rtk"])
+    assert frame["frame"] == "scan"
+    assert scan.geom.allclose(read_scan(src).geom.moved(m[:3, :3], m[:3, 3]), atol=1e-9)
     np.testing.assert_array_equal(scan.counts, proj)
     # the pitches are ROW,COL: swapped, the geometry differs
     assert main(["import", "rtk", "--projections", str(tmp_path / "p.tif"), "--geometry", str(xml),
                  "--pitch-mm", "0.7,0.8", "--out", str(tmp_path / "swapped")]) == 0
-    assert not read_scan(tmp_path / "swapped").geom.allclose(g, atol=1e-3)
+    assert not read_scan(tmp_path / "swapped").geom.allclose(scan.geom, atol=1e-3)
 
 
 def test_rtk_convention_rotation_about_y_and_the_stack_origin(tmp_path):
