@@ -647,6 +647,22 @@ def line_integral_warning(li, valid) -> str | None:
     return None
 
 
+MAX_SDD_M = 10.0
+"""The largest source-to-detector distance (m) a scan bag may hold: no cone-beam scanner is larger, and a
+bag whose positions were written in mm on a wire in metres (docs/bag-format.md) is 1000 times too big."""
+
+
+def check_distances(geom: ConeGeometry, topic: str) -> None:
+    """Refuse (ValueError) a geometry whose median source-to-detector distance is above :data:`MAX_SDD_M`: its
+    positions look like mm on a wire in metres (``topic`` named in the message)."""
+    sdd_m = float(np.median(geom.sdd_mm)) / fmt.MM_PER_M
+    if not sdd_m <= MAX_SDD_M:
+        raise ValueError(f"{topic}: source-to-detector distance {sdd_m:g} m (median over {geom.n_views} views) is "
+                         f"above {MAX_SDD_M:g} m: the positions look like mm written on a wire in metres (ROS and "
+                         f"this format take metres: {sdd_m:g} mm would be {sdd_m / fmt.MM_PER_M:g} m); write them "
+                         "in metres")
+
+
 def read_scan(path, *, keep_raw: bool = False) -> ScanData:
     """Read the scan bag at ``path`` (see the module docstring and docs/bag-format.md).
 
@@ -765,6 +781,10 @@ def scan_from_raw(raw: RawBag, path, *, keep_raw: bool = False, min_views: int |
         geom = fmt.geometry_from_views([geoms[s] for s in paired], *shape, row_pitch_mm, col_pitch_mm)
     except ValueError as exc:
         raise ScanBagError(f"{path}: /ct/geometry: {exc}") from None
+    try:
+        check_distances(geom, fmt.TOPIC_GEOMETRY)
+    except ValueError as exc:
+        raise ScanBagError(f"{path}: {exc}") from None
     counts = np.stack([frames[s] for s in paired]).astype(np.float32, copy=False)
 
     flat = _single_image(raw, fmt.TOPIC_FLAT_FIELD, shape, fmt.READ_ENCODINGS, warnings)
@@ -814,7 +834,9 @@ def scan_from_raw(raw: RawBag, path, *, keep_raw: bool = False, min_views: int |
             warnings.append(f"{topic} covers {sum(have)} of {len(paired)} frames; ignored")
             return None
         try:
-            return fmt.geometry_from_views([gs[s] for s in paired], *shape, row_pitch_mm, col_pitch_mm)
+            g = fmt.geometry_from_views([gs[s] for s in paired], *shape, row_pitch_mm, col_pitch_mm)
+            check_distances(g, topic)
+            return g
         except ValueError as exc:
             warnings.append(f"{topic} ignored: {exc}")
             return None
