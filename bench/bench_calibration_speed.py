@@ -17,7 +17,7 @@ and prints, per outer iteration, the elapsed time and the gauge-aligned reprojec
 (mean and p95, px of the 256 detector). A method "reaches its accuracy" at the first
 iteration whose error is within 10 % of the best it reaches in the run; the ratio of those
 times is the speed-to-accuracy ratio. GDC-LoG runs 6 iterations, as in the published comparison
-(design.md: it took 6 where NCC-LLE took 2): it keeps improving slowly over iterations 2 to 6
+(Li et al., arXiv 2406.18063: it took 6 where NCC-LLE took 2): it keeps improving slowly over iterations 2 to 6
 (speed.json -> runs[1].iterations), so a shorter run would stop it before it
 reaches its own accuracy. Every iteration asked for runs (``stop_update_px=0``): the
 measurement is the whole trace.

@@ -31,8 +31,8 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid  # noqa: E402
 from robot_ct_ros.ct.projector import back_project, forward_project  # noqa: E402
 
-SDD_MM = 342.4  # design.md: source-to-detector distance
-SOD_MM = 128.0  # design.md: source-to-ROI distance (magnification 2.67)
+SDD_MM = 342.4  # the seed system (arXiv 2406.18063): source-to-detector distance
+SOD_MM = 128.0  # the seed system: source-to-ROI distance (magnification 2.67)
 
 
 def robotic_geometry(n_views: int, n_pix: int, pitch_mm: float, seed: int = 0) -> ConeGeometry:

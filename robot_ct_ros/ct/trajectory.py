@@ -78,7 +78,7 @@ def circular_scan(n_views: int, sod_mm: float, sdd_mm: float, n_rows: int, n_col
 # ---------------------------------------------------------------- seed system
 @dataclass(frozen=True)
 class SeedSystem:
-    """Figures of the seed robotic micro-CT (design.md section 1).
+    """Figures of the seed robotic micro-CT (Li et al., arXiv 2406.18063).
 
     Detector: photon counting, 70 x 30 mm^2 active area (u along the 70 mm side), 55 um raw
     pixels read out 2 x 2 binned (110 um). Source to detector 342.4 mm at magnification

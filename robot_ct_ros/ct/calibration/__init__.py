@@ -1,4 +1,4 @@
-"""Per-view 9-DOF geometry calibration of a cone-beam scan (design.md §2).
+"""Per-view 9-DOF geometry calibration of a cone-beam scan (docs/calibration.md; Li et al., arXiv 2406.18063).
 
 Where things are:
 

@@ -3,7 +3,7 @@
 For a fixed source, a moved flat detector sees the same rays as an (enlarged) virtual
 detector, so its image is an exact 2D projective warp of the virtual image
 (:func:`detector_homographies`): only the 3 source parameters need a new ray-cast
-(design.md §2). Conventions are those of :mod:`robot_ct_ros.ct.geometry` (pixel (c, r),
+(docs/calibration.md §2.2). Conventions are those of :mod:`robot_ct_ros.ct.geometry` (pixel (c, r),
 column first, as in the projection matrices).
 """
 

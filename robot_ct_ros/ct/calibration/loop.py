@@ -1,4 +1,4 @@
-"""The alternating loop: reconstruct, estimate every view, fix the gauge, repeat (design.md §2).
+"""The alternating loop: reconstruct, estimate every view, fix the gauge, repeat (docs/calibration.md §1).
 
 :func:`calibrate` is the one entry point: data, nominal geometry, ROI grid and a
 :class:`~robot_ct_ros.ct.calibration.settings.CalibrationSettings`. The method comes from the

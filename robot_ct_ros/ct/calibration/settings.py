@@ -34,8 +34,8 @@ def prior_sigma_from(translation_mm: float, rotation_deg: float):
 
 DEFAULT_PRIOR_MM = 0.3
 DEFAULT_PRIOR_DEG = 0.3
-"""The seed system's robot coordination error per view and axis (design.md §1): the default
-prior of the MAP estimate. Set it to the robots' measured accuracy."""
+"""The default prior of the MAP estimate: the robots' coordination error per view and axis
+(docs/calibration.md §4). Set it to the robots' measured accuracy."""
 DEFAULT_PRIOR_SIGMA = prior_sigma_from(DEFAULT_PRIOR_MM, DEFAULT_PRIOR_DEG)
 
 

@@ -1,4 +1,4 @@
-"""The LLE estimator: one pass over all views, coarse to fine (design.md §2)."""
+"""The LLE estimator: one pass over all views, coarse to fine (docs/calibration.md §2)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Embedding weights of one measured projection in K neighbouring reprojections (design.md §2).
+"""Embedding weights of one measured projection in K neighbouring reprojections (docs/calibration.md §2.1).
 
 Three weightings: ``"l2"`` (classic LLE), ``"ncc"`` (the published closed form w_j ∝ c_j / s_j)
 and ``"ncc-exact"`` (the exact maximiser of the normalized cross-correlation over affine
