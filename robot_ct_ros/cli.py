@@ -351,9 +351,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cols", type=whole, default=636, help="detector columns after binning (default 636)")
     p.add_argument("--binning", type=whole, default=2, help="readout binning of the 55 um pixels (default 2)")
     p.add_argument("--sigma-mm", type=_non_negative("sigma-mm"), default=0.1,
-                   help="robot error per view, translations (mm)")
+                   help="robot error per view, translations (mm; default 0.1)")
     p.add_argument("--sigma-deg", type=_non_negative("sigma-deg"), default=0.1,
-                   help="robot error per view, detector rotations (deg)")
+                   help="robot error per view, detector rotations (deg; default 0.1)")
     p.add_argument("--drift-mm", type=float, default=0.0,
                    help="detector drift over the whole scan, linear, each of its translations (mm; default 0)")
     p.add_argument("--drift-deg", type=float, default=0.0,
