@@ -430,15 +430,20 @@ class ScanSequencer:
         self._beam_confirmed = False
         return self.ports.call_set_beam(on)
 
+    def _answer(self, future, failed):
+        """The answer of the done call ``future``; None after aborting with ``failed(exc)`` where the call failed."""
+        try:
+            return future.result()
+        except Exception as exc:  # noqa: BLE001 - report any failure of the call
+            self.abort(failed(exc))
+            return None
+
     def _check_future(self, timeout_s: float, what: str):
         """The answer of the pending call, None while waiting; aborts on timeout (returns False)."""
         if self._future is not None and self._future.done():
             future, self._future = self._future, None
-            try:
-                return future.result()
-            except Exception as exc:  # noqa: BLE001 - report any failure of the call
-                self.abort(f"{what} failed: {exc}")
-                return False
+            answer = self._answer(future, lambda exc: f"{what} failed: {exc}")
+            return False if answer is None else answer
         if self._now() - self._t_state > timeout_s:
             self.abort(f"{what}: no answer within {timeout_s:.3g} s")
             return False
@@ -539,11 +544,9 @@ class ScanSequencer:
                            "hung; the beam was not switched on")
             return False
         check, self._check = self._check, None
-        try:
-            answer = check.result()
-        except Exception as exc:  # noqa: BLE001 - report any failure of the call
-            self.abort(f"{self._detector_name()} could not be asked for its state ({exc}); the beam was not "
-                       "switched on")
+        answer = self._answer(check, lambda exc: f"{self._detector_name()} could not be asked for its state ({exc}); "
+                                                 "the beam was not switched on")
+        if answer is None:
             return False
         if not answer.success:
             self.abort(f"{self._detector_name()}: {answer.message}; the beam was not switched on")
@@ -574,10 +577,8 @@ class ScanSequencer:
                            "exposure is not answered")
             return False
         future, self._expose = self._expose, None
-        try:
-            answer = future.result()
-        except Exception as exc:  # noqa: BLE001 - report any failure of the call
-            self.abort(f"pcd/expose failed: {exc}")
+        answer = self._answer(future, lambda exc: f"pcd/expose failed: {exc}")
+        if answer is None:
             return False
         if not answer.success:
             self.abort(f"detector: {answer.message}")

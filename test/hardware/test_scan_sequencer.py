@@ -22,10 +22,16 @@ class Future:
     def set(self, success=True, message=""):
         self._result, self._done = SimpleNamespace(success=success, message=message), True
 
+    def fail(self, exc):
+        """The call itself failed (rclpy's future raises from result())."""
+        self._result, self._done = exc, True
+
     def done(self):
         return self._done
 
     def result(self):
+        if isinstance(self._result, Exception):
+            raise self._result
         return self._result
 
 
@@ -525,3 +531,21 @@ def test_an_arm_controller_lost_during_the_exposure_is_named(tmp_path):
     rig.t += 10.0
     rig.seq.on_diagnostics([("/source_arm_driver: source arm", True, "connection lost: late", "unconfigured")])
     assert "late" not in rig.seq.message
+
+
+def test_a_call_that_fails_aborts_with_what_failed_and_no_beam_is_left_on(tmp_path):
+    """A service call whose future raises (the server went away mid-call) aborts the scan naming the call."""
+    rig = _to_exposing(_started(tmp_path))
+    rig.ports.expose_calls[-1].fail(RuntimeError("server gone"))
+    rig.advance()
+    _aborted(rig, "pcd/expose failed: server gone")
+
+    rig = _started(tmp_path)
+    rig.ports.check_detector = True
+    rig.arrive()
+    rig.advance(0.03, 3)
+    assert rig.ports.check_calls and not [on for on, _ in rig.ports.beam_calls if on]
+    rig.ports.check_calls[-1].fail(RuntimeError("no state"))
+    rig.advance()
+    _aborted(rig, "could not be asked for its state (no state)", "the beam was not switched on")
+    assert not [on for on, _ in rig.ports.beam_calls if on]
