@@ -89,7 +89,8 @@ ORIENTATIONS = {"as is": lambda a: a, "rows flipped": lambda a: a[::-1], "column
                 "transposed": lambda a: a.T}
 """Ways to lay our slice (volume[0], row j = increasing y) over the dataset's image."""
 _AFTER_SSIM = [key for key, *_ in COLUMNS].index("ssim") + 1
-COLUMNS_REAL = COLUMNS[:_AFTER_SSIM] + (("sharpness_rel", "edge sharpness / documented", "{:.3f}"),) + COLUMNS[_AFTER_SSIM:]
+COLUMNS_REAL = (COLUMNS[:_AFTER_SSIM] + (("sharpness_rel", "edge sharpness / documented", "{:.3f}"),)
+                + COLUMNS[_AFTER_SSIM:])
 """realdata.md's columns: the edge sharpness relative to the documented geometry's right after the SSIM."""
 
 

@@ -187,8 +187,9 @@ def main(argv=None) -> int:
                                  (f"synthetic twin measured {CONTROL_SHIFT_PX:+g} px off", twin_off)):
                 found_sharp = sharpest_centre(data, g, grid, mask, fov)
                 peaks[source] = found_sharp["peak_px"]
-                sharpest.append({"data": f"{ph}, {source}", **{f"s{i}": v for i, v in enumerate(found_sharp["sharpness"])},
-                                 "peak_px": found_sharp["peak_px"], "gain": found_sharp["gain"]})
+                values = {f"s{i}": v for i, v in enumerate(found_sharp["sharpness"])}
+                sharpest.append({"data": f"{ph}, {source}", **values, "peak_px": found_sharp["peak_px"],
+                                 "gain": found_sharp["gain"]})
                 say(f"  sharpest centre {sharpest[-1]}")
             del twin_off
             for source, data in (("measured", li), ("synthetic twin", twin)):
@@ -321,9 +322,9 @@ def main(argv=None) -> int:
                "scored against the documented geometry and against the documented geometry moved to the measured "
                "scan's sharpest centre (section 1b). c = d_u + k s_u per view (px), the shift of the "
                "rotation centre's projection; mean c is the centre of rotation the calibration settles on, to be "
-               "compared with sections 1 and 1b. For the documented start, its sum c(view) + c(view + 180 deg) against "
-               "the opposed rays' measured - twin on the same views: amplitudes of the even harmonics 2, 4, 6 (px), how far apart "
-               "their phases lie as an angle of the orbit, and the correlation of the two sums over the orbit "
+               "compared with sections 1 and 1b. For the documented start, its sum c(view) + c(view + 180 deg) "
+               "against the opposed rays' measured - twin on the same views: amplitudes of the even harmonics 2, 4, "
+               "6 (px), how far apart their phases lie as an angle of the orbit, and the correlation of the two sums over the orbit "
                f"(harmonics 1-{LOWPASS}). Error: gauge-aligned reprojection error against the documented geometry "
                "(bench_realdata's ROI points).", "",
                markdown_table(against, ag_cols), "", " ".join(f"![{f}]({f})" for f in figures), ""]

@@ -187,7 +187,8 @@ class ConeReach:
         return (f"most of the grid lies beyond every view's cone: the rays reach {len(reached)} of its "
                 f"{len(self.slices)} slices along {AXIS_NAMES[self.axis]}, the axis nearest the scan axis "
                 f"({span}{where}; {100 * self.outside_fraction:.0f} % of the voxels lie where no view's detector "
-                f"sees them, and FDK puts 0 there); a grid that fits the cones: {shape_option.format(*self.fitting_shape_xyz())}"
+                f"sees them, and FDK puts 0 there); a grid that fits the cones: "
+                f"{shape_option.format(*self.fitting_shape_xyz())}"
                 f"{'' if first + last == len(self.slices) - 1 else ' (off-centre in this grid: move its centre too)'}")
 
 

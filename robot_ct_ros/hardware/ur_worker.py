@@ -5,8 +5,8 @@ Requests are ``(id, op, args)``; replies ``(id, status, payload)`` with status `
 the result) or ``"error"`` (payload: ``(kind, message)``, kind one of ``"connection"``,
 ``"motion"``, ``"other"``). While connecting, the worker also sends progress notes
 ``(id, "progress", stage)`` (stage :data:`TCP_ACCEPTED`, then :data:`RTDE_RECEIVING`) so that the
-parent, timing out, can say how far the controller got. Moves run on their own thread (the ur-rtde bindings release the GIL
-there), so state reads keep being answered during a move. The parent enforces every timeout and
+parent, timing out, can say how far the controller got. Moves run on their own thread (the ur-rtde
+bindings release the GIL there), so state reads keep being answered during a move. The parent enforces every timeout and
 kills this process when the controller stops answering; nothing here needs to be interruptible.
 """
 

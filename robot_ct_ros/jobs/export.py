@@ -330,7 +330,7 @@ def _frame_line(frame: dict, frame_id: str, path: Path) -> str:
     if frame["frame"] == "world":
         return (f"RTK frame: world ({frame_id} as it is; the scan axis {vec(a)} is {frame['axis_deg']:.3g} deg off "
                 f"+-y and passes {frame['axis_offset_mm']:.3g} mm from the origin); identity written to {path.name}")
-    R, c = frame["rotation"], frame["centre_mm"]
+    c = frame["centre_mm"]
     rows = "; ".join(vec(np.append(r, t)) for r, t in zip(frame["world_to_rtk"][:3, :3], frame["world_to_rtk"][:3, 3]))
     return (f"RTK frame: scan (RTK's gantry angle follows the views): the scan axis {vec(a)} of {frame_id} is RTK's +y "
             f"and the orbit's centre {vec(c)} mm its origin, x_rtk = R (x_world - c), world->RTK rows [{rows}]; "

@@ -518,7 +518,8 @@ def test_an_arm_controller_lost_during_the_exposure_is_named(tmp_path):
     assert "PROTECTIVE_STOP" not in s.message  # the other arm: not the cause
     rig.t += 2.0  # a frozen controller: "connection lost" after call_timeout_s
     s.on_diagnostics([("/source_arm_driver: source arm", True,
-                       "connection lost: connection to controller at 10.0.0.2 lost (RTDE disconnected)", "unconfigured")])
+                       "connection lost: connection to controller at 10.0.0.2 lost (RTDE disconnected)",
+                       "unconfigured")])
     _aborted(rig, "source arm left its position during view 1 (exposing)", "arm driver error",
              "connection lost", "RTDE disconnected")
     assert rig.ports.status[-1]["message"] == s.message and s.health()[1][-1] == ("last_abort_reason", s.message)
