@@ -169,6 +169,12 @@ def publish_while_up(node, publisher, msg) -> bool:
     return True
 
 
+def service_thread_node_name(owner_name: str, service: str) -> str:
+    """The name of the hidden node a :class:`ServiceThread` serves ``service`` from for the node ``owner_name``:
+    ``_<owner>_<service with every other character than a letter or digit as _>``."""
+    return f"_{owner_name}_" + "".join(c if c.isalnum() else "_" for c in service).strip("_")
+
+
 class ServiceThread:
     """A service whose callback may block (wait for hardware) without blocking its owner's executor.
 
@@ -196,9 +202,8 @@ class ServiceThread:
         from rclpy.executors import MultiThreadedExecutor
 
         self.name = owner.resolve_service_name(name)
-        suffix = "".join(c if c.isalnum() else "_" for c in name).strip("_")
-        self.node = rclpy.create_node(f"_{owner.get_name()}_{suffix}", namespace=owner.get_namespace(),
-                                      context=owner.context, use_global_arguments=False,
+        self.node = rclpy.create_node(service_thread_node_name(owner.get_name(), name),
+                                      namespace=owner.get_namespace(), context=owner.context, use_global_arguments=False,
                                       start_parameter_services=False)
         self._on_error = on_error or (lambda reason: None)
         self._closing = False

@@ -49,7 +49,8 @@ from std_srvs.srv import SetBool, Trigger
 from robot_ct_ros.bag import format as fmt
 from robot_ct_ros.hardware.scan_protocol import ScanProtocol
 from robot_ct_ros.hardware.scan_sequencer import ROLES, ScanSequencer, ScanSequencerSettings
-from robot_ct_ros.nodes.common import LATCHED, STREAM, declare_settings, publish_diagnostic, run_settings_node
+from robot_ct_ros.nodes.common import (LATCHED, STREAM, declare_settings, publish_diagnostic, run_settings_node,
+                                      service_thread_node_name)
 from robot_ct_ros.nodes.hand_eye_params import declare_hand_eye, matrix_mm_to_pose, pose_to_matrix_mm, stamp_to_ns
 
 __all__ = ["ScanOrchestratorNode", "ScanProtocol", "main"]  # ScanProtocol: where it was imported from before
@@ -161,9 +162,10 @@ class ScanOrchestratorNode(Node):
         itself, or the owner of the helper node a ServiceThread serves it from (``_<owner>_pcd_expose``)."""
         if self._detector is not None and self._detector[1].service_is_ready():
             return self._detector
+        if self._detector is not None:  # its node left: a new client for whichever node offers pcd/expose now
+            self.destroy_client(self._detector[1])
         self._detector = None
         service = self.resolve_service_name("pcd/expose")
-        suffix = "".join(c if c.isalnum() else "_" for c in "pcd/expose").strip("_")
 
         def services(name, ns):
             try:
@@ -175,7 +177,8 @@ class ScanOrchestratorNode(Node):
         for name, ns in nodes:
             if service not in services(name, ns):
                 continue
-            for candidate in [name] + [n for n, n_ns in nodes if n_ns == ns and name == f"_{n}_{suffix}"]:
+            for candidate in [name] + [n for n, n_ns in nodes
+                                       if n_ns == ns and name == service_thread_node_name(n, "pcd/expose")]:
                 fqn = (ns.rstrip("/") + "/" + candidate) if ns != "/" else "/" + candidate
                 if fqn + "/get_state" in services(candidate, ns):
                     self._detector = (fqn, self.create_client(GetState, fqn + "/get_state"))
