@@ -84,7 +84,9 @@ def reprojection_error(est: ConeGeometry, true: ConeGeometry, points_mm, align_g
 
     With ``align_gauge`` the best global rigid motion is removed first. Returns mean, p95 and
     max over all views and points (pixels of ``true``'s detector, distances measured with
-    its column pitch as the unit along both axes) and the fitted motion.
+    its column pitch as the unit along both axes), ``mean_u_px`` (the mean distance along the
+    detector's rows alone: on a one-row detector the part a fan beam can see and correct) and the
+    fitted motion.
     """
     pts = np.atleast_2d(np.asarray(points_mm, dtype=np.float64))
     gauge = None
@@ -96,6 +98,7 @@ def reprojection_error(est: ConeGeometry, true: ConeGeometry, points_mm, align_g
     d[..., 1] *= true.row_pitch_mm / true.col_pitch_mm
     dist = np.linalg.norm(d, axis=-1)
     return {"mean_px": float(dist.mean()), "p95_px": float(np.percentile(dist, 95)),
+            "mean_u_px": float(np.abs(d[..., 0]).mean()),
             "max_px": float(dist.max()), "per_view_mean_px": dist.mean(axis=1), "gauge": gauge}
 
 

@@ -137,11 +137,15 @@ def geometry_error(scan: ScanData, geom: ConeGeometry, grid: VolumeGrid | None =
 
 def _reprojection_px(geom: ConeGeometry, true_geom: ConeGeometry, points_mm) -> dict:
     """The gauge-aligned reprojection error of ``geom`` against ``true_geom`` (metrics.reprojection_error), as the
-    reports give it: {"mean", "p95", "max"} in pixels."""
+    reports give it: {"mean", "p95", "max"} in pixels, and on a one-row detector "mean_along_row", the part within
+    the fan plane, which is all a fan beam corrects (the distance across the row stays as the robots left it)."""
     from robot_ct_ros.ct.metrics import reprojection_error
 
     e = reprojection_error(geom, true_geom, points_mm)
-    return {"mean": e["mean_px"], "p95": e["p95_px"], "max": e["max_px"]}
+    out = {"mean": e["mean_px"], "p95": e["p95_px"], "max": e["max_px"]}
+    if true_geom.n_rows == 1:
+        out["mean_along_row"] = e["mean_u_px"]
+    return out
 
 
 def base_report(scan: ScanData, grid: VolumeGrid) -> dict:
@@ -243,7 +247,9 @@ def correct_scan(scan: ScanData, settings: CalibrationSettings | None = None, gr
                                 for k in ("geometry_error_nominal", "geometry_error_corrected"))
     if nominal_px and corrected_px:  # a simulated bag: the figure to judge the correction by, said, not only kept
         say(f"against the bag's true geometry (gauge removed): nominal {nominal_px['mean']:.3f} px mean "
-            f"({nominal_px['p95']:.3f} p95) -> corrected {corrected_px['mean']:.3f} px ({corrected_px['p95']:.3f} p95)")
+            f"({nominal_px['p95']:.3f} p95) -> corrected {corrected_px['mean']:.3f} px ({corrected_px['p95']:.3f} p95)"
+            + (f"; along the row, the part a fan beam corrects: {nominal_px['mean_along_row']:.3f} -> "
+               f"{corrected_px['mean_along_row']:.3f} px" if "mean_along_row" in nominal_px else ""))
     if evaluate_truth and scan.geom_true is not None:
         say("comparing with the true geometry")
         # of the geometry as the corrected bag and /ct/geometry_corrected carry it, to the last bit

@@ -35,6 +35,11 @@ def test_reprojection_error_of_a_detector_shift_is_the_shift_in_pixels(scan):
     params[:, 3] = shift_px * scan.col_pitch_mm
     err = reprojection_error(scan.perturbed(params), scan, pts, align_gauge=False)
     assert err["mean_px"] == pytest.approx(shift_px, rel=1e-9)
+    assert err["mean_u_px"] == pytest.approx(shift_px, rel=1e-9)
+    # a shift across the rows (what a one-row fan beam cannot see) counts in the distance, not along the rows
+    params[:, 3], params[:, 4] = 0.0, shift_px * scan.row_pitch_mm
+    across = reprojection_error(scan.perturbed(params), scan, pts, align_gauge=False)
+    assert across["mean_px"] == pytest.approx(shift_px, rel=1e-9) and across["mean_u_px"] < 1e-9
     # random per-view errors are not a gauge: aligning cannot remove them
     rng = np.random.default_rng(0)
     noisy = scan.perturbed(np.concatenate([rng.normal(0, 0.3, (24, 6)), rng.normal(0, 0.005, (24, 3))], 1))
