@@ -340,6 +340,7 @@ def declare_settings(node, cls, *, prefix: str = "", exclude=(), **defaults):
 
     from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
     from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+    from rclpy.parameter import Parameter
 
     from robot_ct_ros.parameters import from_ros_values, specs
 
@@ -372,6 +373,8 @@ def declare_settings(node, cls, *, prefix: str = "", exclude=(), **defaults):
             whole_numbers_as_doubles(node, name, "double" if s.kind is float else "double_array")
         if s.kind is str and s.choices:
             yaml_booleans_as_words(node, name, s.choices)
+        refuse_mistyped_file_value(node, name, _unset_parameter_type(s) if default is None or (
+            s.kind is tuple and not default) else Parameter.Type.from_parameter_value(default), s.choices or ())
         try:
             if default is None:  # an optional list with no ROS stand-in: unset is the empty array
                 param = declare_optional_array(node, name, _unset_parameter_type(s), desc)
@@ -386,6 +389,187 @@ def declare_settings(node, cls, *, prefix: str = "", exclude=(), **defaults):
         return from_ros_values(cls, values)
     except ValueError as exc:
         raise ValueError(f"{node.get_name()} parameters: {exc}") from None
+
+
+def refuse_mistyped_file_value(node, name: str, declared, choices=()) -> None:
+    """Refuse a value of parameter ``name`` that a ``--params-file`` of ``node`` gives with a type other than
+    ``declared`` (an rclpy Parameter.Type), as rclpy refuses it when that file is the only one; raises ValueError
+    naming the parameter and the file. Call before declaring ``name``.
+
+    Needed because rcl merges the files in order and keeps the type of the first file that sets a parameter: a
+    second file's ``kvp: "ninety"`` over the shipped ``kvp: 90.0`` was dropped and the node ran with 90.0 without a
+    word. Every file named in the node's arguments (its context's, unless it ignores them, and its own) is read
+    again with yaml; the sections that apply are those rcl applies: the node's fully qualified name, nested
+    namespace keys, and the ``/**`` (any namespaces) and ``/*`` (one name) wildcards. Values are typed by rcl's
+    rules (a quoted scalar is text; then a boolean word, a whole number, a decimal number). Accepted as the
+    declaration itself accepts them: a whole number (or an array of them) for a double (array), see
+    :func:`whole_numbers_as_doubles`; a boolean for a text parameter whose ``choices`` name it (``on``, ``off``),
+    see :func:`yaml_booleans_as_words`; ``[]`` for any array (rcl reads it as no value)."""
+    from rclpy.parameter import Parameter
+
+    T = Parameter.Type
+    if declared in (None, T.NOT_SET):
+        return
+    for path, given, text in params_file_values(node).get(name, ()):
+        if given == declared or (given, declared) in ((T.INTEGER, T.DOUBLE), (T.INTEGER_ARRAY, T.DOUBLE_ARRAY)):
+            continue
+        if given is None and declared.name.endswith("_ARRAY"):  # []
+            continue
+        if given == T.BOOL and declared == T.STRING and ("on" if text == "True" else "off") in tuple(
+                choices() if callable(choices) else choices):
+            continue
+        given_name = "an empty array" if given is None else f"type '{given.name}'"
+        raise ValueError(f"parameter {name}: Trying to set parameter '{name}' to '{text}' of {given_name}, "
+                         f"expecting type '{declared.name}' (in {path})")
+
+
+def params_file_values(node) -> dict:
+    """The values the ``--params-file`` files named in ``node``'s arguments give it, by parameter name: a list of
+    (file, rclpy Parameter.Type or None for ``[]``, value as text), in the files' order. Read once per node (see
+    :func:`refuse_mistyped_file_value` for the sections that apply and how values are typed)."""
+    cached = node.__dict__.get("_params_file_values")
+    if cached is not None:
+        return cached
+    import re
+
+    import yaml
+
+    fqn = node.get_fully_qualified_name()
+    values: dict = {}
+    for path in _params_files(node):
+        try:
+            root = yaml.compose(Path(path).read_text(), Loader=yaml.SafeLoader)
+        except (OSError, yaml.YAMLError):
+            continue  # rcl read it when ROS started; a file changed since is not this check's business
+        for section, params in _ros_parameter_sections(root, ""):
+            pattern = re.escape("/" + section.lstrip("/")).replace(r"/\*\*", "(/[^/]+)*").replace(r"/\*", "/[^/]+")
+            if not re.fullmatch(pattern, fqn):
+                continue
+            for pname, value_node in _flatten_parameters(params, ""):
+                values.setdefault(pname, []).append((path, *_rcl_yaml_type(value_node)))
+    node.__dict__["_params_file_values"] = values
+    return values
+
+
+def _params_files(node) -> list[str]:
+    """The ``--params-file`` paths in ``node``'s arguments: its context's (global) ones unless the node ignores
+    them, then its own (``cli_args``), as rcl reads them. rclpy keeps neither list, so they are asked of rcl
+    (``rcl_arguments_get_param_files``; the global arguments are the first member of ``rcl_context_t``, the node's
+    a member of its ``rcl_node_options_t``). Where that fails, the ``--params-file`` paths of ``sys.argv``."""
+    import ctypes
+
+    try:
+        rcl, rcutils = ctypes.CDLL("librcl.so"), ctypes.CDLL("librcutils.so")
+
+        class Allocator(ctypes.Structure):
+            _fields_ = [(f, ctypes.c_void_p) for f in ("allocate", "deallocate", "reallocate", "zero_allocate",
+                                                        "state")]
+
+        class NodeOptions(ctypes.Structure):  # rcl/node_options.h, up to the arguments
+            _fields_ = [("allocator", Allocator), ("use_global_arguments", ctypes.c_bool),
+                        ("arguments", ctypes.c_void_p)]
+
+        rcutils.rcutils_get_default_allocator.restype = Allocator
+        rcl.rcl_arguments_get_param_files_count.argtypes = [ctypes.c_void_p]
+        rcl.rcl_arguments_get_param_files_count.restype = ctypes.c_int
+        rcl.rcl_arguments_get_param_files.argtypes = [ctypes.c_void_p, Allocator,
+                                                      ctypes.POINTER(ctypes.POINTER(ctypes.c_char_p))]
+        rcl.rcl_node_get_options.argtypes = [ctypes.c_void_p]
+        rcl.rcl_node_get_options.restype = ctypes.c_void_p
+
+        def files(arguments: int) -> list[str]:
+            count = rcl.rcl_arguments_get_param_files_count(ctypes.c_void_p(arguments))
+            if count <= 0:
+                return []
+            names = ctypes.POINTER(ctypes.c_char_p)()
+            if rcl.rcl_arguments_get_param_files(ctypes.c_void_p(arguments), rcutils.rcutils_get_default_allocator(),
+                                                 ctypes.byref(names)) != 0:
+                raise OSError("rcl_arguments_get_param_files failed")
+            return [names[i].decode() for i in range(count)]  # a few bytes left to rcl's allocator, once per node
+
+        with node.handle:
+            options = rcl.rcl_node_get_options(ctypes.c_void_p(node.handle.pointer))
+            if not options:
+                raise OSError("no node options")
+            use_global = NodeOptions.from_address(options).use_global_arguments
+            own = files(options + NodeOptions.arguments.offset)
+        if not use_global:
+            return own
+        with node.context.handle:
+            return files(node.context.handle.pointer) + own
+    except (OSError, AttributeError, ValueError):
+        argv = sys.argv[sys.argv.index("--ros-args") + 1:] if "--ros-args" in sys.argv else []
+        return [b for a, b in zip(argv, argv[1:]) if a == "--params-file"]
+
+
+def _ros_parameter_sections(node, prefix: str):
+    """(node name, the ``ros__parameters`` mapping node) of each section of a parameter file's yaml node; a key
+    above a section is a namespace (``scanner_a: source_control: ros__parameters:``), as rcl reads it."""
+    import yaml
+
+    if not isinstance(node, yaml.MappingNode):
+        return
+    for key, value in node.value:
+        if key.value == "ros__parameters":
+            yield prefix, value
+        else:
+            yield from _ros_parameter_sections(value, f"{prefix}/{key.value}" if prefix else key.value)
+
+
+def _flatten_parameters(node, prefix: str):
+    """(dotted parameter name, value yaml node) of each value under a ``ros__parameters`` mapping node."""
+    import yaml
+
+    if not isinstance(node, yaml.MappingNode):
+        return
+    for key, value in node.value:
+        name = f"{prefix}.{key.value}" if prefix else key.value
+        if isinstance(value, yaml.MappingNode):
+            yield from _flatten_parameters(value, name)
+        else:
+            yield name, value
+
+
+_RCL_TRUE = ("Y", "y", "yes", "Yes", "YES", "true", "True", "TRUE", "on", "On", "ON")
+_RCL_FALSE = ("N", "n", "no", "No", "NO", "false", "False", "FALSE", "off", "Off", "OFF")
+
+
+def _rcl_yaml_type(value_node):
+    """(rclpy Parameter.Type, text) of a parameter's yaml node as rcl's parser types it (rcl_yaml_param_parser:
+    a quoted scalar is text; otherwise a boolean word, then a whole number (C's strtoll, any base),
+    then a decimal number (strtod, and ``.inf``, ``.nan``), else text). An array is typed by its first item; the
+    type is None for ``[]``."""
+    import re
+
+    import yaml
+    from rclpy.parameter import Parameter
+
+    T = Parameter.Type
+    if isinstance(value_node, yaml.SequenceNode):
+        if not value_node.value:
+            return None, "[]"
+        item, _ = _rcl_yaml_type(value_node.value[0])
+        array = {T.BOOL: T.BOOL_ARRAY, T.INTEGER: T.INTEGER_ARRAY, T.DOUBLE: T.DOUBLE_ARRAY}.get(item, T.STRING_ARRAY)
+        items = ", ".join(v.value if isinstance(v, yaml.ScalarNode) else "?" for v in value_node.value)
+        return array, f"[{items}]"
+    if not isinstance(value_node, yaml.ScalarNode):
+        return T.STRING, "?"
+    text = value_node.value
+    if value_node.style in ("'", '"'):
+        return T.STRING, text
+    if text in _RCL_TRUE:
+        return T.BOOL, "True"
+    if text in _RCL_FALSE:
+        return T.BOOL, "False"
+    if re.fullmatch(r"[+-]?(0[xX][0-9a-fA-F]+|0[0-7]*|[1-9][0-9]*)", text):
+        return T.INTEGER, text
+    if text in (".nan", ".NaN", ".NAN", ".inf", ".Inf", ".INF", "-.inf", "-.Inf", "-.INF"):
+        return T.DOUBLE, text
+    try:
+        float(text)  # as strtod, but for Python's digit separators
+    except ValueError:
+        return T.STRING, text
+    return (T.STRING, text) if "_" in text else (T.DOUBLE, text)
 
 
 def _refuse_core_unit_name(node, prefix: str, spec) -> None:

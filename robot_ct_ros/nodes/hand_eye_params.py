@@ -33,10 +33,12 @@ def declare_hand_eye(node, prefix: str = "hand_eye") -> HandEye:
     from rcl_interfaces.msg import ParameterDescriptor
     from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 
-    from robot_ct_ros.nodes.common import READ_AT_START, declare_optional_array, whole_numbers_as_doubles
+    from robot_ct_ros.nodes.common import (READ_AT_START, declare_optional_array, refuse_mistyped_file_value,
+                                           whole_numbers_as_doubles)
 
     def declare(name, value):
         whole_numbers_as_doubles(node, name, "double_array")
+        refuse_mistyped_file_value(node, name, Parameter.Type.DOUBLE_ARRAY)
         desc = ParameterDescriptor(name=name, description=f"hand-eye mount of the device on its flange"
                                    f"{' ([] = unset)' if value is None else ''}.{READ_AT_START}", read_only=True)
         try:

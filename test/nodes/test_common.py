@@ -89,3 +89,82 @@ def test_on_and_off_set_a_string_choice_though_yaml_reads_them_as_booleans(ros):
     other = ros.add(Node("choices_bad", context=ros.context, parameter_overrides=[Parameter("method", value=True)]))
     with pytest.raises(ValueError, match="method"):
         declare_settings(other, CalibrationSettings)
+
+
+def _stacked(tmp_path, *texts):
+    """``--params-file`` arguments for the shipped source_control.yaml and then each yaml text, written here."""
+    from pathlib import Path
+
+    args = ["--ros-args", "--params-file", str(Path(__file__).resolve().parents[2] / "config" / "source_control.yaml")]
+    for i, text in enumerate(texts):
+        (tmp_path / f"over{i}.yaml").write_text(text)
+        args += ["--params-file", str(tmp_path / f"over{i}.yaml")]
+    return args
+
+
+def test_a_wrong_type_in_a_second_params_file_is_refused_as_when_alone(ros, tmp_path):
+    """Outside test E #1: rcl keeps the type of the first file that sets a parameter, so a second file's
+    ``kvp: "ninety"`` over the shipped ``kvp: 90.0`` was dropped and the node ran with 90.0 without a word (so was
+    ``iterations: 2.5`` for recon_service). Each file named in the node's arguments is checked again, by rcl's
+    rules for which sections apply."""
+    import pytest
+    from rclpy.node import Node
+
+    from robot_ct_ros.ct.calibration import CalibrationSettings
+    from robot_ct_ros.hardware.xray_source import SourceSettings
+    from robot_ct_ros.nodes.common import LifecycleSettings, declare_settings
+    from robot_ct_ros.nodes.hand_eye_params import declare_hand_eye
+
+    def settings(name, cls, *texts, namespace=None):
+        node = ros.add(Node(name, namespace=namespace, context=ros.context, cli_args=_stacked(tmp_path, *texts)))
+        return declare_settings(node, cls)
+
+    for section in ("/**/source_control", "/**", "source_control", "/*"):
+        with pytest.raises(ValueError, match=r"parameter kvp: .*'ninety' of type 'STRING', expecting type 'DOUBLE' "
+                                             r"\(in .*over0.yaml\)"):
+            settings("source_control", SourceSettings, f"{section}:\n  ros__parameters:\n    kvp: \"ninety\"\n")
+    with pytest.raises(ValueError, match=r"kvp: .*\[90.0\].*'DOUBLE_ARRAY', expecting type 'DOUBLE'"):
+        settings("source_control", SourceSettings, "/**:\n  ros__parameters:\n    kvp: [90.0]\n")
+    with pytest.raises(ValueError, match=r"autostart: .*'1' of type 'INTEGER', expecting type 'BOOL'"):
+        settings("source_control", LifecycleSettings, "/**:\n  ros__parameters:\n    autostart: 1\n")  # rcl: no bool
+    # namespaces as rcl applies them: nested keys and /* match /scanner_a/source_control; a bare name does not
+    for text in ("scanner_a:\n  source_control:\n    ros__parameters:\n      kvp: 'x'\n",
+                 "/*/source_control:\n  ros__parameters:\n    kvp: 'x'\n"):
+        with pytest.raises(ValueError, match="kvp"):
+            settings("source_control", SourceSettings, text, namespace="/scanner_a")
+    ignored = ("source_control:\n  ros__parameters:\n    kvp: 'x'\n", "/*:\n  ros__parameters:\n    kvp: 'x'\n",
+               "/**/recorder:\n  ros__parameters:\n    kvp: 'x'\n")
+    assert settings("source_control", SourceSettings, *ignored, namespace="/scanner_a").kvp == 90.0
+    # what the declaration itself accepts: a whole number for a double, off/on for a choice naming them, [] unset
+    assert settings("source_control", SourceSettings, "/**:\n  ros__parameters:\n    kvp: 80\n").kvp == 80.0
+    calib = settings("recon_service", CalibrationSettings,
+                     "/**:\n  ros__parameters:\n    exterior: 'off'\n    iterations: 3\n",
+                     "/**:\n  ros__parameters:\n    exterior: off\n    iterations: 0x4\n")
+    assert (calib.exterior, calib.iterations) == ("off", 4)
+    with pytest.raises(ValueError, match=r"iterations: .*'2.5' of type 'DOUBLE', expecting type 'INTEGER'"):
+        settings("recon_service", CalibrationSettings, "/**:\n  ros__parameters:\n    iterations: 2.5\n")
+    he = "/**:\n  ros__parameters:\n    hand_eye:\n      source:\n        rotvec_rad: {}\n"
+    node = ros.add(Node("he_ok", context=ros.context, cli_args=_stacked(tmp_path, he.format("[]"))))
+    declare_hand_eye(node)
+    node = ros.add(Node("he_bad", context=ros.context, cli_args=_stacked(tmp_path, he.format("['0', '0', '1']"))))
+    with pytest.raises(ValueError, match=r"hand_eye.source.rotvec_rad: .*'STRING_ARRAY', expecting type "
+                                         r"'DOUBLE_ARRAY'"):
+        declare_hand_eye(node)
+
+
+def test_the_node_executable_ends_with_one_line_and_status_2_on_a_wrong_type_in_a_second_file(tmp_path):
+    """Outside test E #1 as it was run: the files in the executable's own (global) ROS arguments."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    repo = Path(__file__).resolve().parents[2]
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_DOMAIN_ID=str(150 + os.getpid() % 50),
+               PYTHONPATH=str(repo))
+    proc = subprocess.run([sys.executable, "-m", "robot_ct_ros.nodes.source_control",
+                           *_stacked(tmp_path, "/**/source_control:\n  ros__parameters:\n    kvp: \"ninety\"\n")],
+                          capture_output=True, text=True, env=env, timeout=120)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
+    last = proc.stderr.strip().splitlines()[-1]
+    assert "parameter kvp" in last and "'ninety'" in last and "over0.yaml" in last, proc.stderr
