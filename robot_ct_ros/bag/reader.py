@@ -383,7 +383,9 @@ class ScanData:
     that frame. ``geom_corrected`` / ``geom_true`` when the bag holds them for every frame.
     ``frame_id``: the world frame the geometries name (that of most /ct/geometry messages).
     ``warnings``: everything that was dropped or repaired, one line each. ``raw``: every message
-    of the bag as read (``read_scan(keep_raw=True)``), so that a corrected copy needs no second read.
+    of the bag as read (``read_scan(keep_raw=True)``), so that a corrected copy needs no second read; its topics
+    are the bag's own. ``namespace``: the namespace the scan's contract topics were recorded under (``""``: the
+    contract's names; ``/scanner_a``: ``/scanner_a/ct/projection`` and so on, see :func:`scan_namespace`).
     """
 
     path: Path
@@ -400,6 +402,7 @@ class ScanData:
     recovered: bool = False
     raw: RawBag | None = None
     frame_id: str = fmt.FRAME_WORLD
+    namespace: str = ""
 
     @property
     def n_views(self) -> int:
@@ -531,11 +534,11 @@ def _main_frame(frames: dict) -> str:
     return min(frames, key=lambda name: (-frames[name], name)) if frames else fmt.FRAME_WORLD
 
 
-def geometry_frame(raw: RawBag) -> str:
-    """The world frame of a bag's messages: the frame_id most /ct/geometry messages name (the writer's,
-    docs/bag-format.md), :data:`fmt.FRAME_WORLD` when none can be read."""
+def geometry_frame(raw: RawBag, namespace: str = "") -> str:
+    """The world frame of a bag's messages: the frame_id most /ct/geometry messages (under ``namespace``) name (the
+    writer's, docs/bag-format.md), :data:`fmt.FRAME_WORLD` when none can be read."""
     frames: dict = {}
-    for _, msg in _decode(raw, fmt.TOPIC_GEOMETRY, fmt.POSE_ARRAY, []):
+    for _, msg in _decode(raw, namespace + fmt.TOPIC_GEOMETRY, fmt.POSE_ARRAY, []):
         frames[msg.header.frame_id] = frames.get(msg.header.frame_id, 0) + 1
     return _main_frame(frames)
 
@@ -663,20 +666,70 @@ def check_distances(geom: ConeGeometry, topic: str) -> None:
                          "in metres")
 
 
-def read_scan(path, *, keep_raw: bool = False) -> ScanData:
-    """Read the scan bag at ``path`` (see the module docstring and docs/bag-format.md).
+def scan_namespace(raw: RawBag, namespace: str | None = None) -> str:
+    """The namespace under which ``raw`` holds its scan: ``""`` when it has /ct/scan_info; else the one prefix P
+    with P/ct/scan_info (a bag recorded with ``ros2 bag record -a`` from a scanner run under a namespace, e.g.
+    ``namespace:=/scanner_a``; the nodes' topic names are relative, the bag keeps the absolute ones). ``""`` also
+    when no prefix has one (the caller then says that scan_info is missing). ``namespace``: the one to read,
+    given (``/scanner_a``, ``scanner_a`` or ``/`` for the contract's own names); refused when it holds no
+    scan_info. Raises :class:`ScanBagError` naming them when several namespaces hold a scan."""
+    topics = raw.topics()
+    if namespace is not None:
+        ns = "/" + namespace.strip("/") if namespace.strip("/") else ""
+        if ns + fmt.TOPIC_SCAN_INFO not in topics:
+            raise ScanBagError(f"{raw.path}: no {ns + fmt.TOPIC_SCAN_INFO} message (namespace {ns or '/'} asked for; "
+                               f"the bag's scans: {', '.join(_scan_namespaces(topics)) or 'none'})")
+        return ns
+    if fmt.TOPIC_SCAN_INFO in topics:
+        return ""
+    found = _scan_namespaces(topics)
+    if len(found) > 1:
+        raise ScanBagError(f"{raw.path}: no {fmt.TOPIC_SCAN_INFO} message, but scans recorded under "
+                           f"{len(found)} namespaces: {', '.join(found)}; read one of them (ros2 bag convert with a "
+                           f"topics filter, or record one scanner's topics per bag)")
+    return found[0] if found else ""
+
+
+def _scan_namespaces(topics) -> list:
+    """The namespaces P (sorted) with a P/ct/scan_info topic; ``/`` for /ct/scan_info itself."""
+    return sorted((t[:-len(fmt.TOPIC_SCAN_INFO)] or "/") for t in topics if t.endswith(fmt.TOPIC_SCAN_INFO))
+
+
+def _under_namespace(raw: RawBag, ns: str) -> RawBag:
+    """``raw`` with the contract topics under ``ns`` named as the contract names them (``/scanner_a/ct/projection``
+    read as /ct/projection; /diagnostics stays global); contract topics of other namespaces or of none are left
+    out, so two scanners' messages never mix. Every other topic is kept as it is."""
+    if not ns:
+        return raw
+    contract = set(fmt.TOPIC_TYPES) - set(fmt.GLOBAL_TOPICS)
+    msgs = []
+    for m in raw.messages:
+        if m.topic.startswith(ns + "/") and m.topic[len(ns):] in contract:
+            msgs.append(RawMessage(m.topic[len(ns):], m.msgtype, m.log_time_ns, m.data))
+        elif m.topic not in contract and not any(m.topic.endswith(t) for t in contract):
+            msgs.append(m)
+    return RawBag(raw.path, msgs, list(raw.warnings) + [f"read the scan recorded under namespace {ns}"],
+                  raw.recovered, raw.reader)
+
+
+def read_scan(path, *, keep_raw: bool = False, namespace: str | None = None) -> ScanData:
+    """Read the scan bag at ``path`` (see the module docstring and docs/bag-format.md); a scan recorded under a
+    namespace is read there (:func:`scan_namespace`; ``namespace`` picks one).
 
     Raises :class:`ScanBagError` with the reason when the bag cannot give a scan: nothing
     readable, no /ct/scan_info, no frame paired with a geometry, no flat field for counts.
     """
-    return scan_from_raw(read_raw_messages(path), path, keep_raw=keep_raw)
+    return scan_from_raw(read_raw_messages(path), path, keep_raw=keep_raw, namespace=namespace)
 
 
-def scan_from_raw(raw: RawBag, path, *, keep_raw: bool = False, min_views: int | None = None) -> ScanData:
+def scan_from_raw(raw: RawBag, path, *, keep_raw: bool = False, min_views: int | None = None,
+                  namespace: str | None = None) -> ScanData:
     """The scan held by messages already read (:func:`read_scan`'s body; ``min_views``: the fewest
     paired frames accepted, default :data:`MIN_VIEWS`, e.g. 1 for a few frames of a scan streamed as
-    they arrive)."""
+    they arrive). A scan recorded under a namespace is read there (:func:`scan_namespace`, ``namespace``)."""
     min_views = MIN_VIEWS if min_views is None else int(min_views)
+    bag_raw, ns = raw, scan_namespace(raw, namespace)
+    raw = _under_namespace(raw, ns)
     warnings = list(raw.warnings)
     infos = _decode(raw, fmt.TOPIC_SCAN_INFO, fmt.STRING, warnings)
     if not infos:
@@ -850,7 +903,8 @@ def scan_from_raw(raw: RawBag, path, *, keep_raw: bool = False, min_views: int |
     return ScanData(path=Path(path), counts=counts, stamps_ns=np.asarray(paired, np.int64), geom=geom, flat=flat,
                     pixel_mask=pixel_mask, valid_mask=valid, info=info, warnings=warnings,
                     geom_corrected=geom_corrected, geom_true=geom_true, recovered=raw.recovered,
-                    raw=raw if keep_raw else None, frame_id=_main_frame(frames_of.get(fmt.TOPIC_GEOMETRY, {})))
+                    raw=bag_raw if keep_raw else None, frame_id=_main_frame(frames_of.get(fmt.TOPIC_GEOMETRY, {})),
+                    namespace=ns)
 
 
 def summarize(path) -> dict:

@@ -253,7 +253,7 @@ def write_scan(path, frames, geom: ConeGeometry, *, info: dict | None = None, st
 
 
 def write_corrected_bag(src, dst, geom_corrected: ConeGeometry, stamps_ns, *, notes: str | None = None,
-                        frame_id: str | None = None) -> Path:
+                        frame_id: str | None = None, namespace: str = "") -> Path:
     """Copy every message of the bag ``src`` to a new bag ``dst`` with /ct/geometry_corrected added.
 
     ``src`` is a bag path or the :class:`~robot_ct_ros.bag.reader.RawBag` already read from it.
@@ -264,27 +264,31 @@ def write_corrected_bag(src, dst, geom_corrected: ConeGeometry, stamps_ns, *, no
 
     As the recorder's bags, every frame opens its own MCAP chunk (with its CRC), so one damaged chunk
     costs one view; each corrected geometry goes in at its stamp's place in log time, beside its frame.
+    ``namespace``: that of a scan recorded under one (``/scanner_a``, ScanData.namespace): the corrected
+    geometries go on ``/scanner_a/ct/geometry_corrected``, beside the scan's other topics, where the reader finds
+    them again.
     """
     from .reader import RawBag, geometry_frame, read_raw_messages
 
     raw = src if isinstance(src, RawBag) else read_raw_messages(src)
     stamps = np.asarray(stamps_ns, np.int64)
     pending = sorted((int(s), i) for i, s in enumerate(stamps))[::-1]  # popped from the end, earliest first
-    frame_id = geometry_frame(raw) if frame_id is None else frame_id
+    frame_id = geometry_frame(raw, namespace) if frame_id is None else frame_id
+    corrected, projection = namespace + fmt.TOPIC_GEOMETRY_CORRECTED, namespace + fmt.TOPIC_PROJECTION
     w = ScanBagWriter(dst, None, flush_every_frame=False, frame_id=frame_id)
     with w:
         for m in raw.messages:
-            if m.topic == fmt.TOPIC_GEOMETRY_CORRECTED:
+            if m.topic == corrected:
                 continue
-            if m.topic == fmt.TOPIC_PROJECTION:
+            if m.topic == projection:
                 w.flush()
             while pending and pending[-1][0] <= m.log_time_ns:
                 s, i = pending.pop()
-                w.write_geometry(geom_corrected, s, fmt.TOPIC_GEOMETRY_CORRECTED, i)
+                w.write_geometry(geom_corrected, s, corrected, i)
             w.write_raw(m.topic, m.msgtype, m.data, m.log_time_ns)
         while pending:
             s, i = pending.pop()
-            w.write_geometry(geom_corrected, s, fmt.TOPIC_GEOMETRY_CORRECTED, i)
+            w.write_geometry(geom_corrected, s, corrected, i)
         if notes:
             w._writer.set_custom_data("robot_ct_ros.notes", notes)
     return Path(dst)

@@ -279,7 +279,7 @@ def write_correction(correction: Correction, out, *, markdown: bool = False, say
         import shutil
         shutil.rmtree(corrected_bag)
     write_corrected_bag(scan.raw if scan.raw is not None else scan.path, corrected_bag, correction.geom,
-                        scan.stamps_ns, frame_id=scan.frame_id,  # the scan's frame: one frame per bag
+                        scan.stamps_ns, frame_id=scan.frame_id, namespace=scan.namespace,  # one frame per bag
                         notes=f"calibrated with {report['method_used']}, "
                               f"{report.get('iterations_run', 0)} iteration(s)")
     files = write_volume(correction.volume, correction.grid, out)

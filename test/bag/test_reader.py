@@ -54,3 +54,64 @@ def test_positions_in_mm_on_the_wire_are_refused_naming_the_topic(tmp_path, caps
     scan = read_scan(bag2)
     assert scan.geom_corrected is None
     assert any("/ct/geometry_corrected ignored" in w and "look like mm" in w for w in scan.warnings), scan.warnings
+
+
+def _namespaced_copy(src, dst, namespaces):
+    """A copy of the bag ``src`` with its contract topics under each of ``namespaces`` (``ros2 bag record -a`` of
+    scanners started with ``namespace:=/scanner_a``); /diagnostics stays global, as the nodes publish it."""
+    from robot_ct_ros.bag import format as fmt
+    from robot_ct_ros.bag.reader import read_raw_messages
+    from robot_ct_ros.bag.writer import ScanBagWriter
+
+    raw = read_raw_messages(src)
+    with ScanBagWriter(dst, None, flush_every_frame=False) as w:
+        for m in raw.messages:
+            for ns in namespaces:
+                w.write_raw(m.topic if m.topic in fmt.GLOBAL_TOPICS else ns + m.topic, m.msgtype, m.data,
+                            m.log_time_ns)
+        w.write_msg("/rosout_like", fmt.typestore().types[fmt.STRING](data="x"), raw.messages[-1].log_time_ns,
+                    fmt.STRING)  # a topic outside the contract: kept as it is
+    return dst
+
+
+def test_a_scan_recorded_under_a_namespace_is_read_there_and_its_correction_goes_beside_it(tmp_path, tiny_scan):
+    """Outside test E #4: ``ros2 bag record -a`` of a scanner run with ``namespace:=/scanner_a`` holds
+    /scanner_a/ct/scan_info, /scanner_a/ct/projection, ...; ``robot-ct info`` refused it ("no /ct/scan_info
+    message"). Such a bag is read under its one namespace; calibrate's corrected copy adds
+    /scanner_a/ct/geometry_corrected, where the reader finds it again."""
+    from robot_ct_ros.bag import summarize
+    from robot_ct_ros.ct.calibration import CalibrationSettings
+    from robot_ct_ros.jobs.calibrate import calibrate_bag
+
+    geom, frames, flat, dead = tiny_scan
+    plain = write_scan(tmp_path / "plain", frames, geom, flat=flat, dead_pixels=dead)
+    bag = _namespaced_copy(plain, tmp_path / "ns_bag", ["/scanner_a"])
+    ref, scan = read_scan(plain), read_scan(bag)
+    assert scan.namespace == "/scanner_a" and ref.namespace == ""
+    assert "read the scan recorded under namespace /scanner_a" in scan.warnings
+    np.testing.assert_array_equal(scan.counts, ref.counts)
+    np.testing.assert_array_equal(scan.geom.source_mm, ref.geom.source_mm)
+    np.testing.assert_array_equal(scan.pixel_mask, ref.pixel_mask)  # flat field and dead pixels read there too
+    assert "scan_error" not in summarize(bag)
+
+    report = calibrate_bag(bag, tmp_path / "cal", CalibrationSettings(method="none"), say=lambda *a: None).report
+    corrected = report["corrected_bag"]
+    topics = summarize(corrected)["topics"]
+    assert "/scanner_a/ct/geometry_corrected" in topics and "/ct/geometry_corrected" not in topics
+    again = read_scan(corrected)
+    assert again.namespace == "/scanner_a" and again.geom_corrected is not None
+    assert summarize(corrected)["has_geometry_corrected"]
+
+
+def test_scans_under_two_namespaces_are_refused_naming_them_unless_one_is_picked(tmp_path, tiny_scan):
+    from robot_ct_ros.bag.reader import ScanBagError
+
+    geom, frames, flat, dead = tiny_scan
+    plain = write_scan(tmp_path / "plain", frames, geom, flat=flat, dead_pixels=dead)
+    bag = _namespaced_copy(plain, tmp_path / "two", ["/scanner_a", "/scanner_b"])
+    with pytest.raises(ScanBagError, match="2 namespaces: /scanner_a, /scanner_b; read one of them"):
+        read_scan(bag)
+    scan = read_scan(bag, namespace="scanner_b")
+    assert scan.namespace == "/scanner_b" and scan.n_views == 12
+    with pytest.raises(ScanBagError, match="namespace /scanner_c asked for; the bag's scans: /scanner_a, /scanner_b"):
+        read_scan(bag, namespace="/scanner_c")
