@@ -75,10 +75,26 @@ def _mcap_files(path: Path) -> list:
         raise ScanBagError(f"{path}: an sqlite3 bag file is read through its bag folder's metadata.yaml; give the "
                            "folder")
     if path.is_file():
+        if _is_zstd_file(path):
+            raise ScanBagError(f"{path}: a zstd-compressed file (a rosbag2 bag with file compression), not an MCAP "
+                               "file; give the bag folder, with its metadata.yaml")
         return [path]
     if path.is_dir():
         return sorted(path.glob("*.mcap"))
     raise ScanBagError(f"{path}: no such bag (neither a bag directory nor an .mcap file)")
+
+
+ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
+"""The first four bytes of a zstd frame (RFC 8878): a file rosbag2 compressed whole (``compression_mode: file``)."""
+
+
+def _is_zstd_file(path: Path) -> bool:
+    """Whether the file at ``path`` starts with :data:`ZSTD_MAGIC` (an MCAP file starts with its own magic)."""
+    try:
+        with open(path, "rb") as f:
+            return f.read(len(ZSTD_MAGIC)) == ZSTD_MAGIC
+    except OSError:
+        return False
 
 
 def _read_with_rosbags(path: Path) -> tuple[list, int]:

@@ -115,3 +115,26 @@ def test_scans_under_two_namespaces_are_refused_naming_them_unless_one_is_picked
     assert scan.namespace == "/scanner_b" and scan.n_views == 12
     with pytest.raises(ScanBagError, match="namespace /scanner_c asked for; the bag's scans: /scanner_a, /scanner_b"):
         read_scan(bag, namespace="/scanner_c")
+
+
+def test_a_file_compressed_bag_file_given_alone_is_named_as_such(tmp_path, tiny_scan, capsys):
+    """Outside test E #5: ``robot-ct info file_zstd/file_zstd_0.mcap.zstd`` (rosbag2's file compression: the whole
+    MCAP file in a zstd frame) said "no MCAP magic at the start; scanning for chunks; ... recovered 0 messages", as
+    for a damaged file. A zstd frame is recognised by its magic and the bag folder asked for."""
+    import zstandard
+
+    from robot_ct_ros.bag.reader import ScanBagError, read_raw_messages
+    from robot_ct_ros.cli import main
+
+    geom, frames, flat, dead = tiny_scan
+    bag = write_scan(tmp_path / "plain", frames, geom, flat=flat)
+    mcap = next(bag.glob("*.mcap"))
+    zst = tmp_path / "file_zstd_0.mcap.zstd"
+    zst.write_bytes(zstandard.ZstdCompressor().compress(mcap.read_bytes()))
+    with pytest.raises(ScanBagError, match="a zstd-compressed file .*file compression.*give the bag folder, with its "
+                                           "metadata.yaml"):
+        read_raw_messages(zst)
+    assert main(["info", str(zst)]) == 2
+    err = capsys.readouterr().err
+    assert "zstd-compressed" in err and "scanning for chunks" not in err, err
+    assert len(read_raw_messages(mcap).messages) == 12 + 12 + 2  # a plain MCAP file is read as before
