@@ -54,13 +54,16 @@ class RawMessage:
 
 @dataclass(frozen=True)
 class RawBag:
-    """Messages of a bag in log-time order; ``recovered`` when the MCAP had to be scanned."""
+    """Messages of a bag in log-time order; ``recovered`` when the MCAP had to be scanned. ``qos``: topic -> the
+    QoS profiles its publishers offered (rosbags ``Qos``, one per publisher), as metadata.yaml records them
+    (``offered_qos_profiles``); a topic without a recorded profile, or a bag read without metadata.yaml, has none."""
 
     path: Path
     messages: list
     warnings: list
     recovered: bool
     reader: str  # "rosbags" or "mcap-scan" (record by record, see the module docstring)
+    qos: dict = field(default_factory=dict)
 
     def topics(self) -> dict:
         out: dict[str, list] = {}
@@ -97,16 +100,22 @@ def _is_zstd_file(path: Path) -> bool:
         return False
 
 
-def _read_with_rosbags(path: Path) -> tuple[list, int]:
-    """The messages rosbags reads through metadata.yaml, and how many metadata.yaml announces."""
+def _read_with_rosbags(path: Path) -> tuple[list, int, dict]:
+    """The messages rosbags reads through metadata.yaml, how many metadata.yaml announces, and each topic's
+    offered QoS profiles (:attr:`RawBag.qos`)."""
     from rosbags.rosbag2 import Reader
 
     out = []
+    qos: dict[str, list] = {}
     with Reader(path) as reader:
+        for conn in reader.connections:
+            profiles = list(getattr(conn.ext, "offered_qos_profiles", None) or [])
+            if profiles:
+                qos.setdefault(conn.topic, []).extend(profiles)
         for conn, t, data in reader.messages():
             out.append(RawMessage(conn.topic, conn.msgtype, int(t), bytes(data)))
         announced = int(reader.message_count)
-    return out, announced
+    return out, announced, qos
 
 
 def _decompress(compression: str, data: bytes, size: int) -> bytes:
@@ -350,20 +359,20 @@ def read_raw_messages(path) -> RawBag:
     warnings: list[str] = []
     if path.is_dir() and (path / "metadata.yaml").is_file():
         try:
-            msgs, announced = _read_with_rosbags(path)
+            msgs, announced, qos = _read_with_rosbags(path)
             msgs.sort(key=lambda m: m.log_time_ns)
             files = _mcap_files(path) if len(msgs) < announced else []
             if not files:
-                return RawBag(path, msgs, warnings, False, "rosbags")
+                return RawBag(path, msgs, warnings, False, "rosbags", qos)
             # rosbags matches metadata.yaml's topics to the MCAP's channels, QoS included: a mismatch drops a
             # topic without an error. The MCAP itself holds the messages (readers ignore QoS: the contract)
             scanned = _scan_mcaps(files, [])
             if len(scanned) <= len(msgs):
-                return RawBag(path, msgs, warnings, False, "rosbags")
+                return RawBag(path, msgs, warnings, False, "rosbags", qos)
             warnings.append(f"rosbags read {len(msgs)} of the {announced} messages metadata.yaml announces (its "
                             "topics, QoS or types do not match the MCAP's channels); read from the MCAP file instead")
             scanned.sort(key=lambda m: m.log_time_ns)
-            return RawBag(path, scanned, warnings, False, "mcap-scan")
+            return RawBag(path, scanned, warnings, False, "mcap-scan", qos)
         except ScanBagError:
             raise
         except Exception as exc:  # noqa: BLE001 - any failure: fall back to scanning the MCAP

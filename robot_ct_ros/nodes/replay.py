@@ -3,8 +3,10 @@
 Publishes (the bag's own messages, byte for byte, original header stamps)
   /ct/scan_info, /ct/flat_field, /ct/dead_pixels: transient-local, at start
   /source/beam_on: transient-local (depth 1), as live, in its place among the frames
-  /ct/projection, /ct/geometry, ... every other topic of the bag: reliable, one frame per
-  1 / rate_hz seconds (the messages recorded between two frames go with the later one)
+  /ct/projection, /ct/geometry, ... every other topic of the bag: one frame per 1 / rate_hz seconds (the
+  messages recorded between two frames go with the later one); the contract's topics with the contract's QoS,
+  the others with the QoS the bag recorded for them (replay_qos: a recorded transient-local /tf_static or
+  /robot_description stays transient-local), reliable and volatile when it recorded none
   ~/report (std_msgs/String, transient-local): the JSON report when offline calibration is done
 Parameters
   bag_path (bag directory or .mcap, damaged bags are recovered), rate_hz (frames per second;
@@ -26,6 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
 from robot_ct_ros.bag import format as fmt
@@ -56,6 +59,35 @@ def frame_groups(messages) -> tuple[list, list]:
         else:
             groups.append(current)
     return latched, groups
+
+
+def replay_qos(topic: str, offered=()) -> QoSProfile:
+    """The QoS replay republishes ``topic`` with, given the profiles its publishers offered when it was recorded
+    (``offered``: rosbags ``Qos``, one per publisher, :attr:`robot_ct_ros.bag.reader.RawBag.qos`).
+
+    The contract's topics (format.TOPIC_TYPES) keep the contract's profile (LATCHED for the latched and state
+    topics, STREAM for the others), which the nodes subscribe with, whatever an older bag recorded. Any other
+    topic takes the recorded reliability and durability, as ``ros2 bag play`` does: best-effort when every
+    publisher offered best-effort, else reliable; transient-local when every publisher offered transient-local,
+    else volatile. A transient-local topic keeps the sum of the publishers' depths (what a late subscriber got from
+    them live: three static transform broadcasters of depth 1 give depth 3; keep-all if one kept all); a volatile
+    one STREAM's depth. Without a recorded profile: STREAM (reliable, volatile)."""
+    from rosbags.interfaces import QosDurability, QosHistory, QosReliability
+
+    if topic in fmt.LATCHED_TOPICS or topic in fmt.STATE_TOPICS:
+        return LATCHED
+    if topic in fmt.TOPIC_TYPES or not offered:
+        return STREAM
+    best_effort = all(q.reliability == QosReliability.BEST_EFFORT for q in offered)
+    reliability = ReliabilityPolicy.BEST_EFFORT if best_effort else ReliabilityPolicy.RELIABLE
+    if not all(q.durability == QosDurability.TRANSIENT_LOCAL for q in offered):
+        return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=STREAM.depth, reliability=reliability,
+                          durability=DurabilityPolicy.VOLATILE)
+    if any(q.history == QosHistory.KEEP_ALL for q in offered):
+        return QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=reliability,
+                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=max(1, sum(max(0, int(q.depth)) for q in offered)),
+                      reliability=reliability, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 def _offline_methods():
@@ -104,6 +136,7 @@ class ReplayNode(Node):
         for w in raw.warnings:
             self.get_logger().warning(w)
         self.latched, self.groups = frame_groups(raw.messages)
+        self._recorded_qos = raw.qos
         self.published_frames = 0
         self.republish_done = self.rate_hz <= 0
         self.report: dict | None = None
@@ -129,7 +162,7 @@ class ReplayNode(Node):
     def _publisher(self, topic: str, msgtype: str):
         pub = self._pubs.get(topic)
         if pub is None:
-            qos = LATCHED if topic in fmt.LATCHED_TOPICS or topic in fmt.STATE_TOPICS else STREAM
+            qos = replay_qos(topic, self._recorded_qos.get(topic, ()))
             pub = self.create_publisher(message_class(msgtype), fmt.node_topic(topic), qos)  # in the namespace
             self._pubs[topic] = pub
         return pub

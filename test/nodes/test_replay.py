@@ -195,3 +195,73 @@ def test_an_unwritable_output_dir_is_refused_at_start_when_a_job_will_write_ther
     node = ros.add(ReplayNode(context=ros.context, parameter_overrides=_params(
         bag_path=str(bag), rate_hz=0.0, output_dir=str(tmp_path / "a_file" / "out"))))
     assert node.done and node.error is None
+
+
+def _with_extra_topics(bag, out, extra):
+    """A copy of ``bag`` at ``out`` with ``extra`` [(topic, msgtype, offered QoS list, [CDR bytes, ...])] written
+    just before its first message, as ``ros2 bag record -a`` records other nodes' topics."""
+    from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+
+    ts = fmt.typestore()
+    with Reader(bag) as r, Writer(out, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        conns = {c.topic: w.add_connection(c.topic, c.msgtype, typestore=ts,
+                                           offered_qos_profiles=c.ext.offered_qos_profiles) for c in r.connections}
+        first = True
+        for c, t, d in r.messages():
+            if first:
+                for topic, msgtype, qos, datas in extra:
+                    conn = w.add_connection(topic, msgtype, typestore=ts, offered_qos_profiles=qos)
+                    for k, data in enumerate(datas):
+                        w.write(conn, t - len(datas) + k, data)
+                first = False
+            w.write(conns[c.topic], t, d)
+    return out
+
+
+def _recorded_qos(depth: int, latched: bool, best_effort: bool = False):
+    from rosbags.interfaces import QosReliability
+
+    q = fmt._qos(depth, latched)
+    return q._replace(reliability=QosReliability.BEST_EFFORT) if best_effort else q
+
+
+def test_a_topic_recorded_transient_local_is_replayed_transient_local(ros, tmp_path):
+    """Outside test E, finding 2: replay gave the recorded QoS only to the contract's topics and reliable volatile to
+    every other one, so a /robot_description recorded transient-local (depth 1, as robot_state_publisher offers it)
+    never reached a transient-local subscriber that came after the replay (late_tl.py: 0 messages; ``ros2 bag play``
+    honours the bag's offered_qos_profiles). Now a late transient-local subscriber gets it."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+    ts = fmt.typestore()
+    desc = ts.serialize_cdr(ts.types[fmt.STRING](data="<robot name='ct'/>"), fmt.STRING)
+    bag = _with_extra_topics(_bag(tmp_path)[0], tmp_path / "with_desc",
+                             [("/robot_description", fmt.STRING, [_recorded_qos(1, True)], [desc])])
+    node = ros.add(ReplayNode(context=ros.context, parameter_overrides=_params(bag_path=str(bag), rate_hz=100.0)))
+    assert ros.spin_until(lambda: node.done, timeout_s=20.0)
+    probe = ros.node("late")
+    got = []
+    probe.create_subscription(String, "/robot_description", got.append,
+                              QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                                         durability=DurabilityPolicy.TRANSIENT_LOCAL))
+    assert ros.spin_until(lambda: got, timeout_s=10.0), "a late transient-local subscriber got no /robot_description"
+    assert got[0].data == "<robot name='ct'/>"
+    infos = probe.get_publishers_info_by_topic("/robot_description")
+    assert [i.qos_profile.durability for i in infos] == [DurabilityPolicy.TRANSIENT_LOCAL]
+
+
+def test_replay_qos_follows_the_recorded_offers_outside_the_contract():
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, ReliabilityPolicy
+
+    from robot_ct_ros.nodes.replay import replay_qos
+
+    tl, vol = _recorded_qos(1, True), _recorded_qos(10, False)
+    q = replay_qos("/tf_static", [tl, tl, tl])  # three static broadcasters: a late subscriber gets all three
+    assert (q.durability, q.reliability, q.history, q.depth) == (DurabilityPolicy.TRANSIENT_LOCAL,
+                                                                 ReliabilityPolicy.RELIABLE, HistoryPolicy.KEEP_LAST, 3)
+    q = replay_qos("/tf_static", [tl, vol])  # mixed offers: volatile, as ros2 bag play falls back to
+    assert (q.durability, q.depth) == (DurabilityPolicy.VOLATILE, STREAM.depth)
+    q = replay_qos("/scan", [_recorded_qos(5, False, best_effort=True)])
+    assert (q.reliability, q.durability) == (ReliabilityPolicy.BEST_EFFORT, DurabilityPolicy.VOLATILE)
+    assert replay_qos("/robot_description", []) == STREAM  # nothing recorded: as before
+    assert replay_qos(fmt.TOPIC_BEAM_ON, [vol]) == LATCHED  # the contract's topics keep the contract's QoS
+    assert replay_qos(fmt.TOPIC_PROJECTION, [_recorded_qos(5, False, best_effort=True)]) == STREAM
