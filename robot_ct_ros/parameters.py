@@ -5,7 +5,8 @@ carries its help text, unit, bounds or choices, and how it appears as a ROS para
 SI units at that boundary: ``ros_scale`` multiplies the core value, e.g. 1e-3 for mm -> m;
 ``ros_none`` is the ROS value that stands for None, since ROS parameters have no null). A field
 whose default is a tuple is a list of numbers (a ROS double or integer array; ``length`` items,
-each checked against the bounds); an optional list (default None) without ``ros_none`` is an empty
+each checked against the bounds) or, with ``item_kind=str`` or a default of strings, a list of strings (a
+ROS string array, any number of items); an optional list (default None) without ``ros_none`` is an empty
 array on ROS (unset); an optional number, string or flag needs a ``ros_none``. The
 nodes declare their parameters from these fields (:func:`robot_ct_ros.nodes.common.declare_settings`),
 the CLI builds its options from them, and ``to_dict`` goes into report.json, so a new setting
@@ -49,9 +50,10 @@ def setting(default, help: str, *, unit: str = "", minimum=None, maximum=None, c
     ``ros_scale`` (default ``unit``); ``ros=False`` keeps a field off ROS; ``kind`` is the value
     type when the default is None (e.g. an optional int; ``tuple`` for an optional list).
     List fields (a tuple default, or ``kind=tuple``): ``length`` is the number of items (default:
-    the length of a non-empty default, else any number), ``item_kind`` float or int (default: int
-    when every item of the default is an int, else float); bounds and ``ros_scale`` apply to each
-    item, and an optional list (default None) set to an empty list on ROS counts as unset."""
+    the length of a non-empty default of numbers, else any number), ``item_kind`` float, int or str (default:
+    str when every item of a non-empty default is a string, int when every one is an int, else float); bounds and
+    ``ros_scale`` apply to each number, and an optional list (default None) set to an empty list on ROS counts as
+    unset."""
     return dataclasses.field(default=default, metadata={
         "help": help, "unit": unit, "minimum": minimum, "maximum": maximum, "choices": choices,
         "ros_name": ros_name, "ros_scale": float(ros_scale),
@@ -77,15 +79,15 @@ class SettingSpec:
     ros_none: Any
     ros: bool
     length: int | None = None      # list fields: the number of items (None = any)
-    item_kind: type | None = None  # list fields: float or int
+    item_kind: type | None = None  # list fields: float, int or str
 
     def to_ros(self, value):
         """The ROS parameter value of a core value (None -> ``ros_none``)."""
         if value is None:
             return self.ros_none
         if self.kind is tuple:
-            if self.item_kind is int:
-                return [int(x) for x in value]
+            if self.item_kind in (int, str):
+                return [self.item_kind(x) for x in value]
             return [float(x) * self.ros_scale for x in value]
         if self.kind is float:
             return float(value) * self.ros_scale
@@ -98,8 +100,8 @@ class SettingSpec:
         if self.kind is tuple:
             if value is None or (self.default is None and len(value) == 0):
                 return None  # an optional list left unset (or set to [])
-            if self.item_kind is int:
-                return tuple(int(x) for x in value)
+            if self.item_kind in (int, str):
+                return tuple(self.item_kind(x) for x in value)
             return tuple(_unscaled(x, self.ros_scale) for x in value)
         if self.kind is float:
             return _unscaled(value, self.ros_scale)
@@ -150,11 +152,15 @@ class SettingSpec:
 
     def _check_items(self, value) -> None:
         unit = f" {self.unit}" if self.unit else ""
-        what = "whole numbers" if self.item_kind is int else "numbers"
+        what = {int: "whole numbers", str: "strings"}.get(self.item_kind, "numbers")
         if isinstance(value, (str, bytes)) or not hasattr(value, "__len__"):
             raise ValueError(f"{self.name} must be a list of {what}{unit}, got {value!r}")
         if self.length is not None and len(value) != self.length:
             raise ValueError(f"{self.name} needs {self.length} {what}{unit}, got {list(value)!r}")
+        if self.item_kind is str:
+            if not all(isinstance(x, str) for x in value):
+                raise ValueError(f"{self.name} must be a list of strings, got {list(value)!r}")
+            return
         for x in value:
             if isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x) or (
                     self.item_kind is int and isinstance(x, float) and not x.is_integer()):
@@ -177,10 +183,11 @@ def specs(cls_or_obj) -> tuple[SettingSpec, ...]:
         length, item_kind = m.get("length"), m.get("item_kind")
         if kind is tuple:
             items = f.default if isinstance(f.default, tuple) else ()
-            if length is None and items:
-                length = len(items)
             if item_kind is None:
-                item_kind = int if items and all(type(x) is int for x in items) else float
+                item_kind = (str if items and all(isinstance(x, str) for x in items) else
+                             int if items and all(type(x) is int for x in items) else float)
+            if length is None and items and item_kind is not str:
+                length = len(items)
         out.append(SettingSpec(f.name, f.default, kind, m["help"], m["unit"], m["minimum"], m["maximum"],
                                None if choices is None else tuple(choices), m["ros_name"] or f.name,
                                m["ros_scale"], m["ros_unit"], m["ros_none"], m["ros"], length, item_kind))

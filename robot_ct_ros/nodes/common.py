@@ -333,7 +333,7 @@ def declare_settings(node, cls, *, prefix: str = "", exclude=(), **defaults):
     instead of reporting a value it does not use (restart the node to change one). ``exclude``:
     fields the node declares its own way (they keep their defaults here). ``defaults`` override field defaults (core units). A value of
     the wrong type or out of range raises ValueError naming the parameter (never a traceback from
-    rclpy's internals). List fields (tuple defaults) are double or integer arrays; an optional list
+    rclpy's internals). List fields (tuple defaults) are double, integer or string arrays; an optional list
     (default None, no ``ros_none``) is an empty array unless given (:func:`declare_optional_array`); an optional
     number, string or flag needs a ``ros_none``."""
     import math
@@ -375,11 +375,14 @@ def declare_settings(node, cls, *, prefix: str = "", exclude=(), **defaults):
             yaml_booleans_as_words(node, name, s.choices)
         refuse_mistyped_file_value(node, name, _unset_parameter_type(s) if default is None or (
             s.kind is tuple and not default) else Parameter.Type.from_parameter_value(default), s.choices or ())
+        given_empty = s.kind is tuple and s.item_kind is str and default is not None and given_as_empty_list(node, name)
         try:
             if default is None:  # an optional list with no ROS stand-in: unset is the empty array
                 param = declare_optional_array(node, name, _unset_parameter_type(s), desc)
             else:
                 param = node.declare_parameter(name, default, desc)
+            if given_empty:  # stored with its type: rclpy types an empty list as a byte array
+                param = node._parameters[name] = Parameter(name, Parameter.Type.STRING_ARRAY, [])
             values[s.ros_name] = value = param.value
             if (core := s.from_ros(value)) is not None:
                 s.check(core)  # this field alone, so the message names the ROS parameter
@@ -662,11 +665,26 @@ def yaml_booleans_as_words(node, name: str, choices) -> None:
         node._parameter_overrides[name] = Parameter(name, Parameter.Type.STRING, word)
 
 
+def given_as_empty_list(node, name: str) -> bool:
+    """Was ``name`` given as ``[]`` (``-p name:=[]``, ``name: []`` in a file)? Then its override is dropped: rcl reads
+    an empty list as no value, and rclpy declared the parameter without one (a string list read as "must be
+    given"); :func:`declare_settings` stores the empty list instead. Call before declaring ``name`` (rclpy's
+    ``Node._parameter_overrides``, as :func:`whole_numbers_as_doubles`)."""
+    from rclpy.parameter import Parameter
+
+    override = node._parameter_overrides.get(name)
+    if override is None or override.type_ != Parameter.Type.NOT_SET:
+        return False
+    del node._parameter_overrides[name]
+    return True
+
+
 def _unset_parameter_type(spec):
     """The rclpy Parameter.Type of an optional list setting (declared empty when not given)."""
     from rclpy.parameter import Parameter
 
-    return Parameter.Type.INTEGER_ARRAY if spec.item_kind is int else Parameter.Type.DOUBLE_ARRAY
+    return {int: Parameter.Type.INTEGER_ARRAY, str: Parameter.Type.STRING_ARRAY}.get(spec.item_kind,
+                                                                                 Parameter.Type.DOUBLE_ARRAY)
 
 
 def declare_optional_array(node, name: str, array_type, descriptor):

@@ -6,14 +6,16 @@ Publishes (the bag's own messages, byte for byte, original header stamps)
   /ct/projection, /ct/geometry, ... every other topic of the bag: one frame per 1 / rate_hz seconds (the
   messages recorded between two frames go with the later one); the contract's topics with the contract's QoS,
   the others with the QoS the bag recorded for them (replay_qos: a recorded transient-local /tf_static or
-  /robot_description stays transient-local), reliable and volatile when it recorded none
+  /robot_description stays transient-local), reliable and volatile when it recorded none; the topics named in
+  skip_topics (default /rosout, /parameter_events: the recorded graph's logs and parameter events) are not
+  republished
   ~/report (std_msgs/String, transient-local): the JSON report when offline calibration is done
 Parameters
   bag_path (bag directory or .mcap, damaged bags are recovered), rate_hz (frames per second;
   <= 0: do not republish), wait_for_subscribers (start republishing once /ct/projection has this
-  many subscribers), method ("" = no offline job; "none" = reconstruct only; else a calibration
-  method, robot_ct_ros.ct.calibration.registry), the other calibration settings
-  (robot_ct_ros.ct.calibration.CalibrationSettings: iterations, prior_sigma_translation_m, ...),
+  many subscribers), skip_topics (recorded topics not republished), method ("" = no offline job;
+  "none" = reconstruct only; else a calibration method, robot_ct_ros.ct.calibration.registry), the other
+  calibration settings (robot_ct_ros.ct.calibration.CalibrationSettings: iterations, prior_sigma_translation_m, ...),
   output_dir (corrected bag, volume .npy/.tif and report.json, as ``robot-ct calibrate``; with a method,
   refused at start if it cannot be written),
   exit_when_done (end the node when all is done, exit status 1 if the job failed; default: spin on).
@@ -105,6 +107,9 @@ class ReplaySettings(JobGridSettings):
     rate_hz: float = setting(10.0, "frames per second when republishing; <= 0: do not republish", unit="Hz")
     wait_for_subscribers: int = setting(0, "start republishing once /ct/projection has this many subscribers",
                                         minimum=0)
+    skip_topics: tuple = setting(("/rosout", "/parameter_events"), "recorded topics not republished (the recorded "
+                                 "graph's log lines and parameter events would reach the live graph's tools); []: none",
+                                 item_kind=str)
     method: str = setting("", "offline job after republishing: empty = none; none = reconstruct only; else a "
                               "calibration method", choices=_offline_methods)
     output_dir: str = setting("replay_out", "corrected bag, volume .npy/.tif and report.json")
@@ -135,7 +140,14 @@ class ReplayNode(Node):
             raise ValueError(f"parameter bag_path: {exc}") from None
         for w in raw.warnings:
             self.get_logger().warning(w)
-        self.latched, self.groups = frame_groups(raw.messages)
+        skip = {"/" + t.lstrip("/") for t in rs.skip_topics if t.strip("/")}
+        skipped = {t: n for t, (_, n) in raw.topics().items() if t in skip}
+        messages = [m for m in raw.messages if m.topic not in skip] if skipped else raw.messages
+        if skipped and self.rate_hz > 0:
+            self.get_logger().info("not republished (skip_topics): "
+                                   + ", ".join(f"{t} ({n} messages)" for t, n in sorted(skipped.items())))
+        self.skipped_topics = sorted(skipped)
+        self.latched, self.groups = frame_groups(messages)
         self._recorded_qos = raw.qos
         self.published_frames = 0
         self.republish_done = self.rate_hz <= 0

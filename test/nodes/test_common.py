@@ -168,3 +168,29 @@ def test_the_node_executable_ends_with_one_line_and_status_2_on_a_wrong_type_in_
     assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
     last = proc.stderr.strip().splitlines()[-1]
     assert "parameter kvp" in last and "'ninety'" in last and "over0.yaml" in last, proc.stderr
+def test_a_list_of_strings_setting_is_a_string_array_parameter_and_may_be_given_empty(ros):
+    """replay's skip_topics is a list of strings, which settings knew only as lists of numbers: it is declared a string
+    array with its default, any number of names is taken, and ``-p skip_topics:=[]`` (which rcl reads as no value)
+    gives the empty list; a list of numbers is refused."""
+    import pytest
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+
+    from robot_ct_ros.nodes.common import declare_settings
+    from robot_ct_ros.nodes.replay import ReplaySettings
+
+    def settings(name, args=(), overrides=()):
+        node = ros.add(Node(name, context=ros.context, cli_args=["--ros-args", *args], parameter_overrides=[
+            Parameter("bag_path", value="x"), *overrides]))
+        return node, declare_settings(node, ReplaySettings)
+
+    node, s = settings("strings_default")
+    assert s.skip_topics == ("/rosout", "/parameter_events")
+    assert node.get_parameter("skip_topics").type_ == Parameter.Type.STRING_ARRAY
+    node, s = settings("strings_three", ["-p", 'skip_topics:=["/tf", "/tf_static", "/rosout"]'])
+    assert s.skip_topics == ("/tf", "/tf_static", "/rosout")
+    node, s = settings("strings_empty", ["-p", "skip_topics:=[]"])
+    assert s.skip_topics == ()
+    assert node.get_parameter("skip_topics").type_ == Parameter.Type.STRING_ARRAY
+    with pytest.raises(ValueError, match="skip_topics"):
+        settings("strings_numbers", ["-p", "skip_topics:=[1, 2]"])

@@ -265,3 +265,46 @@ def test_replay_qos_follows_the_recorded_offers_outside_the_contract():
     assert replay_qos("/robot_description", []) == STREAM  # nothing recorded: as before
     assert replay_qos(fmt.TOPIC_BEAM_ON, [vol]) == LATCHED  # the contract's topics keep the contract's QoS
     assert replay_qos(fmt.TOPIC_PROJECTION, [_recorded_qos(5, False, best_effort=True)]) == STREAM
+
+
+def test_the_recorded_graphs_log_and_parameter_events_are_not_republished(ros, tmp_path):
+    """Outside test E, finding 3: replay put a bag's recorded /rosout and /parameter_events back into the live graph
+    (rosout_check.py: 48 stale log lines and 1 foreign parameter event reached live tools). They are skipped by
+    default (skip_topics), and the log says so; ``skip_topics: [""]`` republishes them."""
+    from rcl_interfaces.msg import Log, ParameterEvent
+
+    ts = fmt.typestore()
+    log_t, pev_t = "rcl_interfaces/msg/Log", "rcl_interfaces/msg/ParameterEvent"
+    logs = [ts.serialize_cdr(ts.types[log_t](stamp=ts.types["builtin_interfaces/msg/Time"](sec=1, nanosec=k),
+                                             level=20, name="recorded_node", msg=f"line {k}", file="", function="",
+                                             line=0), log_t) for k in range(3)]
+    pev = ts.serialize_cdr(ts.types[pev_t](stamp=ts.types["builtin_interfaces/msg/Time"](sec=1, nanosec=0),
+                                           node="/recorded_node", new_parameters=[], changed_parameters=[],
+                                           deleted_parameters=[]), pev_t)
+    vol = _recorded_qos(10, False)
+    bag = _with_extra_topics(_bag(tmp_path)[0], tmp_path / "with_log",
+                             [("/rosout", log_t, [vol], logs), ("/parameter_events", pev_t, [vol], [pev])])
+    probe = ros.node("probe")
+    got = {"log": 0, "events": 0}
+    probe.create_subscription(Log, "/rosout", lambda m: got.__setitem__(
+        "log", got["log"] + (m.name == "recorded_node")), 100)
+    probe.create_subscription(ParameterEvent, "/parameter_events", lambda m: got.__setitem__(
+        "events", got["events"] + (m.node == "/recorded_node")), 100)
+    frames = []
+    probe.create_subscription(Image, fmt.TOPIC_PROJECTION, frames.append, STREAM)
+    node = ros.add(ReplayNode(context=ros.context, parameter_overrides=_params(
+        bag_path=str(bag), rate_hz=100.0, wait_for_subscribers=1)))
+    assert ros.spin_until(lambda: node.done and len(frames) == N, timeout_s=20.0)
+    ros.spin_for(0.3)
+    assert got == {"log": 0, "events": 0}
+    assert node.skipped_topics == ["/parameter_events", "/rosout"]
+    # the same bag with nothing skipped: the probe receives them (so the zeros above are the skipping's)
+    ros.executor.remove_node(node)
+    ros.nodes.remove(node)
+    node.destroy_node()
+    frames.clear()
+    node = ros.add(ReplayNode(context=ros.context, parameter_overrides=_params(
+        bag_path=str(bag), rate_hz=100.0, wait_for_subscribers=1, skip_topics=[""])))
+    assert node.skipped_topics == []
+    assert ros.spin_until(lambda: node.done and len(frames) == N and got == {"log": 3, "events": 1},
+                          timeout_s=20.0), got
