@@ -1,7 +1,9 @@
 """replay: republishes a scan bag and/or calibrates it offline.
 
 Publishes (the bag's own messages, byte for byte, original header stamps)
-  /ct/scan_info, /ct/flat_field, /ct/dead_pixels: transient-local, at start
+  /ct/scan_info, /ct/flat_field, /ct/dead_pixels: transient-local, just before the first frame (once
+  /ct/projection has wait_for_subscribers subscribers: nothing is published before; every topic's publisher is
+  made at start, so a subscriber that comes during the wait is matched by then)
   /source/beam_on: transient-local (depth 1), as live, in its place among the frames
   /ct/projection, /ct/geometry, ... every other topic of the bag: one frame per 1 / rate_hz seconds (the
   messages recorded between two frames go with the later one); the contract's topics with the contract's QoS,
@@ -154,9 +156,11 @@ class ReplayNode(Node):
         self.report: dict | None = None
         self.error: str | None = None
         self._pubs: dict[str, object] = {}
+        self._unavailable: set[str] = set()  # topics whose message type this ROS install lacks
         self._report_pub = self.create_publisher(String, "~/report", LATCHED)
         self._job: threading.Thread | None = None
         self._next = 0
+        self._latched_published = False
         self.exit_code = 0
         if rs.exit_when_done:
             self.create_timer(0.2, self._exit_if_done)
@@ -164,8 +168,8 @@ class ReplayNode(Node):
         self.get_logger().info(f"{self.bag_path}: {n_frames} frames, {len(raw.messages)} messages"
                                + (f"; republishing at {self.rate_hz} Hz" if self.rate_hz > 0 else ""))
         if self.rate_hz > 0:
-            for m in self.latched:
-                self._publish(m)
+            for m in {(m.topic, m.msgtype): m for m in messages}.values():
+                self._publisher_of(m)  # discovery runs during the wait
             self._projection_pub = self._publisher(fmt.TOPIC_PROJECTION, fmt.IMAGE)
             self._timer = self.create_timer(1.0 / self.rate_hz, self._tick)
         elif self.method:
@@ -179,15 +183,31 @@ class ReplayNode(Node):
             self._pubs[topic] = pub
         return pub
 
-    def _publish(self, m) -> None:
+    def _publisher_of(self, m):
+        """The publisher of message ``m``'s topic, None (with one warning per topic) for a type this ROS install
+        lacks."""
+        if m.topic in self._unavailable:
+            return None
         try:
-            self._publisher(m.topic, m.msgtype).publish(m.data)
-        except (ImportError, AttributeError, ValueError) as exc:  # a type this ROS install lacks
-            self.get_logger().warning(f"cannot republish {m.topic} ({m.msgtype}): {exc}", once=True)
+            return self._publisher(m.topic, m.msgtype)
+        except (ImportError, AttributeError, ValueError) as exc:
+            self._unavailable.add(m.topic)
+            self.get_logger().warning(f"cannot republish {m.topic} ({m.msgtype}): {exc}")
+            return None
+
+    def _publish(self, m) -> None:
+        pub = self._publisher_of(m)
+        if pub is not None:
+            pub.publish(m.data)
 
     def _tick(self) -> None:
-        if self._next == 0 and self._projection_pub.get_subscription_count() < self.wait_for_subscribers:
-            return
+        if self._next == 0:
+            if self._projection_pub.get_subscription_count() < self.wait_for_subscribers:
+                return
+            if not self._latched_published:  # after the wait: a volatile subscriber that came during it gets them
+                self._latched_published = True
+                for m in self.latched:
+                    self._publish(m)
         if self._next < len(self.groups):
             for m in self.groups[self._next]:
                 self._publish(m)

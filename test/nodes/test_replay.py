@@ -308,3 +308,30 @@ def test_the_recorded_graphs_log_and_parameter_events_are_not_republished(ros, t
     assert node.skipped_topics == []
     assert ros.spin_until(lambda: node.done and len(frames) == N and got == {"log": 3, "events": 1},
                           timeout_s=20.0), got
+
+
+def test_the_latched_topics_are_published_after_the_wait_for_subscribers(ros, tmp_path):
+    """Outside test E, finding 8: replay published /ct/scan_info, the flat field and the dead pixels when it
+    started, before waiting for wait_for_subscribers, where the docs say replay starts once /ct/projection has that
+    many subscribers: a volatile /ct/scan_info subscriber in another process, which matched later, got nothing
+    (qos_early.py: 0 on two bags of three); this one, in the same process, got it before the wait was over. Nothing
+    is published before the wait ends now; the latched topics go just before the first frame, to publishers made
+    at start, which the subscribers that came during the wait have matched."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+    bag = _bag(tmp_path)[0]
+    probe = ros.node("probe")
+    volatile = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+    info, frames = [], []
+    probe.create_subscription(String, fmt.TOPIC_SCAN_INFO, info.append, volatile)
+    probe.create_subscription(Image, fmt.TOPIC_PROJECTION, frames.append, STREAM)
+    node = ros.add(ReplayNode(context=ros.context, parameter_overrides=_params(
+        bag_path=str(bag), rate_hz=100.0, wait_for_subscribers=2)))
+    assert ros.spin_until(lambda: node._pubs[fmt.TOPIC_SCAN_INFO].get_subscription_count() == 1, timeout_s=10.0)
+    ros.spin_for(0.3)
+    assert info == [] and frames == [] and node.published_frames == 0  # one subscriber of two: still waiting
+    ros.node("probe2").create_subscription(Image, fmt.TOPIC_PROJECTION, lambda m: None, STREAM)
+    assert ros.spin_until(lambda: node.done and len(frames) == N, timeout_s=20.0)
+    ros.spin_for(0.2)
+    assert len(info) == 1, "a volatile /ct/scan_info subscriber that came during the wait got nothing"
+    assert json.loads(info[0].data)["n_rows"] == 8
