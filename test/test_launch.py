@@ -111,3 +111,56 @@ def test_every_launched_node_starts_with_its_parameter_files_in_a_namespace(name
                 node.destroy_node()
         finally:
             rclpy.try_shutdown(context=context)
+
+
+def test_one_parameter_file_combining_every_nodes_file_gives_each_node_only_its_own(tmp_path, monkeypatch):
+    """Outside test E, finding 7: config/arm_driver.yaml put the arms' parameters under /**, which matches every
+    node, so one file combining all of config/<node>.yaml (run/all.yaml) made source_control warn about 23 and
+    geometry_publisher about 20 parameters they do not have. Each arm has its own full section now: every launched
+    node started with the combined file is given none it lacks, apart from hand_eye.yaml's hand_eye.* (a /**
+    section on purpose: one calibration shared by three nodes), and each arm still gets every parameter of its
+    section."""
+    import inspect
+    import os
+
+    import rclpy
+    import yaml
+    from rclpy.context import Context
+
+    from robot_ct_ros.nodes.common import warn_undeclared_parameters
+
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    monkeypatch.chdir(tmp_path)
+    _, _, nodes = _nodes()
+    files = sorted({_config(ref) for *_, refs, _ in nodes for ref in refs})
+    combined = tmp_path / "all.yaml"
+    combined.write_text("\n".join(f.read_text() for f in files))
+    arm_sections = yaml.safe_load((REPO / "config" / "arm_driver.yaml").read_text())
+    unknown = {}
+    for _, exe, name, _, _ in nodes:
+        context = Context()
+        rclpy.init(context=context, args=["--ros-args", "-r", f"__node:={name}", "--params-file", str(combined),
+                                          "-p", "autostart:=false"], domain_id=190 + os.getpid() % 10)
+        try:
+            cls = _node_class(exe)
+            kwargs = {"context": context}
+            if "node_name" in inspect.signature(cls.__init__).parameters:
+                kwargs["node_name"] = exe
+            node = cls(**kwargs)
+            try:
+                unknown[name] = [n for n in warn_undeclared_parameters(node)  # autostart: this test's -p, to all
+                                 if not n.startswith("hand_eye.") and n != "autostart"]
+                if exe == "arm_driver":
+                    section = arm_sections[f"/**/{name}"]["ros__parameters"]
+                    assert set(section) <= set(node._parameter_overrides), name
+                    assert node.role == name.split("_")[0]
+            finally:
+                node.destroy_node()
+        finally:
+            rclpy.try_shutdown(context=context)
+    assert unknown == {name: [] for *_, name, _, _ in nodes}, "nodes given parameters they do not have"
+    source, detector = (arm_sections[f"/**/{name}"]["ros__parameters"] for name in ("source_arm_driver",
+                                                                                    "detector_arm_driver"))
+    assert {"robot_ip", "speed", "sim_seed", "role"} <= set(source)  # each arm's section has all
+    # the shipped sections differ in role and sim_seed alone (a shared value edited in one only is a slip)
+    assert {k for k in source.keys() | detector.keys() if source.get(k) != detector.get(k)} == {"role", "sim_seed"}
