@@ -7,7 +7,8 @@ Two layers:
   metadata.yaml after a crash, MCAP without summary, a cut or overwritten tail, garbage in
   the middle) the ``.mcap`` file is scanned record by record with the ``mcap`` library's
   record parsers: every complete chunk and message is kept (of a chunk cut by the file's end,
-  the complete messages before the cut when the chunk has no CRC), a damaged region is skipped
+  the complete messages before the cut when the chunk has no CRC, and of a compressed one only
+  those in its whole compressed blocks: a small zstd chunk cut short gives none), a damaged region is skipped
   by re-synchronising on the next well-formed chunk, and what was lost is reported.
 * :func:`read_scan`: the scan (frames, per-view geometry, flat field, pixel masks) with
   frames and geometries paired by equal header stamps; anything unpaired, undecodable or
@@ -177,7 +178,8 @@ def _partial_chunk(buf, pos: int, n: int, handle) -> None:
     Only a chunk without a CRC is read so (rosbags' own writer stores none, and packs a scan into chunks of
     1 MiB, so a cut file would otherwise lose up to a megabyte of frames); a chunk with a CRC is taken whole or
     not at all, as everywhere in the reader. A compressed chunk gives what its decompressor yields from the
-    bytes present."""
+    bytes present: whole compressed blocks only (zstd at most 128 KiB of records each, lz4's default frame 64 KiB), so a
+    chunk of one block gives nothing."""
     head = pos + 9 + _CHUNK_FIXED
     if head > n:
         return

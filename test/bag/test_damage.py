@@ -385,3 +385,40 @@ def test_an_empty_bag_says_it_holds_no_message(tmp_path):
     with pytest.raises(ScanBagError, match="no /ct/scan_info message; a scan bag starts with one \\(the bag holds no "
                                            "message at all\\)"):
         read_scan(tmp_path / "empty")
+
+
+@pytest.mark.parametrize("compression", ["", "zstd"])
+def test_a_chunk_without_a_crc_cut_short_keeps_its_complete_messages_only_when_uncompressed(tmp_path, good_bag,
+                                                                                            compression):
+    """docs/bag-format.md said the complete messages before the cut of a chunk without a CRC are kept; outside test E
+    (finding 6) found that true only of an uncompressed chunk: a zstd chunk (rosbags' storage compression) cut short
+    decodes to nothing, since a compressed block is decoded whole or not at all and a chunk under 128 KiB is one
+    block. The documentation now says so; this pins both cases (rosbags' own writer: one chunk, no CRC)."""
+    from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+    from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
+
+    from robot_ct_ros.bag.reader import read_raw_messages
+
+    bag = good_bag[0]
+    out = tmp_path / "rosbags_written"
+    w = Writer(out, version=9, storage_plugin=StoragePlugin.MCAP)
+    if compression:
+        w.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+    with Reader(bag) as r, w:
+        conns = {c.topic: w.add_connection(c.topic, c.msgtype, typestore=fmt.typestore()) for c in r.connections}
+        n_messages = 0
+        for c, t, d in r.messages():
+            w.write(conns[c.topic], t, d)
+            n_messages += 1
+    (mcap,) = out.glob("*.mcap")
+    data = mcap.read_bytes()
+    assert _chunk_crcs(mcap) == [0]  # one chunk, no CRC
+    end, length = _chunk_extents(mcap)[0]
+    cut = _damaged_copy(out, tmp_path / "cut", data[:end - length * 4 // 10], keep_metadata=False)
+    if compression:
+        with pytest.raises(ScanBagError, match="no readable message"):
+            read_raw_messages(cut)
+        return
+    raw = read_raw_messages(cut)
+    assert 0 < len(raw.messages) < n_messages
+    assert any("complete messages recovered from its start (a chunk without a CRC)" in w for w in raw.warnings)
