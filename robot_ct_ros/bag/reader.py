@@ -729,14 +729,16 @@ def _under_namespace(raw: RawBag, ns: str) -> RawBag:
     if not ns:
         return raw
     contract = set(fmt.TOPIC_TYPES) - set(fmt.GLOBAL_TOPICS)
-    msgs = []
-    for m in raw.messages:
-        if m.topic.startswith(ns + "/") and m.topic[len(ns):] in contract:
-            msgs.append(RawMessage(m.topic[len(ns):], m.msgtype, m.log_time_ns, m.data))
-        elif m.topic not in contract and not any(m.topic.endswith(t) for t in contract):
-            msgs.append(m)
+    def renamed(topic: str) -> str | None:  # the name it is read under; None: left out
+        if topic.startswith(ns + "/") and topic[len(ns):] in contract:
+            return topic[len(ns):]
+        return None if topic in contract or any(topic.endswith(t) for t in contract) else topic
+
+    msgs = [m if name == m.topic else RawMessage(name, m.msgtype, m.log_time_ns, m.data)
+            for m in raw.messages if (name := renamed(m.topic)) is not None]
+    qos = {name: profiles for topic, profiles in raw.qos.items() if (name := renamed(topic)) is not None}
     return RawBag(raw.path, msgs, list(raw.warnings) + [f"read the scan recorded under namespace {ns}"],
-                  raw.recovered, raw.reader)
+                  raw.recovered, raw.reader, qos)
 
 
 def read_scan(path, *, keep_raw: bool = False, namespace: str | None = None) -> ScanData:

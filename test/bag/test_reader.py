@@ -101,6 +101,12 @@ def test_a_scan_recorded_under_a_namespace_is_read_there_and_its_correction_goes
     again = read_scan(corrected)
     assert again.namespace == "/scanner_a" and again.geom_corrected is not None
     assert summarize(corrected)["has_geometry_corrected"]
+    # the recorded QoS profiles travel with the topics' names as read
+    from robot_ct_ros.bag.reader import _under_namespace, read_raw_messages
+
+    raw = read_raw_messages(bag)
+    under = _under_namespace(raw, "/scanner_a")
+    assert raw.qos and set(under.qos) == {t[len("/scanner_a"):] if t.startswith("/scanner_a/") else t for t in raw.qos}
 
 
 def test_scans_under_two_namespaces_are_refused_naming_them_unless_one_is_picked(tmp_path, tiny_scan):
