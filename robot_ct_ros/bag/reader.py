@@ -452,21 +452,12 @@ class ScanData:
         return counts_to_line_integrals(self.counts, self.flat, self.valid_mask, min_counts)
 
     def scan_center_mm(self) -> np.ndarray:
-        """ROI centre: scan_info's ``roi_center_m``, else the point nearest to all principal rays."""
+        """ROI centre: scan_info's ``roi_center_m``, else :func:`views_center_mm` (the point nearest to all
+        principal rays)."""
         c = fmt.info_mm(self.info, "roi_center_m")
         if c is not None:
             return c
-        g = self.geom
-        A = np.zeros((3, 3))
-        b = np.zeros(3)
-        for s, w in zip(g.source_mm, g.w):
-            P = np.eye(3) - np.outer(w, w)
-            A += P
-            b += P @ s
-        try:
-            return np.linalg.solve(A, b)
-        except np.linalg.LinAlgError:
-            return g.source_mm.mean(axis=0)
+        return views_center_mm(self.geom)
 
     def grid_direction(self) -> np.ndarray:
         """The reconstruction grid's direction: scan_info's ``roi_direction`` (9 values, row-major,
@@ -680,17 +671,70 @@ def line_integral_warning(li, valid) -> str | None:
 MAX_SDD_M = 10.0
 """The largest source-to-detector distance (m) a scan bag may hold: no cone-beam scanner is larger, and a
 bag whose positions were written in mm on a wire in metres (docs/bag-format.md) is 1000 times too big."""
+MIN_SDD_MM = 1e-3
+"""A view whose detector plane passes within this distance (mm) of its source (the detector centre written as
+the source position, say) has no cone: every ray lies in the detector plane (:func:`check_distances`)."""
+
+
+def views_center_mm(geom: ConeGeometry) -> np.ndarray:
+    """The centre of the views (mm, world): the point nearest, in least squares, to every view's principal ray
+    (the line through the source along the detector normal w), or the mean source position when those rays are
+    parallel. The default ROI centre (:meth:`ScanData.scan_center_mm`, which ``robot-ct info`` prints)."""
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    for s, w in zip(geom.source_mm, geom.w):
+        P = np.eye(3) - np.outer(w, w)
+        A += P
+        b += P @ s
+    try:
+        return np.linalg.solve(A, b)
+    except np.linalg.LinAlgError:
+        return geom.source_mm.mean(axis=0)
 
 
 def check_distances(geom: ConeGeometry, topic: str) -> None:
-    """Refuse (ValueError) a geometry whose median source-to-detector distance is above :data:`MAX_SDD_M`: its
-    positions look like mm on a wire in metres (``topic`` named in the message)."""
-    sdd_m = float(np.median(geom.sdd_mm)) / fmt.MM_PER_M
+    """Refuse (ValueError, naming ``topic``, the views affected and the values) a geometry that no transmission
+    scan has: a median source-to-detector distance above :data:`MAX_SDD_M` (positions in mm on a wire in metres);
+    a view whose detector plane passes through its source (distance below :data:`MIN_SDD_MM`: no cone); or a view
+    whose magnification of the centre of the views (:func:`views_center_mm`; not scan_info's ``roi_center_m``,
+    which only places the grid) is not above 1: SDD / SOD along the detector normal w, signed, so a detector
+    between the source and that centre (SDD < SOD) and a centre behind the source are both refused. Transmission
+    CT needs the object between the source and the detector."""
+    n = geom.n_views
+    sdd_all = geom.sdd_mm
+    flat = sdd_all < MIN_SDD_MM
+    if flat.any():
+        raise ValueError(f"{topic}: source-to-detector distance {float(np.min(sdd_all)):.3g} mm in {int(flat.sum())} "
+                         f"of {n} views (e.g. view {int(np.flatnonzero(flat)[0])}): the detector plane passes "
+                         "through the source (the detector centre written as the source position?), so no ray "
+                         "crosses it; a scan needs the detector facing the source across the object")
+    sdd_m = float(np.median(sdd_all)) / fmt.MM_PER_M
     if not sdd_m <= MAX_SDD_M:
         raise ValueError(f"{topic}: source-to-detector distance {sdd_m:g} m (median over {geom.n_views} views) is "
                          f"above {MAX_SDD_M:g} m: the positions look like mm written on a wire in metres (ROS and "
                          f"this format take metres: {sdd_m:g} mm would be {sdd_m / fmt.MM_PER_M:g} m); write them "
                          "in metres")
+    c = views_center_mm(geom)
+    w = geom.w
+    sdd_signed = np.einsum("ij,ij->i", geom.detector_mm - geom.source_mm, w)
+    sod_signed = np.einsum("ij,ij->i", c[None] - geom.source_mm, w)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mag = sdd_signed / sod_signed
+    bad = ~(mag > 1.0)
+    if not bad.any():
+        return
+    k = int(bad.sum())
+    sdd, sod, m = (float(np.median(x[bad])) for x in (np.abs(sdd_signed), np.abs(sod_signed), mag))
+    where = f"in {k} of {n} views (e.g. view {int(np.flatnonzero(bad)[0])}"
+    centre = f"centre of the views {np.round(c, 1).tolist()} mm"
+    if np.all(mag[bad] >= 0) and np.all(np.isfinite(mag[bad])):
+        what = (f"the detector lies between the source and the centre of the views {where}; SDD {sdd:.4g} mm "
+                f"{'<' if sdd < sod else '<='} SOD {sod:.4g} mm, magnification {m:.2f}; {centre})")
+    else:
+        what = (f"the centre of the views lies behind the source or in its detector-parallel plane {where}; "
+                f"SDD {sdd:.4g} mm, SOD {sod:.4g} mm, magnification {m:.2f}; {centre})")
+    raise ValueError(f"{topic}: {what}: transmission CT needs the object between the source and the detector "
+                     "(magnification above 1); is the detector position (or its normal) written on the wrong side?")
 
 
 def scan_namespace(raw: RawBag, namespace: str | None = None) -> str:

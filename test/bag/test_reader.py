@@ -144,3 +144,43 @@ def test_a_file_compressed_bag_file_given_alone_is_named_as_such(tmp_path, tiny_
     err = capsys.readouterr().err
     assert "zstd-compressed" in err and "scanning for chunks" not in err, err
     assert len(read_raw_messages(mcap).messages) == 12 + 12 + 2  # a plain MCAP file is read as before
+
+
+def test_a_detector_on_the_source_or_before_the_centre_is_refused_naming_the_values(tmp_path, capsys):
+    """Outside test F findings 1 and 6: a detector centre written as the source (SDD 0) was read without a word,
+    and reconstruct and calibrate ended in a ZeroDivisionError traceback in default_grid; a detector between the
+    source and the centre of the views (SDD 100 mm, SOD 200 mm: info printed magnification 0.500) was read
+    silently too. The reader refuses both, naming the topic, the views affected and the distances."""
+    from robot_ct_ros.bag.format import ScanBagError
+    from robot_ct_ros.cli import main
+
+    g = circular_scan(8, 200.0, 400.0, 8, 12, 0.8, 0.8)
+    frames = np.zeros((8, 8, 12), np.float32)
+    frames[:, 2:6, 3:9] = 0.3  # line integrals
+    info = {"projection_units": "line_integral"}
+    read_scan(write_scan(tmp_path / "ok", frames, g, **info))  # magnification 2: fine
+    on_source = g.replace(detector_mm=g.source_mm.copy())
+    before = g.replace(detector_mm=0.5 * g.source_mm)  # 100 mm from the source, the centre (origin) 200 mm away
+    cases = (("sdd0", on_source, r"/ct/geometry: source-to-detector distance 0 mm in 8 of 8 views"),
+             ("before", before, r"/ct/geometry: the detector lies between the source and the centre of the views "
+                                r"in 8 of 8 views \(e\.g\. view 0; SDD 100 mm < SOD 200 mm, magnification 0\.50"))
+    for name, geom, said_re in cases:
+        bag = write_scan(tmp_path / name, frames, geom, **info)
+        with pytest.raises(ScanBagError, match=said_re):
+            read_scan(bag)
+        for cmd in (["info", str(bag)], ["reconstruct", str(bag), "--out", str(tmp_path / f"rec_{name}")],
+                    ["calibrate", str(bag), "--out", str(tmp_path / f"cal_{name}")]):
+            main(cmd)
+            said = capsys.readouterr()
+            said = said.out + said.err
+            assert "/ct/geometry" in said and ("source-to-detector distance 0 mm" in said
+                                               or "magnification 0.50" in said), (cmd, said)
+            assert "Traceback" not in said and "ZeroDivisionError" not in said, (cmd, said)
+    # half a view's worth: one view with the detector before the centre is named as one view
+    one = g.replace(detector_mm=np.where(np.arange(8)[:, None] == 3, 0.5 * g.source_mm, g.detector_mm))
+    with pytest.raises(ScanBagError, match=r"in 1 of 8 views \(e\.g\. view 3; SDD 100 mm < SOD 200 mm"):
+        read_scan(write_scan(tmp_path / "one", frames, one, **info))
+    # a corrected geometry like it is ignored with the reason, the scan kept
+    scan = read_scan(write_scan(tmp_path / "corr", frames, g, geom_corrected=before, **info))
+    assert scan.geom_corrected is None
+    assert any("/ct/geometry_corrected ignored" in w and "magnification 0.50" in w for w in scan.warnings)
