@@ -184,3 +184,21 @@ def test_a_detector_on_the_source_or_before_the_centre_is_refused_naming_the_val
     scan = read_scan(write_scan(tmp_path / "corr", frames, g, geom_corrected=before, **info))
     assert scan.geom_corrected is None
     assert any("/ct/geometry_corrected ignored" in w and "magnification 0.50" in w for w in scan.warnings)
+
+
+def test_line_integrals_declared_as_counts_are_warned_strong_attenuation_is_not(tmp_path):
+    """Outside test F finding 3: line integrals of 0.05 to 0.49 written as counts under a flat of 1e4 were read
+    without a word and gave a garbage volume. The reader warns when the counts are a tiny fraction of the flat
+    almost everywhere (median below 1e-3); a strongly attenuating scan (the carotid simulation behind 13 cm of
+    water reads 0.17 of its flat, here down to e^-6 = 0.0025) is not warned."""
+    g = circular_scan(8, 200.0, 400.0, 8, 12, 0.8, 0.8)
+    rng = np.random.default_rng(1)
+    li = rng.uniform(0.05, 0.49, (8, 8, 12)).astype(np.float32)
+    flat = np.full((8, 12), 1e4, np.float32)
+    scan = read_scan(write_scan(tmp_path / "li_as_counts", li, g, flat=flat))
+    said = [w for w in scan.warnings if "of the flat field everywhere" in w]
+    assert len(said) == 1 and "are these line integrals? (projection_units" in said[0], scan.warnings
+    assert "about 2.7e-05 of the flat field" in said[0], said
+    dense = (flat * np.exp(-rng.uniform(1.0, 6.0, (8, 8, 12)))).astype(np.float32)
+    assert not [w for w in read_scan(write_scan(tmp_path / "dense", dense, g, flat=flat)).warnings
+                if "of the flat field" in w]
