@@ -716,6 +716,26 @@ def line_integral_warning(li, valid) -> str | None:
     return None
 
 
+def zero_frames_warning(li, valid, stamps_ns=None) -> str | None:
+    """A warning naming the line-integral frames ``li`` (n, rows, cols) that hold exactly 0 in every usable pixel
+    (``valid``) among frames that do not: a frame that was never filled (a dropped exposure written as zeros)
+    reads as a view of air and is used as one. ``stamps_ns``: the frames' header stamps, named with their indices
+    (0-based, in stamp order). None when no frame, or every frame, is all zero (a scan of nothing). The data are
+    kept: only the user knows whether the view saw nothing."""
+    li = np.asarray(li)
+    valid = np.broadcast_to(valid, li.shape)
+    zero = ~np.any(valid & (li != 0), axis=(1, 2)) & np.any(valid, axis=(1, 2))
+    if not zero.any() or zero.sum() == np.any(valid, axis=(1, 2)).sum():
+        return None
+    idx = np.flatnonzero(zero)
+    listed = f"{idx[:10].tolist()}{' ...' if idx.size > 10 else ''}"
+    stamps = (f", stamps {np.asarray(stamps_ns)[idx[:10]].tolist()}{' ...' if idx.size > 10 else ''} ns"
+              if stamps_ns is not None else "")
+    return (f"{idx.size} line-integral frame(s) of {li.shape[0]} hold exactly 0 in every usable pixel (frame "
+            f"{listed}{stamps}) where the others do not: each is used as a view of air; an exposure that was "
+            "dropped or never written? Drop it, or write it as NaN")
+
+
 MAX_SDD_M = 10.0
 """The largest source-to-detector distance (m) a scan bag may hold: no cone-beam scanner is larger, and a
 bag whose positions were written in mm on a wire in metres (docs/bag-format.md) is 1000 times too big."""
@@ -996,9 +1016,9 @@ def scan_from_raw(raw: RawBag, path, *, keep_raw: bool = False, min_views: int |
             if said:
                 warnings.append(said)
     else:
-        li_warning = line_integral_warning(counts, valid)
-        if li_warning:
-            warnings.append(li_warning)
+        for said in (line_integral_warning(counts, valid), zero_frames_warning(counts, valid, paired)):
+            if said:
+                warnings.append(said)
 
     def extra(topic):
         gs = _geometries(raw, topic, warnings, frames_of)

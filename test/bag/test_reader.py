@@ -226,3 +226,22 @@ def test_sign_flipped_line_integrals_of_a_weak_object_are_warned_noisy_air_is_no
                        ("air", rng.normal(0.0, 0.05, (8, 8, 12)).astype(np.float32))):
         scan = read_scan(write_scan(tmp_path / name, data, g, projection_units="line_integral"))
         assert not [w for w in scan.warnings if "below 0" in w or "negative" in w], (name, scan.warnings)
+
+
+def test_an_all_zero_line_integral_frame_among_others_is_warned_naming_it(tmp_path):
+    """Outside test F finding 5: one line-integral frame all exactly 0 among frames that are not (t3_zeroframe_li)
+    was used as a view of air without a word. The reader warns, naming the frame's index and stamp; a scan whose
+    frames all hold something (air included, as exact zeros around the object) is not warned."""
+    from robot_ct_ros.bag.writer import default_stamps
+
+    g = circular_scan(8, 200.0, 400.0, 8, 12, 0.8, 0.8)
+    li = _weak_object_line_integrals(np.random.default_rng(3), 0.0)
+    assert not [w for w in read_scan(write_scan(tmp_path / "ok", li, g, projection_units="line_integral")).warnings
+                if "hold exactly 0" in w]
+    li[5] = 0.0
+    scan = read_scan(write_scan(tmp_path / "zero", li, g, projection_units="line_integral"))
+    said = [w for w in scan.warnings if "hold exactly 0 in every usable pixel" in w]
+    assert len(said) == 1, scan.warnings
+    assert "1 line-integral frame(s) of 8 hold exactly 0" in said[0] and "(frame [5], stamps " in said[0], said
+    assert str(int(default_stamps(8)[5])) in said[0] and "view of air" in said[0], said
+    assert scan.n_views == 8  # kept: only the user knows whether the view saw nothing
