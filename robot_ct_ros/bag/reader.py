@@ -453,7 +453,7 @@ class ScanData:
 
     def scan_center_mm(self) -> np.ndarray:
         """ROI centre: scan_info's ``roi_center_m``, else :func:`views_center_mm` (the point nearest to all
-        principal rays)."""
+        central rays: the principal rays where the detector sees them)."""
         c = fmt.info_mm(self.info, "roi_center_m")
         if c is not None:
             return c
@@ -488,10 +488,12 @@ class ScanData:
             return VolumeGrid.centered(tuple(int(s) for s in shape_zyx), vs, c, D)
         size = fmt.info_mm(self.info, "roi_size_m")
         if size is None:
-            # transaxial: up to the farther detector edge from the principal point across the grid's z
-            # axis (the scan axis); axial: the detector's extent along it; in the detector plane,
-            # whichever way the detector is turned in it (rows along or across the axis)
-            s_on_plane = g.source_mm + np.einsum("ij,ij->i", g.detector_mm - g.source_mm, g.w)[:, None] * g.w
+            # transaxial: up to the detector edge farther from the central ray (central_points_mm: the
+            # principal ray where the detector sees it) across the grid's z axis (the scan axis), as the angle
+            # seen from the source in the plane of the detector normal w and the detector's direction t across
+            # the axis; axial: the detector's extent along the axis; in the detector plane, whichever way the
+            # detector is turned in it (rows along or across the axis). A detector with its principal point on
+            # it gives reach / sdd = the farther edge's distance from that point / SDD, as it always did
             t = np.cross(D[:, 2], g.w)
             nt = np.linalg.norm(t, axis=1, keepdims=True)
             t = np.where(nt > 1e-9, t / np.maximum(nt, 1e-300), g.u)  # axis along the normal: rows
@@ -500,10 +502,21 @@ class ScanData:
             def half(e):  # half the detector's extent along the in-plane unit vectors e (n_views, 3)
                 return 0.5 * (g.n_cols * g.col_pitch_mm * np.abs(np.einsum("ij,ij->i", e, g.u))
                               + g.n_rows * g.row_pitch_mm * np.abs(np.einsum("ij,ij->i", e, g.v)))
-            off_t = np.einsum("ij,ij->i", g.detector_mm - s_on_plane, t)
-            reach = float(np.median(np.abs(off_t) + half(t)))
-            sod = float(np.median(g.sod_mm(c)))
-            sdd = float(np.median(g.sdd_mm))
+
+            def in_plane(p):  # (along t, along w away from the source) of the vectors p (n_views, 3)
+                return np.einsum("ij,ij->i", p, t), np.einsum("ij,ij->i", p, g.w) * side
+
+            side = np.where(np.einsum("ij,ij->i", g.detector_mm - g.source_mm, g.w) < 0, -1.0, 1.0)
+            ct, cw = in_plane(central_points_mm(g) - g.source_mm)
+            centre_angle = np.arctan2(ct, cw)
+            dt, dw = in_plane(g.detector_mm - g.source_mm)
+            far = np.maximum(np.abs(np.arctan2(dt + half(t), dw) - centre_angle),
+                             np.abs(np.arctan2(dt - half(t), dw) - centre_angle))
+            ot, ow = in_plane(c[None] - g.source_mm)
+            sdd_i = np.hypot(ct, cw)  # to the detector plane along the central ray: SDD for the principal ray
+            reach = float(np.median(sdd_i * np.tan(np.minimum(far, 0.5 * math.pi - 1e-9))))
+            sod = float(np.median(np.abs(ot * np.sin(centre_angle) + ow * np.cos(centre_angle))))
+            sdd = float(np.median(sdd_i))
             radius = sod * reach / math.hypot(sdd, reach)
             axial = 2.0 * float(np.median(half(a))) / mag
             size = np.array([2 * radius, 2 * radius, axial])  # across, across, along the scan axis
@@ -744,13 +757,32 @@ MIN_SDD_MM = 1e-3
 the source position, say) has no cone: every ray lies in the detector plane (:func:`check_distances`)."""
 
 
+def central_points_mm(geom: ConeGeometry) -> np.ndarray:
+    """(n_views, 3) the point of each view's detector plane that its central ray (from the source) passes through
+    (mm, world): the principal point (the foot of the source's perpendicular, the ray along the detector normal w)
+    where the detector holds it, else the detector centre, each way separately: the principal point's offset
+    from the detector centre along u is kept when it lies within the detector's columns, and along v within its
+    rows, and set to 0 otherwise. A detector shifted in its plane (half-fan) keeps its principal ray; one tilted
+    out of its plane so far that the detector does not see the principal ray (25 degrees about v: the principal
+    ray misses the axis by SOD sin 25 = 85 mm) gets the ray through its centre."""
+    depth = np.einsum("ij,ij->i", geom.detector_mm - geom.source_mm, geom.w)
+    off = geom.source_mm + depth[:, None] * geom.w - geom.detector_mm  # principal point - detector centre
+    ou, ov = np.einsum("ij,ij->i", off, geom.u), np.einsum("ij,ij->i", off, geom.v)
+    ou = np.where(np.abs(ou) <= 0.5 * geom.n_cols * geom.col_pitch_mm, ou, 0.0)
+    ov = np.where(np.abs(ov) <= 0.5 * geom.n_rows * geom.row_pitch_mm, ov, 0.0)
+    return geom.detector_mm + ou[:, None] * geom.u + ov[:, None] * geom.v
+
+
 def views_center_mm(geom: ConeGeometry) -> np.ndarray:
-    """The centre of the views (mm, world): the point nearest, in least squares, to every view's principal ray
-    (the line through the source along the detector normal w), or the mean source position when those rays are
-    parallel. The default ROI centre (:meth:`ScanData.scan_center_mm`, which ``robot-ct info`` prints)."""
+    """The centre of the views (mm, world): the point nearest, in least squares, to every view's central ray
+    (from the source through :func:`central_points_mm`: the principal ray where the detector sees it), or the
+    mean source position when those rays are parallel. The default ROI centre (:meth:`ScanData.scan_center_mm`,
+    which ``robot-ct info`` prints)."""
+    d = central_points_mm(geom) - geom.source_mm
+    d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-300)
     A = np.zeros((3, 3))
     b = np.zeros(3)
-    for s, w in zip(geom.source_mm, geom.w):
+    for s, w in zip(geom.source_mm, d):
         P = np.eye(3) - np.outer(w, w)
         A += P
         b += P @ s

@@ -245,3 +245,25 @@ def test_an_all_zero_line_integral_frame_among_others_is_warned_naming_it(tmp_pa
     assert "1 line-integral frame(s) of 8 hold exactly 0" in said[0] and "(frame [5], stamps " in said[0], said
     assert str(int(default_stamps(8)[5])) in said[0] and "view of air" in said[0], said
     assert scan.n_views == 8  # kept: only the user knows whether the view saw nothing
+
+
+@pytest.mark.parametrize("arc_deg", [360.0, 200.0])
+def test_default_grid_of_a_detector_tilted_out_of_its_plane_is_about_the_field_of_view(tmp_path, arc_deg):
+    """Outside test F finding 8: a detector tilted 25 degrees about its v axis (the ray through its centre still
+    through the axis) got a default grid 429 voxels (171 mm) across for a field of view about 25 mm wide: the grid
+    was sized from the principal rays (along the detector normal), which miss the axis by SOD sin 25 = 85 mm. It is
+    placed and sized from the central rays: the principal ray where the detector holds the principal point, the
+    ray through the detector centre where not; the untilted grid is unchanged."""
+    from scipy.spatial.transform import Rotation
+
+    g = circular_scan(12, 200.0, 400.0, 48, 64, 0.8, 0.8, arc_rad=np.radians(arc_deg))
+    turn = Rotation.from_rotvec(g.v * np.radians(25.0)).as_matrix()
+    tilted = g.replace(u=np.einsum("nij,nj->ni", turn, g.u))
+    frames = np.full((12, 48, 64), 0.1, np.float32)
+    grids = [read_scan(write_scan(tmp_path / name, frames, geom, projection_units="line_integral")).default_grid()
+             for name, geom in (("flat", g), ("tilted", tilted))]
+    plain, tilt = grids
+    assert plain.shape_zyx == (48, 64, 64)  # 25.6 mm across at 0.4 mm: as before
+    assert tilt.shape_zyx[0] == 48 and 56 <= tilt.shape_zyx[1] == tilt.shape_zyx[2] <= 64, tilt.shape_zyx
+    np.testing.assert_allclose(tilt.voxel_size_mm, plain.voxel_size_mm)
+    np.testing.assert_allclose(tilt.center_mm, 0.0, atol=1e-6)  # a short arc too: the central rays meet there
