@@ -799,7 +799,8 @@ def check_distances(geom: ConeGeometry, topic: str) -> None:
     whose magnification of the centre of the views (:func:`views_center_mm`; not scan_info's ``roi_center_m``,
     which only places the grid) is not above 1: SDD / SOD along the detector normal w, signed, so a detector
     between the source and that centre (SDD < SOD) and a centre behind the source are both refused. Transmission
-    CT needs the object between the source and the detector."""
+    CT needs the object between the source and the detector. The last check needs that centre: it is skipped for a
+    single view or views whose central rays are all parallel (a scan streamed as it arrives starts with one)."""
     n = geom.n_views
     sdd_all = geom.sdd_mm
     flat = sdd_all < MIN_SDD_MM
@@ -814,6 +815,10 @@ def check_distances(geom: ConeGeometry, topic: str) -> None:
                          f"above {MAX_SDD_M:g} m: the positions look like mm written on a wire in metres (ROS and "
                          f"this format take metres: {sdd_m:g} mm would be {sdd_m / fmt.MM_PER_M:g} m); write them "
                          "in metres")
+    d = central_points_mm(geom) - geom.source_mm
+    d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-300)
+    if np.linalg.eigvalsh(n * np.eye(3) - d.T @ d)[0] < 1e-9 * n:
+        return  # one view, or rays all parallel: no centre of the views to judge the magnification by
     c = views_center_mm(geom)
     w = geom.w
     sdd_signed = np.einsum("ij,ij->i", geom.detector_mm - geom.source_mm, w)
