@@ -17,15 +17,17 @@ from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
 from robot_ct_ros.ct.reconstruction import estimate_scan_axis
 from robot_ct_ros.ct.scan_weights import rows_run_across_axis
 
-__all__ = ["field_of_view_mask", "cone_reach", "ConeReach"]
+__all__ = ["field_of_view_mask", "field_of_view_extent", "FieldOfViewExtent", "cone_reach", "ConeReach"]
 
 
 @njit(parallel=True, cache=True)
-def _line_coverage_kernel(pm, depth_sign, src, e1, e2, origin, steps, shape_zyx, across, n_across, n_bins, out):
+def _line_coverage_kernel(pm, depth, src, e1, e2, origin, steps, shape_zyx, across, n_across, n_bins, out):
     """``out[k, j, i]``: 1 where the rays measured through the voxel at block centre (i, j, k)
     cover every one of ``n_bins`` direction bins over 180 degrees, else 0. A ray is measured where
     it meets the detector within its ``n_across`` pixels along the detector index ``across`` (0: the
-    column, 1: the row), the one that runs across the scan axis."""
+    column, 1: the row), the one that runs across the scan axis, and it passes through the voxel where
+    the voxel lies between the source and the detector plane (``depth``: each view's signed source-to-plane
+    distance along the detector normal; ``lambda / depth`` in (0, 1))."""
     nz, ny, nx = shape_zyx[0], shape_zyx[1], shape_zyx[2]
     full = np.uint64((1 << n_bins) - 1)
     for flat in prange(nz * ny * nx):
@@ -38,7 +40,7 @@ def _line_coverage_kernel(pm, depth_sign, src, e1, e2, origin, steps, shape_zyx,
         hit = np.uint64(0)
         for v in range(pm.shape[0]):
             lam = pm[v, 2, 0] * x + pm[v, 2, 1] * y + pm[v, 2, 2] * z + pm[v, 2, 3]
-            if lam * depth_sign[v] <= 0.0:
+            if depth[v] == 0.0 or not 0.0 < lam / depth[v] < 1.0:
                 continue
             c = (pm[v, across, 0] * x + pm[v, across, 1] * y + pm[v, across, 2] * z + pm[v, across, 3]) / lam
             if c < -0.5 or c > n_across - 0.5:
@@ -54,25 +56,10 @@ def _line_coverage_kernel(pm, depth_sign, src, e1, e2, origin, steps, shape_zyx,
         out[k, j, i] = 1 if hit == full else 0
 
 
-def field_of_view_mask(geom: ConeGeometry, grid: VolumeGrid, *, max_evaluations: float = 1e8) -> np.ndarray:
-    """Voxels FDK reconstructs from complete data: bool ``grid.shape_zyx``.
-
-    A voxel counts when the measured rays through it (those that meet a view's detector within
-    its extent across the scan axis: its columns, or its rows on a portrait detector,
-    :func:`~robot_ct_ros.ct.scan_weights.rows_run_across_axis`) cover every direction about the scan axis (:func:`estimate_scan_axis`),
-    modulo 180 degrees, in bins of at most 45 degrees and at least ~6 views each. For a
-    centred detector on a full circle that is the cylinder every view sees; with an offset
-    detector the conjugate views fill in; the square grid's corners outside it are left out
-    (FDK puts there what incomplete data give, streaks that are no object). The extent along the
-    axis is not checked: the cone's top and bottom are the pixel mask's business. To bound the cost
-    (voxels x views), the test runs on block centres of a coarser grid (each block takes its
-    centre's answer) when the grid holds more than ``max_evaluations / n_views`` voxels. When
-    no voxel has complete data (a limited-angle or degenerate scan), every voxel counts.
-    """
+def _coverage(geom: ConeGeometry, grid: VolumeGrid, max_evaluations: float) -> np.ndarray:
+    """:func:`field_of_view_mask`'s test itself, without its fallbacks: bool ``grid.shape_zyx``."""
     nz, ny, nx = grid.shape_zyx
     n_views = geom.n_views
-    if n_views < 3:
-        return np.ones(grid.shape_zyx, dtype=bool)
     n_bins = int(min(32, max(4, n_views // 6)))
     budget = max(max_evaluations / n_views, 1.0)
     block = max(1, int(math.ceil((nz * ny * nx / budget) ** (1.0 / 3.0))))
@@ -91,7 +78,7 @@ def field_of_view_mask(geom: ConeGeometry, grid: VolumeGrid, *, max_evaluations:
     e1 = e1 / np.linalg.norm(e1)
     e2 = np.cross(axis, e1)
     pm = geom.projection_matrices()
-    depth_sign = np.sign(np.einsum("ij,ij->i", geom.detector_mm - geom.source_mm, geom.w))
+    depth = np.einsum("ij,ij->i", geom.detector_mm - geom.source_mm, geom.w)
     vs = np.asarray(grid.voxel_size_mm)
     D = grid.direction_matrix
     steps = (D * (vs * np.array([bx, by, bz]))).T  # rows: world step per block along the grid's x, y, z
@@ -100,19 +87,116 @@ def field_of_view_mask(geom: ConeGeometry, grid: VolumeGrid, *, max_evaluations:
     origin = grid.index_to_world(first)
     cov = np.zeros(cshape, dtype=np.uint8)
     across = 0 if rows_run_across_axis(geom, axis) else 1
-    _line_coverage_kernel(pm, depth_sign, geom.source_mm, e1, e2, origin, np.ascontiguousarray(steps),
+    _line_coverage_kernel(pm, depth, geom.source_mm, e1, e2, origin, np.ascontiguousarray(steps),
                           np.array(cshape, dtype=np.int64), across, int(geom.n_cols if across == 0 else geom.n_rows),
                           n_bins, cov)
-    if not cov.any():
-        return np.ones(grid.shape_zyx, dtype=bool)
     kk, jj, ii = (np.arange(n) // b for n, b in zip((nz, ny, nx), (bz, by, bx)))
     return cov.astype(bool)[kk[:, None, None], jj[None, :, None], ii[None, None, :]]
 
 
+def field_of_view_mask(geom: ConeGeometry, grid: VolumeGrid, *, max_evaluations: float = 1e8) -> np.ndarray:
+    """Voxels FDK reconstructs from complete data: bool ``grid.shape_zyx``.
+
+    A voxel counts when the measured rays through it (those that meet a view's detector within
+    its extent across the scan axis: its columns, or its rows on a portrait detector,
+    :func:`~robot_ct_ros.ct.scan_weights.rows_run_across_axis`, and that pass through the voxel: it lies
+    between the view's source and its detector plane) cover every direction about the scan axis
+    (:func:`estimate_scan_axis`), modulo 180 degrees, in bins of at most 45 degrees and at least ~6 views each.
+    For a centred detector on a full circle that is the cylinder every view sees; with an offset
+    detector the conjugate views fill in; the square grid's corners outside it are left out
+    (FDK puts there what incomplete data give, streaks that are no object). The extent along the
+    axis is not checked: the cone's top and bottom are the pixel mask's business. To bound the cost
+    (voxels x views), the test runs on block centres of a coarser grid (each block takes its
+    centre's answer) when the grid holds more than ``max_evaluations / n_views`` voxels.
+
+    Where no voxel of the grid has complete data, the answer depends on the scan: when the scan has
+    a field of view elsewhere (:func:`field_of_view_extent` finds one) the grid misses it and no voxel
+    counts (all False: callers must not take that for "no support"); when the scan has none at all (a
+    limited-angle or degenerate scan, fewer than 3 views), FDK is approximate everywhere and every voxel
+    counts (all True).
+    """
+    if geom.n_views < 3:
+        return np.ones(grid.shape_zyx, dtype=bool)
+    mask = _coverage(geom, grid, max_evaluations)
+    if mask.any():
+        return mask
+    return np.full(grid.shape_zyx, field_of_view_extent(geom) is None, dtype=bool)
+
+
+def _xyz(p, digits: int) -> str:
+    """``[x, y, z]`` to ``digits`` decimals, no ``-0.0``."""
+    return "[" + ", ".join(f"{round(float(x), digits) + 0.0:.{digits}f}" for x in p) + "]"
+
+
+@dataclass(frozen=True)
+class FieldOfViewExtent:
+    """Where a scan's field of view lies (:func:`field_of_view_extent`): about the scan axis ``axis`` (unit) through
+    ``center_mm`` (world mm: the point nearest every view's principal ray), within ``radius_mm`` of that axis
+    (the farthest point found with complete data, to about 3 % of it)."""
+
+    center_mm: np.ndarray
+    axis: np.ndarray
+    radius_mm: float
+
+    def distance_mm(self, point_mm) -> float:
+        """How far ``point_mm`` lies from the scan axis."""
+        r = np.asarray(point_mm, float) - self.center_mm
+        return float(np.linalg.norm(r - np.dot(r, self.axis) * self.axis))
+
+    def misses_note(self, grid: VolumeGrid) -> str:
+        """The note for a grid no voxel of which lies in the field of view (:func:`field_of_view_mask` all False)."""
+        c = grid.center_mm
+        return (f"the grid misses the field of view: none of its voxels is reached by the measured rays from every "
+                f"direction about the scan axis (the field of view lies within {self.radius_mm:.1f} mm of the scan "
+                f"axis through {_xyz(self.center_mm, 1)} mm, along {_xyz(self.axis, 3)}; the grid's centre "
+                f"{_xyz(c, 1)} mm lies {self.distance_mm(c):.1f} mm from that axis): what FDK puts there is "
+                f"streaks, not the object; move the grid (roi_center_m) into the field of view")
+
+
+def field_of_view_extent(geom: ConeGeometry, *, probe_voxels: int = 65) -> FieldOfViewExtent | None:
+    """Where the scan's field of view (:func:`field_of_view_mask`) lies across its axis, or None where no point
+    has complete data (a limited-angle or degenerate scan, fewer than 3 views). Probed on one slice through the
+    point nearest every view's principal ray, across the scan axis: first over the sources' orbit, then over the
+    disc found, ``probe_voxels`` across each time (the radius to about 1.5 / ``probe_voxels`` of it)."""
+    from robot_ct_ros.ct.geometry import axis_frame
+
+    if geom.n_views < 3:
+        return None
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    for s, w in zip(geom.source_mm, geom.w):
+        P = np.eye(3) - np.outer(w, w)
+        A += P
+        b += P @ s
+    try:
+        center = np.linalg.solve(A, b)
+    except np.linalg.LinAlgError:
+        center = geom.source_mm.mean(axis=0)
+    axis = estimate_scan_axis(geom)
+    r = geom.source_mm - center
+    orbit = float(np.max(np.linalg.norm(r - np.outer(r @ axis, axis), axis=1)))
+    if not orbit > 0:
+        return None
+    D = axis_frame(axis)
+    radius = orbit
+    for _ in range(2):
+        vox = 2.0 * radius / (probe_voxels - 1)
+        probe = VolumeGrid.centered((1, probe_voxels, probe_voxels), vox, center, D)
+        cov = _coverage(geom, probe, 1e12)[0]
+        if not cov.any():
+            return None
+        jj, ii = np.nonzero(cov)
+        half = 0.5 * (probe_voxels - 1)
+        radius = float(np.hypot(ii - half, jj - half).max() + 1.0) * vox
+    return FieldOfViewExtent(center, axis, radius - vox)
+
+
 @njit(parallel=True, cache=True)
-def _reach_kernel(pm, depth_sign, ii, jj, kk, origin, steps, n_cols, n_rows, out):
-    """``out[a, b, c]``: 1 where the voxel (ii[c], jj[b], kk[a]) projects onto some view's detector (within its
-    columns and its rows, half a pixel beyond the outer pixel centres), else 0."""
+def _reach_kernel(pm, depth, ii, jj, kk, origin, steps, n_cols, n_rows, out):
+    """``out[a, b, c]``: 1 where the voxel (ii[c], jj[b], kk[a]) lies between some view's source and its detector
+    plane (``depth``: the signed source-to-plane distances; ``lambda / depth`` in (0, 1)) and projects onto that
+    detector (within its columns and its rows, half a pixel beyond the outer pixel centres), else 0. A voxel behind
+    the source or beyond the detector plane is on no measured ray of that view."""
     na, nb, nc = kk.shape[0], jj.shape[0], ii.shape[0]
     for flat in prange(na * nb * nc):
         a = flat // (nb * nc)
@@ -125,7 +209,7 @@ def _reach_kernel(pm, depth_sign, ii, jj, kk, origin, steps, n_cols, n_rows, out
         hit = 0
         for v in range(pm.shape[0]):
             lam = pm[v, 2, 0] * x + pm[v, 2, 1] * y + pm[v, 2, 2] * z + pm[v, 2, 3]
-            if lam * depth_sign[v] <= 0.0:
+            if depth[v] == 0.0 or not 0.0 < lam / depth[v] < 1.0:
                 continue
             col = (pm[v, 0, 0] * x + pm[v, 0, 1] * y + pm[v, 0, 2] * z + pm[v, 0, 3]) / lam
             if col < -0.5 or col > n_cols - 0.5:
@@ -214,11 +298,11 @@ def cone_reach(geom: ConeGeometry, grid: VolumeGrid, *, max_evaluations: float =
         step = 1 if a == axis else stride
         idx.append(np.minimum(np.arange(n // step + (n % step > 0)) * step + (step - 1) // 2, n - 1).astype(np.int64))
     pm = geom.projection_matrices()
-    depth_sign = np.sign(np.einsum("ij,ij->i", geom.detector_mm - geom.source_mm, geom.w))
+    depth = np.einsum("ij,ij->i", geom.detector_mm - geom.source_mm, geom.w)
     steps = np.ascontiguousarray((D * np.asarray(grid.voxel_size_mm)).T)  # rows: world step per voxel along x, y, z
     origin = grid.index_to_world(np.zeros(3))
     out = np.zeros((len(idx[2]), len(idx[1]), len(idx[0])), dtype=np.uint8)
-    _reach_kernel(pm, depth_sign, idx[0], idx[1], idx[2], origin, steps, int(geom.n_cols), int(geom.n_rows), out)
+    _reach_kernel(pm, depth, idx[0], idx[1], idx[2], origin, steps, int(geom.n_cols), int(geom.n_rows), out)
     # each voxel takes the answer of the sampled voxel of its block
     kk, jj, ii = (np.arange(n) // (1 if a == axis else stride) for a, n in ((2, nz), (1, ny), (0, nx)))
     mask = out.astype(bool)[kk[:, None, None], jj[None, :, None], ii[None, None, :]]

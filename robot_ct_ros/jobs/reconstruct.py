@@ -31,7 +31,10 @@ def reconstruct_bag(bag, out, *, geometry: str = "auto", voxel_mm=None, shape_xy
     (:func:`~robot_ct_ros.ct.field_of_view.field_of_view_mask`, which looks across the axis only) or
     that no view's detector sees at all (beyond the cone's top and bottom:
     :func:`~robot_ct_ros.ct.field_of_view.cone_reach`). ``beyond_cone``: the latter alone, and the
-    slices along the grid axis nearest the scan axis that the rays reach.
+    slices along the grid axis nearest the scan axis that the rays reach. A grid wholly outside the field of view
+    (none of its voxels with complete data, in a scan that has a field of view) reads 1.0 and gets a note that says
+    so and where the field of view lies (:meth:`~robot_ct_ros.ct.field_of_view.FieldOfViewExtent.misses_note`);
+    ``beyond_cone`` may still be 0 there: some view's detector sees every voxel, from too few directions.
 
     Raises
     ------
@@ -41,7 +44,7 @@ def reconstruct_bag(bag, out, *, geometry: str = "auto", voxel_mm=None, shape_xy
         The grid and the projections would not fit in memory (checked before allocating; the
         message says what would fit).
     """
-    from robot_ct_ros.ct.field_of_view import field_of_view_mask
+    from robot_ct_ros.ct.field_of_view import field_of_view_extent, field_of_view_mask
     from robot_ct_ros.ct.reconstruction import fdk
 
     if geometry not in GEOMETRIES:
@@ -74,7 +77,12 @@ def reconstruct_bag(bag, out, *, geometry: str = "auto", voxel_mm=None, shape_xy
     across = 1.0 - float(np.mean(complete))
     reach, beyond = cone_note(geom, grid)  # ... but they are the report's: a grid taller than the cone
     outside = 1.0 - float(np.mean(complete & reach.mask))
-    if across > 0.3:  # beyond a square grid's corners (21 %): FDK puts streaks there, not the object
+    if not complete.any():  # the grid misses the field of view (a scan with none at all marks every voxel)
+        notes.append(field_of_view_extent(geom).misses_note(grid) + (
+            "; no view's detector sees any of its voxels either (they lie behind every source or beyond every "
+            "detector)" if reach.outside_fraction >= 1.0 else ""))
+        say(f"note: {notes[-1]}")
+    elif across > 0.3:  # beyond a square grid's corners (21 %): FDK puts streaks there, not the object
         notes.append(f"{100 * across:.0f} % of the grid lies outside the field of view across the scan axis (voxels "
                      "that the measured rays do not reach from every direction); FDK's values there are streaks, "
                      "not the object")

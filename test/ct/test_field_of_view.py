@@ -88,3 +88,30 @@ def test_cone_reach_counts_the_slices_the_cones_reach_and_suggests_a_shape_that_
     about_y = geom.replace(source_mm=geom.source_mm @ rot.T, detector_mm=geom.detector_mm @ rot.T,
                            u=geom.u @ rot.T, v=geom.v @ rot.T)
     assert cone_reach(about_y, tilted).axis == 1 and cone_reach(about_y, tilted).n_reached == 4
+
+
+def test_a_grid_wholly_outside_the_field_of_view_is_all_outside_and_the_field_of_view_is_located():
+    """An outside tester's 20 mm ROI centred 40 mm off the axis of a scan whose field of view is 12.8 mm in radius
+    read outside_field_of_view_fraction 0.0: "no voxel covered" was taken for a scan without complete data, and every
+    voxel counted. A grid beyond the detector plane (300 mm off the axis of a 200 mm orbit) also counted as seen."""
+    from robot_ct_ros.ct.field_of_view import cone_reach, field_of_view_extent
+
+    geom = circular_scan(60, 200.0, 400.0, 16, 64, 0.8, 0.8)  # 6.4 mm tall at the axis: the grids fit the cones
+    r_fov = fov_radius_mm(0.5 * 64 * 0.8, 200.0, 400.0)
+    extent = field_of_view_extent(geom)
+    assert extent.radius_mm == pytest.approx(r_fov, rel=0.05)
+    assert np.allclose(extent.center_mm, 0.0, atol=1e-6) and abs(extent.axis[2]) == pytest.approx(1.0)
+    off = VolumeGrid.centered((4, 20, 20), 1.0, center_mm=(40.0, 0.0, 0.0))
+    assert not field_of_view_mask(geom, off).any()
+    note = extent.misses_note(off)
+    assert "the grid misses the field of view" in note and f"within {extent.radius_mm:.1f} mm" in note, note
+    assert "[0.0, 0.0, 0.0] mm" in note and "40.0 mm from that axis" in note, note
+    assert cone_reach(geom, off).outside_fraction == 0.0  # some view sees every voxel, from too few directions
+    beyond = VolumeGrid.centered((4, 20, 20), 1.0, center_mm=(300.0, 0.0, 0.0))
+    assert not field_of_view_mask(geom, beyond).any()
+    assert cone_reach(geom, beyond).outside_fraction == 1.0  # behind every source or beyond every detector
+    # a grid across the edge keeps its inside part; a limited-angle scan still has no field of view anywhere
+    edge = field_of_view_mask(geom, VolumeGrid.centered((1, 20, 20), 1.0, center_mm=(12.0, 0.0, 0.0)))
+    assert 0.05 < edge.mean() < 0.6
+    short = circular_scan(30, 200.0, 400.0, 4, 64, 0.8, 0.8, arc_rad=np.pi / 2)
+    assert field_of_view_extent(short) is None and field_of_view_mask(short, off).all()

@@ -101,3 +101,26 @@ def test_a_grid_taller_than_the_cone_is_noted_with_a_shape_that_fits(tmp_path):
                                say=said.append).report
     assert calibrated["notes"][0] == cone[0]
     assert json.loads((tmp_path / "c" / "report.json").read_text())["notes"][0] == cone[0]
+
+
+def test_a_grid_that_misses_the_field_of_view_reads_wholly_outside_and_calibrate_refuses_it(tmp_path):
+    """An outside tester's ROI 40 mm off the axis (field of view 12.8 mm in radius) read outside_field_of_view_fraction
+    0.0 with no note; calibrate of one 700 mm off said its FDK was zero in 0 % of the grid and advised
+    exterior_half_width_mm. Now 100 % outside, a note locating the field of view, and a clear refusal."""
+    import numpy as np
+
+    from robot_ct_ros.ct.calibration.loop import calibrate
+
+    geom = circular_scan(60, 200.0, 400.0, 4, 64, 0.8, 0.8)
+    li = np.zeros((60, 4, 64), np.float32)
+    off = write_scan(tmp_path / "off40", li, geom, projection_units="line_integral", roi_center_mm=(40.0, 0.0, 0.0),
+                     roi_size_mm=(20.0, 20.0, 2.0), voxel_size_mm=1.0)
+    report, said = _run(off, tmp_path / "r")
+    assert report["outside_field_of_view_fraction"] == 1.0
+    notes = [n for n in report["notes"] if n.startswith("the grid misses the field of view")]
+    assert len(notes) == 1 and "40.0 mm from that axis" in notes[0], report["notes"]
+    assert any(line == f"note: {notes[0]}" for line in said)
+    grid = VolumeGrid.centered((2, 20, 20), 1.0, center_mm=(500.0, 500.0, 0.0))
+    with pytest.raises(ValueError, match="the grid misses the field of view") as err:
+        calibrate(li, geom, grid, iterations=1)
+    assert "exterior_half_width" not in str(err.value)

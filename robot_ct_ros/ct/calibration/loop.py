@@ -27,7 +27,7 @@ from robot_ct_ros.ct.calibration.volume import (EXTERIOR_ABOVE, TRUNCATED_ABOVE,
                                                 estimation_grid,
                                                 projection_consistency, reconstruct_for_estimation,
                                                 truncation_level)
-from robot_ct_ros.ct.field_of_view import field_of_view_mask
+from robot_ct_ros.ct.field_of_view import field_of_view_extent, field_of_view_mask
 from robot_ct_ros.ct.geometry import PARAM_NAMES, ConeGeometry, VolumeGrid, observable_params
 from robot_ct_ros.ct.metrics import remove_gauge, roi_points
 
@@ -132,7 +132,9 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
     Raises
     ------
     ValueError
-        Frame and geometry counts or detector shapes disagree, or a setting is invalid.
+        Frame and geometry counts or detector shapes disagree, a setting is invalid, or (with a method that
+        estimates) the grid misses the scan's field of view: no voxel of it has complete data, while the scan has
+        such voxels elsewhere (:func:`~robot_ct_ros.ct.field_of_view.field_of_view_mask`).
     """
     settings = settings_with(settings, changes)
     method = get_method(settings.method)
@@ -327,6 +329,9 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
         volume = fdk(li, nominal, grid, valid_mask=mask, **(fdk_kwargs or {})) if final_volume else None
         return CalibrationResult(method.name, np.zeros((nominal.n_views, 9)), nominal, volume, (),
                                  time.perf_counter() - t_start, settings=settings.resolved())
+    if not field_of_view_mask(nominal, grid).any():  # the grid misses a field of view the scan has elsewhere
+        raise ValueError(f"{field_of_view_extent(nominal).misses_note(grid)}; the calibration has no object to "
+                         "register the views against there and stops")
     # the estimation's grid: the ROI grid, its axes renamed so that z runs along the scan axis (it is widened across
     # x and y); the final volume is reconstructed on the user's grid, and the gauge is fixed on its points
     est_grid = axis_last(grid, nominal)
