@@ -448,3 +448,27 @@ def test_export_of_an_unfinished_calibration_folder_says_so(tmp_path, bag, capsy
                  str(tmp_path / "x.npy")]) == 2
     _one_line_error(capsys, "calibrate folder whose run did not finish", "no report.json",
                     str(half / "scan_corrected"))
+
+
+@pytest.mark.parametrize("turn_deg, warned", [(0.0, False), (90.0, True), (30.0, True), (180.0, False)])
+def test_rtk_export_of_a_detector_turned_in_its_plane_warns_that_rtks_fdk_is_approximate(tmp_path, turn_deg, warned):
+    """An outside tester's detector turned 90 degrees in its plane was exported with InPlaneAngle 90 and no
+    warning; RTK's FDK of it (ramp-filtered along the rows) correlated 0.644 with the phantom, 0.988 unturned."""
+    if not _has_itk():
+        pytest.skip("needs itk-rtk")
+    from robot_ct_ros.jobs.export import export_geometry
+
+    g = circular_scan(8, 60.0, 150.0, 12, 20, 0.8, 0.8)
+    a = np.radians(turn_deg)
+    g = g.replace(u=np.cos(a) * g.u + np.sin(a) * g.v, v=-np.sin(a) * g.u + np.cos(a) * g.v)
+    src = write_scan(tmp_path / "scan", np.ones((g.n_views,) + g.det_shape, np.float32), g,
+                     projection_units="line_integral")
+    said = []
+    result = export_geometry(src, tmp_path / "g.xml", "rtk", say=said.append)
+    assert len([line for line in said if line.startswith("warning: the detector is turned")]) == int(warned), said
+    turned = [w for w in result["warnings"] if "turned in its plane" in w]
+    assert len(turned) == int(warned), result["warnings"]
+    if warned:
+        assert f"InPlaneAngle {turn_deg:.1f} deg" in turned[0] and "RTK's FDK ramp-filters along" in turned[0]
+        assert "transpose" in turned[0] and "robot-ct reconstruct" in turned[0]
+        assert f"warning: {turned[0]}" in said
