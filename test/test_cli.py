@@ -550,3 +550,20 @@ def test_the_command_records_the_stop_signals_it_handles():
     with pytest.raises(KeyboardInterrupt):
         cli._raise_interrupted(signal.SIGINT, None)
     assert cli._stop_signal[-1] == signal.SIGINT
+
+
+def test_info_never_reads_100_percent_valid_with_an_invalid_pixel(tmp_path, capsys):
+    """An outside tester's `info` printed `pixels 100.00 % valid` under `5 non-finite pixel values in 2 frames are
+    marked invalid` (the share rounded to two decimals)."""
+    from robot_ct_ros.bag import write_scan
+    from robot_ct_ros.ct.trajectory import circular_scan
+
+    g = circular_scan(60, 60.0, 150.0, 48, 64, 0.8, 0.8)
+    li = np.zeros((60, 48, 64), np.float32)
+    li[3, 10, 10:13] = np.nan
+    li[7, 0, :2] = np.inf
+    bag = write_scan(tmp_path / "nan5", li, g, projection_units="line_integral")
+    assert main(["info", str(bag)]) == 0
+    out = capsys.readouterr().out
+    assert "5 non-finite pixel values in 2 frames are marked invalid" in out, out
+    assert "pixels     99.997 % valid" in out, out
