@@ -718,8 +718,9 @@ def line_integral_warning(li, valid) -> str | None:
                 "1/voxel, not 1/mm)")
     negative = float(np.mean(values < NEGATIVE_LINE_INTEGRAL))
     if median < NEGATIVE_MEDIAN_LINE_INTEGRAL or negative > NEGATIVE_SHARE:
-        return (f"the usable line integrals are negative (median {median:.3g}, {100 * negative:.0f} % below "
-                f"{NEGATIVE_LINE_INTEGRAL:g}): more light than the flat field; sign-flipped (log(I/I0) written for "
+        return (f"{100 * negative:.0f} % of the usable line integrals lie below {NEGATIVE_LINE_INTEGRAL:g} (their "
+                f"median is {median:.3g}{': most rays see air' if median >= NEGATIVE_MEDIAN_LINE_INTEGRAL else ''}): "
+                "more light than the flat field; sign-flipped (log(I/I0) written for "
                 "-log(I/I0)), or a flat field dimmer than the exposures (the source drifted)?")
     p1, p99 = (float(x) for x in np.percentile(values, [1, 99]))
     if p1 < NEGATIVE_TAIL_LINE_INTEGRAL and -p1 > NEGATIVE_TAIL_RATIO * max(p99, 0.0):
