@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid
+from robot_ct_ros.ct.geometry import ConeGeometry, VolumeGrid, central_points_mm, views_center_mm
 
 from . import format as fmt
 from .format import ScanBagError, TooFewViewsError
@@ -758,41 +758,6 @@ MIN_SDD_MM = 1e-3
 the source position, say) has no cone: every ray lies in the detector plane (:func:`check_distances`)."""
 
 
-def central_points_mm(geom: ConeGeometry) -> np.ndarray:
-    """(n_views, 3) the point of each view's detector plane that its central ray (from the source) passes through
-    (mm, world): the principal point (the foot of the source's perpendicular, the ray along the detector normal w)
-    where the detector holds it, else the detector centre, each way separately: the principal point's offset
-    from the detector centre along u is kept when it lies within the detector's columns, and along v within its
-    rows, and set to 0 otherwise. A detector shifted in its plane (half-fan) keeps its principal ray; one tilted
-    out of its plane so far that the detector does not see the principal ray (25 degrees about v: the principal
-    ray misses the axis by SOD sin 25 = 85 mm) gets the ray through its centre."""
-    depth = np.einsum("ij,ij->i", geom.detector_mm - geom.source_mm, geom.w)
-    off = geom.source_mm + depth[:, None] * geom.w - geom.detector_mm  # principal point - detector centre
-    ou, ov = np.einsum("ij,ij->i", off, geom.u), np.einsum("ij,ij->i", off, geom.v)
-    ou = np.where(np.abs(ou) <= 0.5 * geom.n_cols * geom.col_pitch_mm, ou, 0.0)
-    ov = np.where(np.abs(ov) <= 0.5 * geom.n_rows * geom.row_pitch_mm, ov, 0.0)
-    return geom.detector_mm + ou[:, None] * geom.u + ov[:, None] * geom.v
-
-
-def views_center_mm(geom: ConeGeometry) -> np.ndarray:
-    """The centre of the views (mm, world): the point nearest, in least squares, to every view's central ray
-    (from the source through :func:`central_points_mm`: the principal ray where the detector sees it), or the
-    mean source position when those rays are parallel. The default ROI centre (:meth:`ScanData.scan_center_mm`,
-    which ``robot-ct info`` prints)."""
-    d = central_points_mm(geom) - geom.source_mm
-    d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-300)
-    A = np.zeros((3, 3))
-    b = np.zeros(3)
-    for s, w in zip(geom.source_mm, d):
-        P = np.eye(3) - np.outer(w, w)
-        A += P
-        b += P @ s
-    try:
-        return np.linalg.solve(A, b)
-    except np.linalg.LinAlgError:
-        return geom.source_mm.mean(axis=0)
-
-
 def check_distances(geom: ConeGeometry, topic: str) -> None:
     """Refuse (ValueError, naming ``topic``, the views affected and the values) a geometry that no transmission
     scan has: a median source-to-detector distance above :data:`MAX_SDD_M` (positions in mm on a wire in metres);
@@ -816,11 +781,9 @@ def check_distances(geom: ConeGeometry, topic: str) -> None:
                          f"above {MAX_SDD_M:g} m: the positions look like mm written on a wire in metres (ROS and "
                          f"this format take metres: {sdd_m:g} mm would be {sdd_m / fmt.MM_PER_M:g} m); write them "
                          "in metres")
-    d = central_points_mm(geom) - geom.source_mm
-    d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-300)
-    if np.linalg.eigvalsh(n * np.eye(3) - d.T @ d)[0] < 1e-9 * n:
+    c = views_center_mm(geom, determined_only=True)
+    if c is None:
         return  # one view, or rays all parallel: no centre of the views to judge the magnification by
-    c = views_center_mm(geom)
     w = geom.w
     sdd_signed = np.einsum("ij,ij->i", geom.detector_mm - geom.source_mm, w)
     sod_signed = np.einsum("ij,ij->i", c[None] - geom.source_mm, w)

@@ -131,8 +131,8 @@ def _xyz(p, digits: int) -> str:
 @dataclass(frozen=True)
 class FieldOfViewExtent:
     """Where a scan's field of view lies (:func:`field_of_view_extent`): about the scan axis ``axis`` (unit) through
-    ``center_mm`` (world mm: the point nearest every view's principal ray), within ``radius_mm`` of that axis
-    (the farthest point found with complete data, to about 3 % of it)."""
+    ``center_mm`` (world mm: the centre of the views, :func:`~robot_ct_ros.ct.geometry.views_center_mm`), within
+    ``radius_mm`` of that axis (the farthest point found with complete data, to about 3 % of it)."""
 
     center_mm: np.ndarray
     axis: np.ndarray
@@ -156,22 +156,14 @@ class FieldOfViewExtent:
 def field_of_view_extent(geom: ConeGeometry, *, probe_voxels: int = 65) -> FieldOfViewExtent | None:
     """Where the scan's field of view (:func:`field_of_view_mask`) lies across its axis, or None where no point
     has complete data (a limited-angle or degenerate scan, fewer than 3 views). Probed on one slice through the
-    point nearest every view's principal ray, across the scan axis: first over the sources' orbit, then over the
-    disc found, ``probe_voxels`` across each time (the radius to about 1.5 / ``probe_voxels`` of it)."""
-    from robot_ct_ros.ct.geometry import axis_frame
+    centre of the views (:func:`~robot_ct_ros.ct.geometry.views_center_mm`), across the scan axis: first over the
+    sources' orbit, then over the disc found, ``probe_voxels`` across each time (the radius to about 1.5 /
+    ``probe_voxels`` of it)."""
+    from robot_ct_ros.ct.geometry import axis_frame, views_center_mm
 
     if geom.n_views < 3:
         return None
-    A = np.zeros((3, 3))
-    b = np.zeros(3)
-    for s, w in zip(geom.source_mm, geom.w):
-        P = np.eye(3) - np.outer(w, w)
-        A += P
-        b += P @ s
-    try:
-        center = np.linalg.solve(A, b)
-    except np.linalg.LinAlgError:
-        center = geom.source_mm.mean(axis=0)
+    center = views_center_mm(geom)
     axis = estimate_scan_axis(geom)
     r = geom.source_mm - center
     orbit = float(np.max(np.linalg.norm(r - np.outer(r @ axis, axis), axis=1)))

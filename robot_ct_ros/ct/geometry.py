@@ -537,3 +537,34 @@ def view_mask(valid_mask, shape) -> np.ndarray:
     except ValueError:
         raise ValueError(f"valid_mask must have shape {shape[-2:]} (one map for all views) or {shape}, "
                          f"got {m.shape}") from None
+
+
+def central_points_mm(geom: ConeGeometry) -> np.ndarray:
+    """(n_views, 3) the point of each view's detector plane that its central ray (from the source) passes through
+    (mm, world): the principal point (the foot of the source's perpendicular, the ray along the detector normal w)
+    where the detector holds it, else the detector centre, each way separately: the principal point's offset
+    from the detector centre along u is kept when it lies within the detector's columns, and along v within its
+    rows, and set to 0 otherwise. A detector shifted in its plane (half-fan) keeps its principal ray; one tilted
+    out of its plane so far that the detector does not see the principal ray (25 degrees about v: the principal
+    ray misses the axis by SOD sin 25 = 85 mm) gets the ray through its centre."""
+    depth = np.einsum("ij,ij->i", geom.detector_mm - geom.source_mm, geom.w)
+    off = geom.source_mm + depth[:, None] * geom.w - geom.detector_mm  # principal point - detector centre
+    ou, ov = np.einsum("ij,ij->i", off, geom.u), np.einsum("ij,ij->i", off, geom.v)
+    ou = np.where(np.abs(ou) <= 0.5 * geom.n_cols * geom.col_pitch_mm, ou, 0.0)
+    ov = np.where(np.abs(ov) <= 0.5 * geom.n_rows * geom.row_pitch_mm, ov, 0.0)
+    return geom.detector_mm + ou[:, None] * geom.u + ov[:, None] * geom.v
+
+
+def views_center_mm(geom: ConeGeometry, *, determined_only: bool = False) -> np.ndarray | None:
+    """The centre of the views (mm, world): the point nearest, in least squares, to every view's central ray
+    (from the source through :func:`central_points_mm`: the principal ray where the detector sees it). Where the
+    rays fix no point (one view, or rays all parallel) it is the mean source position, or None with
+    ``determined_only``. The default ROI centre of a bag (``ScanData.scan_center_mm``, which ``robot-ct info``
+    prints) and the centre the field of view is located about (``field_of_view.field_of_view_extent``)."""
+    d = central_points_mm(geom) - geom.source_mm
+    d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-300)
+    projectors = np.eye(3)[None] - d[:, :, None] * d[:, None, :]  # onto each ray's normal plane
+    A = projectors.sum(axis=0)
+    if np.linalg.eigvalsh(A)[0] < 1e-9 * geom.n_views:
+        return None if determined_only else geom.source_mm.mean(axis=0)
+    return np.linalg.solve(A, np.einsum("nij,nj->i", projectors, geom.source_mm))

@@ -270,3 +270,22 @@ def test_sizes_that_are_not_finite_or_not_whole_are_refused():
         with pytest.raises(ValueError):
             make()
     assert VolumeGrid((4.0, 4, 4), (1, 1, 1)).shape_zyx == (4, 4, 4)  # a whole float is a size
+
+
+def test_the_centre_of_the_views_is_where_their_central_rays_meet_and_none_for_one_view():
+    """views_center_mm: a circular scan about a point off the origin is centred there, a detector tilted out of
+    its plane so far that it does not hold its principal point still points at the centre (the ray through its
+    centre), and one view fixes no centre (the reader's magnification check is then skipped)."""
+    from scipy.spatial.transform import Rotation
+
+    from robot_ct_ros.ct.geometry import views_center_mm
+    from robot_ct_ros.ct.trajectory import circular_scan
+
+    g = circular_scan(12, 200.0, 400.0, 16, 32, 0.8, 0.8)
+    centre = np.array([3.0, -2.0, 1.0])
+    moved = g.replace(source_mm=g.source_mm + centre, detector_mm=g.detector_mm + centre)
+    np.testing.assert_allclose(views_center_mm(moved), centre, atol=1e-9)
+    tilt = Rotation.from_rotvec(np.deg2rad(25.0) * np.array(g.v))  # about each detector's v, through its centre
+    tilted = moved.replace(u=tilt.apply(np.array(g.u)), v=np.array(g.v))
+    np.testing.assert_allclose(views_center_mm(tilted), centre, atol=1e-9)
+    assert views_center_mm(moved.subset([0]), determined_only=True) is None
