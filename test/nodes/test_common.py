@@ -194,3 +194,27 @@ def test_a_list_of_strings_setting_is_a_string_array_parameter_and_may_be_given_
     assert node.get_parameter("skip_topics").type_ == Parameter.Type.STRING_ARRAY
     with pytest.raises(ValueError, match="skip_topics"):
         settings("strings_numbers", ["-p", "skip_topics:=[1, 2]"])
+
+
+
+def test_the_params_files_are_taken_from_the_command_line_where_rcl_cannot_be_asked(ros, tmp_path, monkeypatch):
+    """The files are asked of rcl through ctypes (rclpy keeps no list of them); where that fails (another rcl
+    build, say) the ``--params-file`` entries of ``sys.argv`` stand in: what ``ros2 run`` and launch pass."""
+    import ctypes
+    import sys
+
+    from rclpy.node import Node
+
+    from robot_ct_ros.nodes.common import _params_files
+
+    args = _stacked(tmp_path, "/**:\n  ros__parameters:\n    kvp: 90.0\n")
+    files = args[2::2]  # the shipped file, then over0.yaml
+    node = ros.add(Node("source_control", context=ros.context, cli_args=args))
+    assert _params_files(node) == files  # asked of rcl: the node's own arguments
+
+    def no_library(*args, **kwargs):
+        raise OSError("no such library")
+
+    monkeypatch.setattr(ctypes, "CDLL", no_library)
+    monkeypatch.setattr(sys, "argv", ["source_control", "--ros-args", "-r", "__node:=source_control", *args[1:]])
+    assert _params_files(node) == files
