@@ -140,6 +140,11 @@ def calibrate(line_integrals: np.ndarray, nominal: ConeGeometry, grid: VolumeGri
     method = get_method(settings.method)
     say = progress or (lambda message: None)
     accuracy = settings.prior_sigma  # the robots' stated accuracy: the guard's reference, prior or not
+    # once per calibration, before any executor or ensemble member starts
+    if method.estimate is not None and not field_of_view_mask(nominal, grid).any():
+        # the grid misses a field of view the scan has elsewhere
+        raise ValueError(f"{field_of_view_extent(nominal).misses_note(grid)}; the calibration has no object to "
+                         "register the views against there and stops")
     if not method.uses_prior and accuracy is not None and method.estimate is not None:
         # the settings keep the stated accuracy (the guard reads it), so that the result's settings repeat the run
         say(f"{method.name} has no prior: the robots' error (prior_sigma) serves the guard only")
@@ -329,9 +334,6 @@ def _calibrate_once(line_integrals, nominal: ConeGeometry, grid: VolumeGrid, set
         volume = fdk(li, nominal, grid, valid_mask=mask, **(fdk_kwargs or {})) if final_volume else None
         return CalibrationResult(method.name, np.zeros((nominal.n_views, 9)), nominal, volume, (),
                                  time.perf_counter() - t_start, settings=settings.resolved())
-    if not field_of_view_mask(nominal, grid).any():  # the grid misses a field of view the scan has elsewhere
-        raise ValueError(f"{field_of_view_extent(nominal).misses_note(grid)}; the calibration has no object to "
-                         "register the views against there and stops")
     # the estimation's grid: the ROI grid, its axes renamed so that z runs along the scan axis (it is widened across
     # x and y); the final volume is reconstructed on the user's grid, and the gauge is fixed on its points
     est_grid = axis_last(grid, nominal)
